@@ -1,0 +1,267 @@
+"""The common agent interface and the shared config plumbing.
+
+Every algorithm (PPO, DQN, DDPG, TD3, A3C, IMPALA) is an :class:`Agent`, so one
+loop (``agents/loop.py``) can drive any mix of them:
+
+1. ``act(obs)`` picks an action for ONE observation and caches what learning
+   needs (log prob, value);
+2. ``observe(obs, action, reward, next_obs, terminated, truncated)`` records the
+   transition that followed;
+3. ``update()`` is called after every ``observe``; the agent learns when it is
+   time (a full rollout, every ``train_freq`` steps, ...) and returns namespaced
+   metrics (``losses/...``, ``charts/...``), else ``{}``.
+
+Hyperparameters live in one frozen :class:`AgentConfig` dataclass per
+algorithm, with named presets (``"default"``, ``"paper"``). Checkpoints are
+self-describing (``agents/checkpoint.py``).
+"""
+
+from __future__ import annotations
+
+import abc
+import contextlib
+import dataclasses
+import logging
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import gymnasium
+import numpy as np
+import torch
+
+__all__ = ["Agent", "AgentConfig", "check_range", "seeded_init"]
+
+logger = logging.getLogger(__name__)
+
+
+def check_range(
+    name: str,
+    value: float,
+    low: float | None = None,
+    high: float | None = None,
+    *,
+    low_inclusive: bool = True,
+    high_inclusive: bool = True,
+) -> None:
+    """Raise ``ValueError`` naming ``name`` and the valid range if ``value`` is outside it."""
+    bad = value != value  # NaN
+    if low is not None:
+        bad |= value < low if low_inclusive else value <= low
+    if high is not None:
+        bad |= value > high if high_inclusive else value >= high
+    if bad:
+        left = "-inf" if low is None else f"{'[' if low_inclusive else '('}{low}"
+        right = "inf" if high is None else f"{high}{']' if high_inclusive else ')'}"
+        raise ValueError(f"{name}={value!r} is out of range; valid range is {left}, {right}")
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentConfig:
+    """Base class of the per-algorithm hyperparameter dataclasses.
+
+    Subclasses declare fields (each with a one-line docstring under it), validate
+    them in ``__post_init__`` and list named presets in ``PRESETS`` as
+    ``{name: {field: value}}`` overrides of the field defaults.
+    """
+
+    PRESETS: ClassVar[Mapping[str, Mapping[str, Any]]] = {"default": {}}
+
+    @classmethod
+    def preset(cls, name: str = "default", **overrides: Any) -> AgentConfig:
+        """Build the named preset, optionally with some fields changed.
+
+        Args:
+            name: A key of ``PRESETS`` (``"default"``, ``"paper"``, ...).
+            **overrides: Field values that replace the preset's.
+
+        Raises:
+            ValueError: For an unknown preset or field name (the message lists the valid ones).
+        """
+        if name not in cls.PRESETS:
+            raise ValueError(f"unknown {cls.__name__} preset {name!r}; valid presets: {sorted(cls.PRESETS)}")
+        return cls.from_dict({**cls.PRESETS[name], **overrides})
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> AgentConfig:
+        """Build a config from a plain dict (YAML, a checkpoint), rejecting unknown keys."""
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(fields))
+        if unknown:
+            raise ValueError(f"unknown {cls.__name__} field(s) {unknown}; valid fields: {sorted(fields)}")
+        # YAML and some serialisers turn tuples into lists; tuple fields take them back.
+        clean = {
+            k: tuple(v) if isinstance(v, list) and "tuple" in str(fields[k].type) else v
+            for k, v in values.items()
+        }
+        return cls(**clean)
+
+    def replace(self, **changes: Any) -> AgentConfig:
+        """Return a copy with some fields changed (validated again)."""
+        return type(self).from_dict({**dataclasses.asdict(self), **changes})
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-dict view (``dataclasses.asdict``) for logs and checkpoints."""
+        return dataclasses.asdict(self)
+
+
+@contextlib.contextmanager
+def seeded_init(seed: int):
+    """Run network construction under ``seed`` without touching the caller's torch RNG.
+
+    Several agents in one process each build their networks deterministically from
+    their own seed, and the global torch RNG stream is left as it was.
+    """
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
+
+
+class Agent(abc.ABC):
+    """A learning agent: acts on one observation at a time, learns from what it observes.
+
+    Subclasses set ``algo`` and ``config_class`` and implement ``act``,
+    ``observe``, ``update`` and ``_build``. The default ``state_dict`` saves every
+    module in ``self.networks``, every optimizer in ``self.optimizers`` and the
+    dict returned by ``_extra_state`` (counters, schedules); override all three
+    only when that is not enough.
+
+    Attributes:
+        algo: Registry name (``"ppo"``, ``"dqn"``, ...).
+        config: The algorithm's frozen config dataclass.
+        observation_space: Gymnasium space of one observation.
+        action_space: Gymnasium space of one action.
+        device: Torch device the networks live on.
+        networks: Name -> ``nn.Module`` (everything with weights).
+        optimizers: Name -> ``torch.optim.Optimizer``.
+    """
+
+    algo: ClassVar[str]
+    config_class: ClassVar[type[AgentConfig]]
+
+    def __init__(
+        self,
+        observation_space: gymnasium.Space,
+        action_space: gymnasium.Space,
+        config: AgentConfig | None = None,
+        seed: int = 0,
+        device: str = "cpu",
+    ):
+        config = self.config_class() if config is None else config
+        if not isinstance(config, self.config_class):
+            raise TypeError(
+                f"{type(self).__name__} needs a {self.config_class.__name__}, got {type(config).__name__}"
+            )
+        self.check_spaces(observation_space, action_space)
+        self.config = config
+        self.observation_space = observation_space
+        self.action_space = action_space
+        self.seed = int(seed)
+        self.device = torch.device(device)
+        self.rng = np.random.default_rng(seed)
+        # Per-agent generator: sampling does not depend on what other agents drew.
+        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+        self.networks: dict[str, torch.nn.Module] = {}
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        with seeded_init(seed):
+            self._build()
+
+    # ---- what every algorithm implements -------------------------------------------
+    @classmethod
+    @abc.abstractmethod
+    def check_spaces(cls, observation_space: gymnasium.Space, action_space: gymnasium.Space) -> None:
+        """Raise ``ValueError`` naming the space and the fix if the algorithm cannot handle it."""
+
+    @abc.abstractmethod
+    def _build(self) -> None:
+        """Create networks and optimizers (runs under the agent's seed)."""
+
+    @abc.abstractmethod
+    def act(self, obs: np.ndarray, deterministic: bool = False):
+        """Choose an action for one observation.
+
+        Returns:
+            An ``int`` for Discrete spaces, a float32 array for Box spaces.
+        """
+
+    @abc.abstractmethod
+    def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
+        """Record the transition that followed the last ``act``."""
+
+    @abc.abstractmethod
+    def update(self) -> dict[str, float]:
+        """Learn if it is time; return namespaced metrics, or ``{}`` if nothing was learned."""
+
+    def _extra_state(self) -> dict[str, Any]:
+        """Plain values (ints, floats, tensors) besides weights needed to resume."""
+        return {}
+
+    def _load_extra_state(self, state: Mapping[str, Any]) -> None:
+        """Restore what ``_extra_state`` returned."""
+
+    # ---- shared plumbing ------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Weights, optimizer states and counters; only tensors and plain Python values."""
+        return {
+            "networks": {k: v.state_dict() for k, v in self.networks.items()},
+            "optimizers": {k: v.state_dict() for k, v in self.optimizers.items()},
+            "extra": self._extra_state(),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore what :meth:`state_dict` returned.
+
+        Raises:
+            KeyError: If a network or optimizer is missing from ``state``.
+        """
+        missing = sorted(set(self.networks) - set(state["networks"]))
+        if missing:
+            raise KeyError(f"state has no weights for network(s) {missing}")
+        for name, net in self.networks.items():
+            net.load_state_dict(state["networks"][name])
+        for name, optimizer in self.optimizers.items():
+            if name in state.get("optimizers", {}):
+                optimizer.load_state_dict(state["optimizers"][name])
+        self._load_extra_state(state.get("extra", {}))
+
+    def save(self, path) -> None:
+        """Write a self-describing checkpoint (see :func:`agents.checkpoint.save_checkpoint`)."""
+        from agents.checkpoint import save_checkpoint
+
+        save_checkpoint(path, self)
+
+    @classmethod
+    def load(cls, path, device: str = "cpu") -> Agent:
+        """Load a checkpoint of this algorithm; raise ``CheckpointError`` for another one."""
+        from agents.checkpoint import load_checkpoint
+
+        return load_checkpoint(path, device=device, expected_algo=cls.algo)
+
+    @classmethod
+    def from_spaces(
+        cls,
+        observation_space: gymnasium.Space,
+        action_space: gymnasium.Space,
+        config: AgentConfig | None = None,
+        seed: int = 0,
+        device: str = "cpu",
+    ) -> Agent:
+        """Build an untrained agent for these spaces (the constructor, by name)."""
+        return cls(observation_space, action_space, config=config, seed=seed, device=device)
+
+    def obs_batch(self, obs: np.ndarray) -> torch.Tensor:
+        """One observation -> a batch of one on the agent's device, checking its shape."""
+        array = np.asarray(obs)
+        if array.shape != self.observation_space.shape:
+            raise ValueError(
+                f"{self.algo} agent expected an observation of shape {self.observation_space.shape}, "
+                f"got {array.shape}; pass one observation at a time"
+            )
+        from agents.networks import obs_to_tensor
+
+        return obs_to_tensor(array[None], self.device)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(obs={self.observation_space}, act={self.action_space}, "
+            f"seed={self.seed}, device={self.device})"
+        )

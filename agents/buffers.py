@@ -1,0 +1,189 @@
+"""Experience storage: an on-policy rollout buffer and a memory-sane replay buffer.
+
+:class:`RolloutBuffer` holds one rollout of a single agent for PPO-style
+learners. :class:`ReplayBuffer` holds off-policy transitions for DQN, DDPG and
+TD3; it keeps observations in their own dtype (uint8 for images) and stores
+each observation ONCE: ``next_obs`` of transition ``i`` is read from slot
+``i + 1`` (the next transition's ``obs``), so a 100k-transition buffer of
+84x84x3 images takes ~2.1 GB instead of ~4.2 GB (SB3's
+``optimize_memory_usage`` idea). The only exception is a truncated episode,
+whose final observation is kept on the side because the next slot holds the
+first observation of the following episode.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium
+import numpy as np
+import torch
+
+from agents.networks import obs_to_tensor
+
+__all__ = ["ReplayBuffer", "ReplaySample", "RolloutBuffer"]
+
+
+def _obs_dtype(space: gymnasium.spaces.Box) -> np.dtype:
+    return np.uint8 if space.dtype == np.uint8 else np.float32
+
+
+class RolloutBuffer:
+    """Fixed-length time-major storage for one on-policy rollout of one agent.
+
+    Args:
+        size: Number of transitions per rollout.
+        observation_space: Space of one observation.
+        action_shape: Shape of one action (``()`` for Discrete).
+        action_dtype: numpy dtype of the actions.
+        n_logits: Width of the stored policy logits (0 to skip them).
+    """
+
+    def __init__(self, size: int, observation_space, action_shape=(), action_dtype=np.int64, n_logits: int = 0):
+        if size < 1:
+            raise ValueError(f"RolloutBuffer size must be >= 1, got {size}")
+        self.size = size
+        self.obs = np.zeros((size, *observation_space.shape), _obs_dtype(observation_space))
+        self.actions = np.zeros((size, *action_shape), action_dtype)
+        self.log_probs = np.zeros(size, np.float32)
+        self.logits = np.zeros((size, n_logits), np.float32)
+        self.values = np.zeros(size, np.float32)
+        self.rewards = np.zeros(size, np.float32)
+        self.terminateds = np.zeros(size, bool)
+        self.truncateds = np.zeros(size, bool)
+        # Value of the observation that followed step t; filled where it is not values[t + 1].
+        self.next_values = np.zeros(size, np.float32)
+        self.pos = 0
+
+    @property
+    def full(self) -> bool:
+        """True once ``size`` transitions are stored."""
+        return self.pos >= self.size
+
+    def add(self, obs, action, log_prob, value, reward, terminated, truncated, logits=None) -> int:
+        """Append one transition; returns its index.
+
+        Raises:
+            RuntimeError: If the buffer is already full (call ``reset`` after learning).
+        """
+        if self.full:
+            raise RuntimeError("RolloutBuffer is full; learn from it and call reset() first")
+        t = self.pos
+        self.obs[t] = obs
+        self.actions[t] = action
+        self.log_probs[t] = log_prob
+        self.values[t] = value
+        self.rewards[t] = reward
+        self.terminateds[t] = terminated
+        self.truncateds[t] = truncated
+        if logits is not None:
+            self.logits[t] = logits
+        self.pos += 1
+        return t
+
+    def bootstrap_values(self, last_next_value: float) -> np.ndarray:
+        """Fill ``next_values`` inside episodes from ``values[t + 1]``; the last step gets ``last_next_value``.
+
+        Steps that ended an episode keep what was written into ``next_values`` when
+        they were observed (the final observation's value for a truncation; ignored
+        for a termination).
+        """
+        ended = self.terminateds | self.truncateds
+        inside = ~ended[:-1]
+        self.next_values[:-1][inside] = self.values[1:][inside]
+        if not ended[-1]:
+            self.next_values[-1] = last_next_value
+        return self.next_values
+
+    def reset(self) -> None:
+        """Start a new rollout (the arrays are reused)."""
+        self.pos = 0
+        self.next_values[:] = 0.0
+
+
+@dataclass
+class ReplaySample:
+    """A minibatch of transitions as tensors (observations keep their stored dtype)."""
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    terminateds: torch.Tensor
+
+
+class ReplayBuffer:
+    """Circular replay buffer of one agent's transitions, each observation stored once.
+
+    Transitions must be added in the order they happened (what one agent in
+    ``run_loop`` does): while an episode continues, ``obs`` of a transition is
+    the ``next_obs`` of the one before it.
+
+    Args:
+        capacity: Maximum number of transitions kept.
+        observation_space: Space of one observation (uint8 images stay uint8).
+        action_space: Discrete or Box space of one action.
+        seed: Seed of the sampling generator.
+    """
+
+    def __init__(self, capacity: int, observation_space, action_space, seed: int = 0):
+        if capacity < 2:
+            raise ValueError(f"ReplayBuffer capacity must be >= 2, got {capacity}")
+        self.capacity = capacity
+        self.obs = np.zeros((capacity, *observation_space.shape), _obs_dtype(observation_space))
+        if isinstance(action_space, gymnasium.spaces.Discrete):
+            self.actions = np.zeros(capacity, np.int64)
+        else:
+            self.actions = np.zeros((capacity, *action_space.shape), np.float32)
+        self.rewards = np.zeros(capacity, np.float32)
+        self.terminateds = np.zeros(capacity, np.float32)
+        self.truncateds = np.zeros(capacity, bool)
+        self.final_obs: dict[int, np.ndarray] = {}  # truncated slot -> its real next_obs
+        self.pos = 0
+        self.size = 0
+        self.rng = np.random.default_rng(seed)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
+        """Store one transition."""
+        i, after = self.pos, (self.pos + 1) % self.capacity
+        self.obs[i] = obs
+        # Written now so the newest transition can be sampled; the next add() overwrites it
+        # with the same array while the episode goes on.
+        self.obs[after] = next_obs
+        self.actions[i] = action
+        self.rewards[i] = reward
+        self.terminateds[i] = float(terminated)
+        self.truncateds[i] = truncated and not terminated
+        self.final_obs.pop(i, None)
+        if self.truncateds[i]:
+            self.final_obs[i] = np.array(next_obs, dtype=self.obs.dtype, copy=True)
+        self.pos = after
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int, device="cpu") -> ReplaySample:
+        """Sample ``batch_size`` transitions uniformly (with replacement).
+
+        Raises:
+            ValueError: If the buffer is empty.
+        """
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty ReplayBuffer")
+        if self.size < self.capacity:
+            idx = self.rng.integers(0, self.size, batch_size)
+        else:
+            # Slot `pos` is the oldest transition, but its obs slot already holds the
+            # newest next_obs: skip it.
+            idx = (self.rng.integers(1, self.capacity, batch_size) + self.pos) % self.capacity
+        next_obs = self.obs[(idx + 1) % self.capacity]
+        for row in np.flatnonzero(self.truncateds[idx]):
+            next_obs[row] = self.final_obs[int(idx[row])]
+        return ReplaySample(
+            obs=obs_to_tensor(self.obs[idx], device),
+            actions=torch.as_tensor(self.actions[idx], device=device),
+            rewards=torch.as_tensor(self.rewards[idx], device=device),
+            next_obs=obs_to_tensor(next_obs, device),
+            terminateds=torch.as_tensor(self.terminateds[idx], device=device),
+        )

@@ -1,0 +1,205 @@
+"""Self-describing agent checkpoints.
+
+One file (``torch.save``) holds everything needed to rebuild an agent without
+knowing how it was trained::
+
+    {
+      "format": "cosim-agents-checkpoint", "format_version": 1,
+      "algo": "ppo", "config": {...dataclasses.asdict(config)...},
+      "observation_space": {"type": "Box", ...}, "action_space": {"type": "Discrete", ...},
+      "state": agent.state_dict(),          # weights, optimizer states, counters
+      "versions": {"torch": ..., "numpy": ..., "cosim-agents": ...},
+    }
+
+Spaces are plain dicts, not pickled objects, and every value is a tensor or a
+plain Python value, so loading uses ``torch.load(weights_only=True)``: a
+checkpoint cannot run code on the machine that loads it.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import logging
+import os
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "CheckpointError",
+    "load_checkpoint",
+    "save_checkpoint",
+    "space_from_dict",
+    "space_to_dict",
+]
+
+logger = logging.getLogger(__name__)
+
+FORMAT = "cosim-agents-checkpoint"
+FORMAT_VERSION = 1
+
+
+class CheckpointError(Exception):
+    """A checkpoint file is missing, unreadable, of another format or another algorithm."""
+
+
+def _library_version() -> str:
+    try:
+        return importlib.metadata.version("cosim")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _compact(array: np.ndarray):
+    """A scalar when every element is equal (image bounds), else a nested list."""
+    flat = array.reshape(-1)
+    if flat.size and np.all(flat == flat[0]):
+        return flat[0].item()
+    return array.tolist()
+
+
+def space_to_dict(space: gymnasium.Space) -> dict[str, Any]:
+    """Serialise a Box or Discrete space to a plain dict.
+
+    Raises:
+        ValueError: For other space types.
+    """
+    if isinstance(space, gymnasium.spaces.Discrete):
+        return {"type": "Discrete", "n": int(space.n), "start": int(space.start)}
+    if isinstance(space, gymnasium.spaces.Box):
+        return {
+            "type": "Box",
+            "shape": tuple(int(d) for d in space.shape),
+            "dtype": np.dtype(space.dtype).name,
+            "low": _compact(space.low),
+            "high": _compact(space.high),
+        }
+    raise ValueError(f"checkpoints support Box and Discrete spaces, got {space!r}")
+
+
+def space_from_dict(data: dict[str, Any]) -> gymnasium.Space:
+    """Rebuild a space written by :func:`space_to_dict`."""
+    if data["type"] == "Discrete":
+        return gymnasium.spaces.Discrete(data["n"], start=data.get("start", 0))
+    if data["type"] == "Box":
+        dtype = np.dtype(data["dtype"])
+        shape = tuple(data["shape"])
+        low = np.broadcast_to(np.asarray(data["low"], dtype=dtype), shape)
+        high = np.broadcast_to(np.asarray(data["high"], dtype=dtype), shape)
+        return gymnasium.spaces.Box(low=low, high=high, shape=shape, dtype=dtype)
+    raise ValueError(f"unknown space type {data['type']!r}")
+
+
+def save_checkpoint(path, agent) -> None:
+    """Write ``agent`` to ``path`` as one self-describing file.
+
+    The file is written to a temporary name and renamed, so an interrupted save
+    never leaves a truncated checkpoint under the final name.
+
+    Args:
+        path: Destination file (parent folders are created).
+        agent: An :class:`agents.base.Agent`.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "algo": agent.algo,
+        "config": agent.config.to_dict(),
+        "observation_space": space_to_dict(agent.observation_space),
+        "action_space": space_to_dict(agent.action_space),
+        "seed": agent.seed,
+        "state": agent.state_dict(),
+        "versions": {
+            "torch": torch.__version__,
+            "numpy": np.__version__,
+            "cosim-agents": _library_version(),
+        },
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+    logger.info("saved %s checkpoint to %s", agent.algo, path)
+
+
+def _read(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist; check the path (cwd is {Path.cwd()})")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError) as err:
+        raise CheckpointError(
+            f"checkpoint {path} is truncated or corrupt ({type(err).__name__}: {str(err)[:200]}); "
+            "re-save it from the training run or use an earlier checkpoint"
+        ) from err
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(
+            f"{path} is not a cosim agents checkpoint (no '{FORMAT}' header); "
+            "save agents with agent.save(path), not torch.save(model)"
+        )
+    version = payload.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CheckpointError(
+            f"checkpoint {path} has format version {version}, this library reads version "
+            f"{FORMAT_VERSION}; load it with the cosim version that wrote it "
+            f"({payload.get('versions', {}).get('cosim-agents', 'unknown')})"
+        )
+    return payload
+
+
+def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None):
+    """Rebuild an agent from a checkpoint written by :func:`save_checkpoint`.
+
+    Args:
+        path: The checkpoint file.
+        device: Torch device for the rebuilt agent.
+        expected_algo: If given, the checkpoint must hold this algorithm.
+
+    Returns:
+        The agent, with weights, optimizer states and counters restored.
+
+    Raises:
+        CheckpointError: If the file is missing, truncated or corrupt, of another
+            format or version, of another algorithm than ``expected_algo``, or its
+            contents do not match the algorithm's networks.
+    """
+    from agents.registry import get_agent_class
+
+    path = Path(path)
+    payload = _read(path)
+    algo = payload.get("algo")
+    if expected_algo is not None and algo != expected_algo:
+        raise CheckpointError(
+            f"checkpoint {path} holds a {algo!r} agent, not {expected_algo!r}; "
+            f"load it with agents.load(path) or the {algo!r} agent class"
+        )
+    try:
+        cls = get_agent_class(algo)
+    except KeyError as err:
+        raise CheckpointError(f"checkpoint {path}: {err.args[0]}") from None
+    try:
+        config = cls.config_class.from_dict(payload["config"])
+        agent = cls(
+            space_from_dict(payload["observation_space"]),
+            space_from_dict(payload["action_space"]),
+            config=config,
+            seed=payload.get("seed", 0),
+            device=device,
+        )
+        agent.load_state_dict(payload["state"])
+    except (KeyError, ValueError, TypeError, RuntimeError) as err:
+        raise CheckpointError(
+            f"checkpoint {path} ({algo}) does not match this library's {cls.__name__}: "
+            f"{type(err).__name__}: {str(err)[:300]}; it was written by versions "
+            f"{payload.get('versions')}"
+        ) from err
+    logger.info("loaded %s checkpoint from %s", algo, path)
+    return agent

@@ -1,0 +1,183 @@
+"""The one environment loop: independent learners stepping one ParallelEnv.
+
+This loop IS the contract between environments and agents (acme style):
+
+1. ``obs, infos = env.reset(seed=seed)``; ``env.agents`` lists the live agents.
+2. Each live agent ``a`` picks ``actions[a] = agents[a].act(obs[a])``.
+3. ``obs2, rewards, terminations, truncations, infos = env.step(actions)``.
+4. Each agent that acted gets ``observe(obs[a], actions[a], rewards[a], obs2[a],
+   terminations[a], truncations[a])`` and then ``update()``; ``obs2[a]`` of a
+   finished agent is its final observation, never a reset one.
+5. A finished agent leaves ``env.agents`` and is not asked to act again; when
+   no agent is left the env is reset (seed + episode index) and its episode
+   return and length are recorded.
+
+Every agent has its own networks (any mix of algorithms and of Discrete/Box
+action spaces). The loop times ``env.step`` separately from the agents'
+``act``/``observe``/``update`` so the bottleneck is visible in :class:`LoopStats`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+from agents.base import Agent
+
+__all__ = ["LoopStats", "evaluate", "run_loop"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class LoopStats:
+    """What happened during :func:`run_loop`.
+
+    Attributes:
+        env_steps: Number of ``env.step`` calls.
+        agent_steps: Transitions observed, summed over agents.
+        episodes: Number of env resets after all agents finished.
+        episode_returns: Agent id -> list of undiscounted episode returns.
+        episode_lengths: Agent id -> list of episode lengths.
+        env_time_s: Wall time inside ``env.reset``/``env.step``.
+        act_time_s: Wall time inside ``act``.
+        learn_time_s: Wall time inside ``observe`` and ``update``.
+        updates: Number of ``update()`` calls that returned metrics (learning steps).
+        last_metrics: Agent id -> the last non-empty metrics dict.
+    """
+
+    env_steps: int = 0
+    agent_steps: int = 0
+    episodes: int = 0
+    episode_returns: dict[str, list[float]] = field(default_factory=dict)
+    episode_lengths: dict[str, list[int]] = field(default_factory=dict)
+    env_time_s: float = 0.0
+    act_time_s: float = 0.0
+    learn_time_s: float = 0.0
+    updates: int = 0
+    last_metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    @property
+    def wall_time_s(self) -> float:
+        """Time spent in the env plus the agents (loop bookkeeping excluded)."""
+        return self.env_time_s + self.act_time_s + self.learn_time_s
+
+    def summary(self) -> dict[str, float]:
+        """Namespaced timing metrics (``time/...``) for logs."""
+        total = max(self.wall_time_s, 1e-9)
+        return {
+            "time/env_steps_per_s": self.env_steps / total,
+            "time/env_fraction": self.env_time_s / total,
+            "time/act_fraction": self.act_time_s / total,
+            "time/learn_fraction": self.learn_time_s / total,
+        }
+
+
+def run_loop(
+    agents: Mapping[str, Agent],
+    env,
+    total_steps: int,
+    callback: Callable[[int, LoopStats, dict[str, dict[str, float]]], bool | None] | None = None,
+    seed: int = 0,
+    learn: bool = True,
+    deterministic: bool = False,
+) -> LoopStats:
+    """Step ``env`` for ``total_steps`` env steps, with each agent acting and learning.
+
+    Args:
+        agents: Agent id -> agent; must cover ``env.possible_agents``.
+        env: A PettingZoo-ParallelEnv-like object (see the module docstring).
+        total_steps: Number of ``env.step`` calls to make.
+        callback: Called after every env step as ``callback(step, stats, metrics)``
+            where ``metrics`` holds this step's non-empty ``update()`` results by
+            agent; returning True stops the loop early.
+        seed: Seed of the first reset; episode ``k`` resets with ``seed + k``.
+        learn: If False, agents only act (no ``observe``/``update``): evaluation.
+        deterministic: Passed to ``act`` (greedy actions for evaluation).
+
+    Returns:
+        The :class:`LoopStats` of the run.
+
+    Raises:
+        KeyError: If the env has an agent id that ``agents`` does not cover.
+    """
+    missing = sorted(set(env.possible_agents) - set(agents))
+    if missing:
+        raise KeyError(f"run_loop has no agent for env agent(s) {missing}; pass one Agent per id")
+    stats = LoopStats()
+    clock = time.perf_counter
+    returns: dict[str, float] = {}
+    lengths: dict[str, int] = {}
+
+    start = clock()
+    obs, _ = env.reset(seed=seed)
+    stats.env_time_s += clock() - start
+    returns = dict.fromkeys(env.agents, 0.0)
+    lengths = dict.fromkeys(env.agents, 0)
+
+    for step in range(1, total_steps + 1):
+        start = clock()
+        live = list(env.agents)
+        actions = {a: agents[a].act(obs[a], deterministic=deterministic) for a in live}
+        stats.act_time_s += clock() - start
+
+        start = clock()
+        next_obs, rewards, terminations, truncations, _ = env.step(actions)
+        stats.env_time_s += clock() - start
+        stats.env_steps += 1
+
+        start = clock()
+        step_metrics: dict[str, dict[str, float]] = {}
+        for a in live:
+            reward = float(rewards[a])
+            returns[a] += reward
+            lengths[a] += 1
+            if learn:
+                agents[a].observe(obs[a], actions[a], reward, next_obs[a], bool(terminations[a]), bool(truncations[a]))
+                metrics = agents[a].update()
+                if metrics:
+                    step_metrics[a] = metrics
+                    stats.last_metrics[a] = metrics
+                    stats.updates += 1
+        stats.agent_steps += len(live)
+        stats.learn_time_s += clock() - start
+
+        if not env.agents:
+            for a in returns:
+                stats.episode_returns.setdefault(a, []).append(returns[a])
+                stats.episode_lengths.setdefault(a, []).append(lengths[a])
+            stats.episodes += 1
+            start = clock()
+            obs, _ = env.reset(seed=seed + stats.episodes)
+            stats.env_time_s += clock() - start
+            returns = dict.fromkeys(env.agents, 0.0)
+            lengths = dict.fromkeys(env.agents, 0)
+        else:
+            obs = next_obs
+
+        if callback is not None and callback(step, stats, step_metrics):
+            logger.info("run_loop stopped by callback at step %d", step)
+            break
+    return stats
+
+
+def evaluate(agents: Mapping[str, Agent], env, episodes: int, seed: int = 10_000, deterministic: bool = True) -> dict[str, list[float]]:
+    """Run ``episodes`` full episodes without learning; return each agent's episode returns.
+
+    Args:
+        agents: Agent id -> agent.
+        env: A ParallelEnv-like env (a separate instance from the training env).
+        episodes: Number of complete episodes to play.
+        seed: Seed of the first evaluation episode.
+        deterministic: Greedy actions if True.
+    """
+    if episodes < 1:
+        raise ValueError(f"evaluate needs episodes >= 1, got {episodes}")
+
+    def stop(_step: int, stats: LoopStats, _metrics) -> bool:
+        return stats.episodes >= episodes
+
+    stats = run_loop(agents, env, total_steps=10**9, callback=stop, seed=seed, learn=False, deterministic=deterministic)
+    return stats.episode_returns

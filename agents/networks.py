@@ -1,0 +1,298 @@
+"""Shared PyTorch building blocks for every algorithm in ``agents``.
+
+Encoders turn an observation batch into a feature vector: :class:`NatureCNN`
+(Mnih et al. 2015) for ``(H, W, C)`` images, :class:`MLPEncoder` for flat
+vectors; :func:`make_encoder` picks one from the observation space. The heads
+built on them are the ones the algorithms need: :class:`ActorCritic` (PPO, A3C,
+IMPALA), :class:`DuelingQNetwork` (DQN), :class:`DeterministicActor` and
+:class:`QCritic` (DDPG, TD3). :func:`polyak_update` is the soft target update.
+
+Only torch, numpy and Gymnasium spaces are used here: the driving simulator is
+invisible to this package.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import gymnasium
+import numpy as np
+import torch
+from torch import nn
+
+__all__ = [
+    "ActorCritic",
+    "DeterministicActor",
+    "DuelingQNetwork",
+    "MLPEncoder",
+    "NatureCNN",
+    "QCritic",
+    "dueling_aggregate",
+    "layer_init",
+    "make_encoder",
+    "obs_to_tensor",
+    "polyak_update",
+]
+
+
+def layer_init(layer: nn.Module, std: float = float(np.sqrt(2)), bias: float = 0.0) -> nn.Module:
+    """Orthogonal weight init with a constant bias (the CleanRL/SB3 default).
+
+    Args:
+        layer: An ``nn.Linear`` or ``nn.Conv2d``.
+        std: Gain of the orthogonal init; sqrt(2) suits ReLU layers, small values
+            (0.01) suit policy-logit heads so the initial policy is near uniform.
+        bias: Constant bias value.
+
+    Returns:
+        The same layer, initialised in place.
+    """
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.constant_(layer.bias, bias)
+    return layer
+
+
+class NatureCNN(nn.Module):
+    """The Nature-DQN convolutional encoder for ``(H, W, C)`` images.
+
+    Accepts uint8 or float observations with values in 0..255 in channel-last
+    layout (what the environment emits), permutes them to NCHW and scales them
+    to 0..1 inside the network, so buffers can keep compact uint8 copies.
+
+    Attributes:
+        features_dim: Size of the output feature vector.
+    """
+
+    def __init__(self, obs_shape: tuple[int, int, int], features_dim: int = 512):
+        super().__init__()
+        if len(obs_shape) != 3:
+            raise ValueError(f"NatureCNN needs an (H, W, C) observation shape, got {obs_shape}")
+        height, width, channels = (int(d) for d in obs_shape)
+        if min(height, width) < 36:
+            raise ValueError(
+                f"NatureCNN needs images of at least 36x36 (8/4, 4/2, 3/1 convolutions), "
+                f"got {height}x{width}; resize the observation or use a smaller encoder"
+            )
+        self.cnn = nn.Sequential(
+            layer_init(nn.Conv2d(channels, 32, kernel_size=8, stride=4)),
+            nn.ReLU(),
+            layer_init(nn.Conv2d(32, 64, kernel_size=4, stride=2)),
+            nn.ReLU(),
+            layer_init(nn.Conv2d(64, 64, kernel_size=3, stride=1)),
+            nn.ReLU(),
+            nn.Flatten(),
+        )
+        # Infer the flatten size with a dummy forward pass (SB3 style) instead of
+        # hard-coding 3136, so any image size that survives the strides works.
+        with torch.no_grad():
+            n_flatten = self.cnn(torch.zeros(1, channels, height, width)).shape[1]
+        self.linear = nn.Sequential(layer_init(nn.Linear(n_flatten, features_dim)), nn.ReLU())
+        self.features_dim = features_dim
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Encode a batch ``(B, H, W, C)`` of images with values 0..255."""
+        x = obs.float().permute(0, 3, 1, 2) / 255.0
+        return self.linear(self.cnn(x))
+
+
+class MLPEncoder(nn.Module):
+    """A tanh MLP for flat observation vectors.
+
+    Attributes:
+        features_dim: Size of the output feature vector (the last hidden width).
+    """
+
+    def __init__(self, obs_dim: int, hidden: tuple[int, ...] = (64, 64)):
+        super().__init__()
+        if obs_dim < 1 or not hidden:
+            raise ValueError(f"MLPEncoder needs obs_dim >= 1 and >= 1 hidden layer, got {obs_dim}, {hidden}")
+        layers: list[nn.Module] = []
+        width = obs_dim
+        for size in hidden:
+            layers += [layer_init(nn.Linear(width, size)), nn.Tanh()]
+            width = size
+        self.net = nn.Sequential(*layers)
+        self.features_dim = width
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Encode a batch ``(B, obs_dim)`` (extra trailing dims are flattened)."""
+        return self.net(obs.float().flatten(1))
+
+
+def _is_image_space(observation_space: gymnasium.spaces.Box) -> bool:
+    return len(observation_space.shape) == 3
+
+
+def make_encoder(
+    observation_space: gymnasium.spaces.Box, hidden: tuple[int, ...] = (64, 64)
+) -> nn.Module:
+    """Build the encoder suited to an observation space.
+
+    Args:
+        observation_space: A Box; 3-D shapes are treated as ``(H, W, C)`` images.
+        hidden: Hidden sizes for the MLP encoder (ignored for images).
+
+    Returns:
+        A module with a ``features_dim`` attribute: :class:`NatureCNN` for images,
+        :class:`MLPEncoder` otherwise.
+
+    Raises:
+        ValueError: If the space is not a Box.
+    """
+    if not isinstance(observation_space, gymnasium.spaces.Box):
+        raise ValueError(
+            f"agents support Box observation spaces only, got {observation_space!r}; "
+            "flatten Dict/Tuple observations with a gymnasium wrapper first"
+        )
+    if _is_image_space(observation_space):
+        return NatureCNN(tuple(observation_space.shape))
+    return MLPEncoder(int(np.prod(observation_space.shape)), hidden)
+
+
+def obs_to_tensor(obs: np.ndarray, device) -> torch.Tensor:
+    """Convert an observation batch to a tensor on ``device``.
+
+    uint8 images stay uint8 (4x less to copy; the encoder scales them), every
+    other dtype becomes float32. No batch dimension is added.
+    """
+    array = np.asarray(obs)
+    if array.dtype == np.uint8:
+        return torch.as_tensor(array, device=device)
+    return torch.as_tensor(array, dtype=torch.float32, device=device)
+
+
+class ActorCritic(nn.Module):
+    """Shared encoder with a categorical policy head and a state-value head."""
+
+    def __init__(self, observation_space, n_actions: int, hidden: tuple[int, ...] = (64, 64)):
+        super().__init__()
+        self.encoder = make_encoder(observation_space, hidden)
+        self.policy_head = layer_init(nn.Linear(self.encoder.features_dim, n_actions), std=0.01)
+        self.value_head = layer_init(nn.Linear(self.encoder.features_dim, 1), std=1.0)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return ``(logits (B, n_actions), value (B,))``."""
+        features = self.encoder(obs)
+        return self.policy_head(features), self.value_head(features).squeeze(-1)
+
+
+def dueling_aggregate(value: torch.Tensor, advantages: torch.Tensor) -> torch.Tensor:
+    """Combine dueling streams: ``Q = V + A - mean(A)`` (Wang et al. 2016, eq. 9).
+
+    Args:
+        value: ``(B, 1)`` or ``(B,)`` state values.
+        advantages: ``(B, n_actions)`` action advantages.
+
+    Returns:
+        ``(B, n_actions)`` Q-values.
+    """
+    if value.dim() == 1:
+        value = value.unsqueeze(-1)
+    return value + advantages - advantages.mean(dim=-1, keepdim=True)
+
+
+class DuelingQNetwork(nn.Module):
+    """Encoder followed by separate value and advantage streams."""
+
+    def __init__(self, observation_space, n_actions: int, hidden: tuple[int, ...] = (64, 64)):
+        super().__init__()
+        self.encoder = make_encoder(observation_space, hidden)
+        width = self.encoder.features_dim
+        self.value_head = layer_init(nn.Linear(width, 1), std=1.0)
+        self.advantage_head = layer_init(nn.Linear(width, n_actions), std=1.0)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Return Q-values ``(B, n_actions)``."""
+        features = self.encoder(obs)
+        return dueling_aggregate(self.value_head(features), self.advantage_head(features))
+
+
+def _check_box(action_space) -> None:
+    if not isinstance(action_space, gymnasium.spaces.Box) or len(action_space.shape) != 1:
+        raise ValueError(f"continuous agents need a 1-D Box action space, got {action_space!r}")
+    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+        raise ValueError(f"action space bounds must be finite to scale tanh, got {action_space!r}")
+
+
+class DeterministicActor(nn.Module):
+    """Encoder + tanh head scaled to the Box bounds: ``a = mid + half_range * tanh(.)``."""
+
+    def __init__(self, observation_space, action_space: gymnasium.spaces.Box, hidden: tuple[int, ...] = (256, 256)):
+        super().__init__()
+        _check_box(action_space)
+        self.encoder = make_encoder(observation_space, hidden)
+        self.mu = layer_init(nn.Linear(self.encoder.features_dim, action_space.shape[0]), std=0.01)
+        low = torch.as_tensor(action_space.low, dtype=torch.float32)
+        high = torch.as_tensor(action_space.high, dtype=torch.float32)
+        # Buffers, not parameters: they move with .to(device) and live in state_dict.
+        self.register_buffer("action_scale", (high - low) / 2.0)
+        self.register_buffer("action_bias", (high + low) / 2.0)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Return actions ``(B, action_dim)`` inside the Box bounds."""
+        return self.action_bias + self.action_scale * torch.tanh(self.mu(self.encoder(obs)))
+
+
+class QCritic(nn.Module):
+    """State-action value ``Q(s, a) -> (B,)``; the action joins after the encoder.
+
+    Actions are normalised to [-1, 1] before concatenation so the critic sees the
+    same scale whatever the Box bounds are.
+    """
+
+    def __init__(self, observation_space, action_space: gymnasium.spaces.Box, hidden: tuple[int, ...] = (256, 256)):
+        super().__init__()
+        _check_box(action_space)
+        action_dim = action_space.shape[0]
+        if _is_image_space(observation_space):
+            self.encoder = NatureCNN(tuple(observation_space.shape))
+            self.head = nn.Sequential(
+                layer_init(nn.Linear(self.encoder.features_dim + action_dim, hidden[-1])),
+                nn.ReLU(),
+                layer_init(nn.Linear(hidden[-1], 1), std=1.0),
+            )
+        else:
+            # Flat observations: CleanRL-style MLP on concat(obs, action) from the start.
+            self.encoder = nn.Flatten()
+            layers: list[nn.Module] = []
+            width = int(np.prod(observation_space.shape)) + action_dim
+            for size in hidden:
+                layers += [layer_init(nn.Linear(width, size)), nn.ReLU()]
+                width = size
+            layers.append(layer_init(nn.Linear(width, 1), std=1.0))
+            self.head = nn.Sequential(*layers)
+        low = torch.as_tensor(action_space.low, dtype=torch.float32)
+        high = torch.as_tensor(action_space.high, dtype=torch.float32)
+        self.register_buffer("action_scale", (high - low) / 2.0)
+        self.register_buffer("action_bias", (high + low) / 2.0)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Return ``Q(obs, action)`` with shape ``(B,)``."""
+        features = self.encoder(obs if isinstance(self.encoder, NatureCNN) else obs.float())
+        normalised = (action.float() - self.action_bias) / self.action_scale
+        return self.head(torch.cat([features, normalised], dim=-1)).squeeze(-1)
+
+
+@torch.no_grad()
+def polyak_update(
+    params: Iterable[torch.Tensor], target_params: Iterable[torch.Tensor], tau: float
+) -> None:
+    """Soft target update ``target <- tau * param + (1 - tau) * target``, in place.
+
+    Args:
+        params: Online parameters (e.g. ``net.parameters()``).
+        target_params: Target parameters, same order and shapes.
+        tau: Interpolation factor in [0, 1]; 1 copies the online weights.
+
+    Raises:
+        ValueError: If tau is outside [0, 1] or the two lists differ in length.
+    """
+    if not 0.0 <= tau <= 1.0:
+        raise ValueError(f"polyak_update tau must be in [0, 1], got {tau}")
+    params, target_params = list(params), list(target_params)
+    if len(params) != len(target_params):
+        raise ValueError(
+            f"polyak_update got {len(params)} params but {len(target_params)} target params"
+        )
+    for param, target in zip(params, target_params, strict=True):
+        target.mul_(1.0 - tau).add_(param, alpha=tau)

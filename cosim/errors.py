@@ -1,0 +1,31 @@
+"""Exceptions a user can cause, each naming the bad input and the fix."""
+
+from __future__ import annotations
+
+
+class CosimError(Exception):
+    """Base class of every error cosim raises on purpose."""
+
+
+class ScenarioError(CosimError, ValueError):
+    """A scenario name, YAML file or value is wrong."""
+
+
+class NetError(CosimError):
+    """A SUMO network, demand or additional file is malformed or out of date."""
+
+
+class SumoError(CosimError):
+    """SUMO refused or failed; carries SUMO's own message. SUMO is closed when this is raised."""
+
+
+class ActionError(CosimError, ValueError):
+    """An action has the wrong type, shape or a non-finite value."""
+
+
+class EnvStateError(CosimError, RuntimeError):
+    """An environment method was called in a state that does not allow it (e.g. step before reset)."""
+
+
+class SimulatorUnavailable(CosimError, RuntimeError):
+    """SUMO or PyBullet is missing or broken on this machine."""

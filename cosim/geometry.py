@@ -1,0 +1,164 @@
+"""Plane geometry for events: oriented footprints, overlap tests, polylines, rasters.
+
+Pure numpy functions, tested on hand-made shapes. Angles are radians,
+counter-clockwise from the x axis (east); SUMO's compass angles are converted
+at the bridge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def rect_corners(x: float, y: float, heading: float, length: float, width: float) -> np.ndarray:
+    """Corners (4, 2) of an oriented rectangle centred at (x, y), counter-clockwise."""
+    c, s = np.cos(heading), np.sin(heading)
+    hl, hw = length / 2.0, width / 2.0
+    local = np.array([[hl, -hw], [hl, hw], [-hl, hw], [-hl, -hw]])
+    rot = np.array([[c, -s], [s, c]])
+    return local @ rot.T + np.array([x, y])
+
+
+def _axes(poly: np.ndarray) -> np.ndarray:
+    edges = np.roll(poly, -1, axis=0) - poly
+    normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+    norms = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(norms == 0, 1, norms)
+
+
+def convex_overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    """Separating-axis test: do two convex polygons (k, 2) overlap (touching counts)?"""
+    for axis in np.concatenate([_axes(a), _axes(b)]):
+        pa, pb = a @ axis, b @ axis
+        if pa.max() < pb.min() or pb.max() < pa.min():
+            return False
+    return True
+
+
+def rect_circle_overlap(corners: np.ndarray, cx: float, cy: float, radius: float) -> bool:
+    """Does an oriented rectangle (its 4 corners, in order) overlap a circle?"""
+    origin = corners[0]
+    u = corners[1] - origin
+    v = corners[3] - origin
+    p = np.array([cx, cy]) - origin
+    lu, lv = float(u @ u), float(v @ v)
+    tu = min(max(float(p @ u) / lu, 0.0), 1.0)
+    tv = min(max(float(p @ v) / lv, 0.0), 1.0)
+    nearest = origin + tu * u + tv * v
+    return float(np.hypot(*(nearest - (cx, cy)))) <= radius
+
+
+@dataclass(frozen=True)
+class Polyline:
+    """A path with cumulative arc length, for progress along a route."""
+
+    points: np.ndarray  # (n, 2)
+    cumlen: np.ndarray  # (n,)
+
+    @classmethod
+    def from_points(cls, points: np.ndarray) -> Polyline:
+        pts = np.asarray(points, dtype=float)
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-6])
+        pts = pts[keep]
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        return cls(pts, np.concatenate([[0.0], np.cumsum(seg)]))
+
+    @property
+    def length(self) -> float:
+        return float(self.cumlen[-1])
+
+    def project(self, x: float, y: float) -> tuple[float, float]:
+        """(arc length of the nearest point, signed lateral offset, + = left of travel)."""
+        a, b = self.points[:-1], self.points[1:]
+        d = b - a
+        seglen2 = np.einsum("ij,ij->i", d, d)
+        p = np.array([x, y])
+        t = np.clip(np.einsum("ij,ij->i", p - a, d) / seglen2, 0.0, 1.0)
+        nearest = a + t[:, None] * d
+        dist2 = np.einsum("ij,ij->i", p - nearest, p - nearest)
+        i = int(np.argmin(dist2))
+        cross = d[i, 0] * (y - a[i, 1]) - d[i, 1] * (x - a[i, 0])
+        lateral = float(np.sqrt(dist2[i])) * (1.0 if cross >= 0 else -1.0)
+        return float(self.cumlen[i] + t[i] * np.sqrt(seglen2[i])), lateral
+
+    def point_at(self, s: float) -> np.ndarray:
+        """The point at arc length s (clamped to the ends)."""
+        s = min(max(s, 0.0), self.length)
+        i = int(np.searchsorted(self.cumlen, s, side="right") - 1)
+        i = min(i, len(self.points) - 2)
+        seg = self.cumlen[i + 1] - self.cumlen[i]
+        t = 0.0 if seg == 0 else (s - self.cumlen[i]) / seg
+        return self.points[i] + t * (self.points[i + 1] - self.points[i])
+
+    def heading_at(self, s: float) -> float:
+        s = min(max(s, 0.0), self.length)
+        i = int(np.searchsorted(self.cumlen, s, side="right") - 1)
+        i = min(max(i, 0), len(self.points) - 2)
+        d = self.points[i + 1] - self.points[i]
+        return float(np.arctan2(d[1], d[0]))
+
+
+class Raster:
+    """A boolean grid over an axis-aligned box; cells are set by painting shapes."""
+
+    def __init__(self, bounds: tuple[float, float, float, float], resolution: float = 0.25):
+        self.xmin, self.ymin, xmax, ymax = bounds
+        self.res = resolution
+        self.nx = int(np.ceil((xmax - self.xmin) / resolution))
+        self.ny = int(np.ceil((ymax - self.ymin) / resolution))
+        self.grid = np.zeros((self.ny, self.nx), dtype=bool)
+
+    def _window(self, lo: np.ndarray, hi: np.ndarray):
+        i0 = max(int((lo[0] - self.xmin) / self.res), 0)
+        j0 = max(int((lo[1] - self.ymin) / self.res), 0)
+        i1 = min(int((hi[0] - self.xmin) / self.res) + 2, self.nx)
+        j1 = min(int((hi[1] - self.ymin) / self.res) + 2, self.ny)
+        if i0 >= i1 or j0 >= j1:
+            return None
+        xs = self.xmin + (np.arange(i0, i1) + 0.5) * self.res
+        ys = self.ymin + (np.arange(j0, j1) + 0.5) * self.res
+        gx, gy = np.meshgrid(xs, ys)
+        return (slice(j0, j1), slice(i0, i1)), gx, gy
+
+    def paint_polyline(self, points: np.ndarray, half_width: float) -> None:
+        """Set every cell within half_width of the polyline (a lane of that width)."""
+        pts = np.asarray(points, dtype=float)
+        if len(pts) == 1:
+            pts = np.vstack([pts, pts])
+        for a, b in zip(pts[:-1], pts[1:], strict=True):
+            win = self._window(np.minimum(a, b) - half_width, np.maximum(a, b) + half_width)
+            if win is None:
+                continue
+            sl, gx, gy = win
+            d = b - a
+            L2 = float(d @ d) or 1e-12
+            t = np.clip(((gx - a[0]) * d[0] + (gy - a[1]) * d[1]) / L2, 0.0, 1.0)
+            dist2 = (gx - a[0] - t * d[0]) ** 2 + (gy - a[1] - t * d[1]) ** 2
+            self.grid[sl] |= dist2 <= half_width**2
+
+    def paint_polygon(self, poly: np.ndarray) -> None:
+        """Set every cell whose centre is inside the (possibly non-convex) polygon."""
+        poly = np.asarray(poly, dtype=float)
+        win = self._window(poly.min(axis=0), poly.max(axis=0))
+        if win is None:
+            return
+        sl, gx, gy = win
+        inside = np.zeros(gx.shape, dtype=bool)
+        for (x0, y0), (x1, y1) in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+            crosses = (y0 > gy) != (y1 > gy)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xint = x0 + (gy - y0) * (x1 - x0) / (y1 - y0)
+            inside ^= crosses & (gx < xint)
+        self.grid[sl] |= inside
+
+    def lookup(self, points: np.ndarray) -> np.ndarray:
+        """Values at points (k, 2); points outside the box read False."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        i = np.floor((pts[:, 0] - self.xmin) / self.res).astype(int)
+        j = np.floor((pts[:, 1] - self.ymin) / self.res).astype(int)
+        ok = (i >= 0) & (i < self.nx) & (j >= 0) & (j < self.ny)
+        out = np.zeros(len(pts), dtype=bool)
+        out[ok] = self.grid[j[ok], i[ok]]
+        return out

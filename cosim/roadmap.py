@@ -1,0 +1,316 @@
+"""The static world of one scenario, precomputed once: lanes, routes, road objects.
+
+Built from the SUMO network with sumolib and cached per process. It answers the
+per-step geometric questions cheaply: is a point on the drivable surface, is it in
+the lanes of this AC's travel direction, how far along its route is an AC, which
+static objects are near.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cosim.errors import NetError, ScenarioError
+from cosim.geometry import Polyline, Raster
+from cosim.scenario import ACSpec, Scenario
+
+log = logging.getLogger(__name__)
+
+RASTER_RESOLUTION = 0.25  # metres per cell: a fraction of the 0.6-0.7 m lane margin
+VEHICLE_CLASS = "passenger"
+
+
+@dataclass(frozen=True)
+class RoadObject:
+    """A static object a car can hit: pole, guardrail, building, sign."""
+
+    id: str
+    kind: str
+    polygon: np.ndarray  # (k, 2), convex
+    centre: np.ndarray  # (2,)
+    radius: float  # bounding circle
+
+
+@dataclass(frozen=True)
+class Route:
+    """One AC's path: SUMO edges, centreline, spawn pose and goal."""
+
+    edges: tuple[str, ...]
+    sumo_lane: int  # SUMO lane index on the first edge (sidewalks count in SUMO's numbering)
+    path: Polyline
+    spawn_s: float
+    goal_s: float
+    lane_mask: Raster  # lanes of its own travel direction (+ junctions it crosses)
+
+    @property
+    def spawn_xy(self) -> np.ndarray:
+        return self.path.point_at(self.spawn_s)
+
+    @property
+    def spawn_heading(self) -> float:
+        return self.path.heading_at(self.spawn_s)
+
+    @property
+    def goal_xy(self) -> np.ndarray:
+        return self.path.point_at(self.goal_s)
+
+
+@dataclass(frozen=True)
+class LaneInfo:
+    """A drivable lane of the region, for the mirror to draw."""
+
+    id: str
+    shape: np.ndarray
+    width: float
+    edge: str
+    index: int  # SUMO lane index
+    is_internal: bool
+
+
+class RoadMap:
+    """Static geometry of a scenario's region (see module docstring)."""
+
+    def __init__(self, scenario: Scenario):
+        self.scenario = scenario
+        self.net = read_net(scenario.net)
+        xmin, ymin, xmax, ymax = scenario.region.bounds
+        self.bounds = (xmin, ymin, xmax, ymax)
+        self.lanes = [ln for ln in _region_lanes(self.net, self.bounds)]
+        self.sidewalks = _region_sidewalks(self.net, self.bounds)
+        self.crossings = _region_crossings(self.net, self.bounds)
+        self.junctions = _region_junction_shapes(self.net, self.bounds)
+        self.drivable = Raster(self.bounds, RASTER_RESOLUTION)
+        for lane in self.lanes:
+            self.drivable.paint_polyline(lane.shape, lane.width / 2)
+        for shape in self.junctions.values():
+            self.drivable.paint_polygon(shape)
+        self.objects = tuple(
+            o for path in scenario.additional for o in read_objects(path) if _near(o, self.bounds)
+        )
+        self._object_centres = (
+            np.array([o.centre for o in self.objects]) if self.objects else np.zeros((0, 2))
+        )
+        self._object_radii = np.array([o.radius for o in self.objects])
+        self.routes = tuple(self._build_route(i, ac) for i, ac in enumerate(scenario.acs))
+
+    # -- queries ---------------------------------------------------------------
+    def objects_near(self, x: float, y: float, reach: float) -> list[RoadObject]:
+        """Objects whose bounding circle comes within `reach` metres of (x, y)."""
+        if not self.objects:
+            return []
+        d = np.hypot(self._object_centres[:, 0] - x, self._object_centres[:, 1] - y)
+        return [self.objects[i] for i in np.flatnonzero(d <= self._object_radii + reach)]
+
+    # -- construction ----------------------------------------------------------
+    def _build_route(self, index: int, ac: ACSpec) -> Route:
+        where = f"{self.scenario.source or self.scenario.name}: acs[{index}]"
+        edges = []
+        for eid in ac.route:
+            if not self.net.hasEdge(eid):
+                raise ScenarioError(f"{where}: route edge {eid!r} is not in {self.scenario.net.name}")
+            edges.append(self.net.getEdge(eid))
+        drivable = [ln for ln in edges[0].getLanes() if ln.allows(VEHICLE_CLASS)]
+        if ac.lane >= len(drivable):
+            raise ScenarioError(
+                f"{where}: lane {ac.lane} does not exist on edge {edges[0].getID()!r}, "
+                f"which has {len(drivable)} car lane(s) (0 = rightmost)"
+            )
+        lane = drivable[ac.lane]
+        points = [np.asarray(lane.getShape(), dtype=float)]
+        mask = Raster(self.bounds, RASTER_RESOLUTION)
+        for e in edges:
+            for ln in e.getLanes():
+                if ln.allows(VEHICLE_CLASS):
+                    mask.paint_polyline(np.asarray(ln.getShape()), ln.getWidth() / 2)
+        start_len = lane.getLength()
+        for prev, nxt in zip(edges[:-1], edges[1:], strict=True):
+            conns = [c for c in prev.getOutgoing().get(nxt, [])]
+            if not conns:
+                raise ScenarioError(
+                    f"{where}: route edges {prev.getID()!r} -> {nxt.getID()!r} are not connected "
+                    f"in {self.scenario.net.name}; list consecutive, connected edges"
+                )
+            conn = next((c for c in conns if c.getFromLane() == lane), conns[0])
+            via = conn.getViaLaneID()
+            if via:
+                via_lane = self.net.getLane(via)
+                points.append(np.asarray(via_lane.getShape(), dtype=float))
+                mask.paint_polyline(np.asarray(via_lane.getShape()), via_lane.getWidth() / 2)
+            junction = prev.getToNode().getID()
+            if junction in self.junctions:
+                mask.paint_polygon(self.junctions[junction])
+            lane = conn.getToLane()
+            points.append(np.asarray(lane.getShape(), dtype=float))
+        path = Polyline.from_points(np.concatenate(points))
+        first_len = start_len
+        depart = ac.depart_pos if ac.depart_pos >= 0 else first_len + ac.depart_pos
+        last_len = lane.getLength()
+        arrival = ac.arrival_pos if ac.arrival_pos >= 0 else last_len + ac.arrival_pos
+        if not 0 <= depart <= first_len:
+            raise ScenarioError(
+                f"{where}: depart_pos {ac.depart_pos} is outside edge {edges[0].getID()!r} "
+                f"(length {first_len:.1f} m)"
+            )
+        if not 0 <= arrival <= last_len:
+            raise ScenarioError(
+                f"{where}: arrival_pos {ac.arrival_pos} is outside edge {edges[-1].getID()!r} "
+                f"(length {last_len:.1f} m)"
+            )
+        goal_s = path.length - (last_len - arrival)
+        if goal_s <= depart:
+            raise ScenarioError(f"{where}: the goal lies behind the spawn point on the route")
+        return Route(
+            edges=tuple(ac.route),
+            sumo_lane=drivable[ac.lane].getIndex(),
+            path=path,
+            spawn_s=float(depart),
+            goal_s=float(goal_s),
+            lane_mask=mask,
+        )
+
+
+@functools.lru_cache(maxsize=8)
+def _read_net_cached(path: str, mtime: float):
+    import sumolib  # deferred: a broken SUMO install is reported when the simulation starts
+
+    try:
+        return sumolib.net.readNet(path, withInternal=True, withPedestrianConnections=True)
+    except Exception as exc:  # sumolib raises xml.sax and plain exceptions alike
+        raise NetError(
+            f"{path}: cannot read the SUMO network ({exc}); rebuild it with `cosim nets build` "
+            "or fix the XML"
+        ) from exc
+
+
+def read_net(path: Path):
+    """Read (and cache) a SUMO network with its internal junction lanes."""
+    path = Path(path)
+    if not path.exists():
+        raise NetError(f"network file {path} does not exist; run `cosim nets build`")
+    net = _read_net_cached(str(path), path.stat().st_mtime)
+    if not net.getEdges():
+        raise NetError(f"{path}: the network has no edges; is it a SUMO .net.xml file?")
+    return net
+
+
+@functools.lru_cache(maxsize=8)
+def _road_map_cached(scenario: Scenario) -> RoadMap:
+    return RoadMap(scenario)
+
+
+def road_map(scenario: Scenario) -> RoadMap:
+    """The (cached) RoadMap of a scenario."""
+    return _road_map_cached(scenario)
+
+
+def read_objects(path: Path) -> list[RoadObject]:
+    """Static road objects: the closed polygons of a SUMO additional file."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise NetError(f"{path}: malformed additional file: {exc}") from exc
+    objects = []
+    for poly in root.iter("poly"):
+        pid = poly.get("id", "?")
+        try:
+            pts = np.array(
+                [[float(v) for v in p.split(",")[:2]] for p in poly.get("shape", "").split()]
+            )
+        except ValueError as exc:
+            raise NetError(f"{path}: poly {pid!r} has a malformed shape: {exc}") from exc
+        if pts.ndim != 2 or len(pts) < 3:
+            raise NetError(f"{path}: poly {pid!r} needs a shape of at least 3 points")
+        if np.allclose(pts[0], pts[-1]):
+            pts = pts[:-1]
+        centre = pts.mean(axis=0)
+        radius = float(np.max(np.linalg.norm(pts - centre, axis=1)))
+        objects.append(RoadObject(pid, poly.get("type", "object"), pts, centre, radius))
+    return objects
+
+
+def _near(obj: RoadObject, bounds, margin: float = 5.0) -> bool:
+    xmin, ymin, xmax, ymax = bounds
+    x, y = obj.centre
+    r = obj.radius + margin
+    return xmin - r <= x <= xmax + r and ymin - r <= y <= ymax + r
+
+
+def _in_bounds(shape, bounds, margin: float = 10.0) -> bool:
+    xmin, ymin, xmax, ymax = bounds
+    pts = np.asarray(shape)
+    return bool(
+        np.any(
+            (pts[:, 0] >= xmin - margin)
+            & (pts[:, 0] <= xmax + margin)
+            & (pts[:, 1] >= ymin - margin)
+            & (pts[:, 1] <= ymax + margin)
+        )
+    )
+
+
+def _region_lanes(net, bounds) -> list[LaneInfo]:
+    out = []
+    for edge in net.getEdges(withInternal=True):
+        if edge.getFunction() in ("walkingarea", "crossing"):
+            continue
+        for ln in edge.getLanes():
+            if ln.allows(VEHICLE_CLASS) and _in_bounds(ln.getShape(), bounds):
+                out.append(
+                    LaneInfo(
+                        ln.getID(),
+                        np.asarray(ln.getShape(), dtype=float),
+                        ln.getWidth(),
+                        edge.getID(),
+                        ln.getIndex(),
+                        edge.getFunction() == "internal",
+                    )
+                )
+    return out
+
+
+def _region_sidewalks(net, bounds) -> list[LaneInfo]:
+    out = []
+    for edge in net.getEdges(withInternal=True):
+        if edge.getFunction() == "crossing":
+            continue
+        for ln in edge.getLanes():
+            if (
+                ln.allows("pedestrian")
+                and not ln.allows(VEHICLE_CLASS)
+                and _in_bounds(ln.getShape(), bounds)
+            ):
+                out.append(
+                    LaneInfo(ln.getID(), np.asarray(ln.getShape(), dtype=float), ln.getWidth(),
+                             edge.getID(), ln.getIndex(), edge.getFunction() != "")
+                )
+    return out
+
+
+def _region_crossings(net, bounds) -> list[LaneInfo]:
+    out = []
+    for edge in net.getEdges(withInternal=True):
+        if edge.getFunction() != "crossing":
+            continue
+        for ln in edge.getLanes():
+            if _in_bounds(ln.getShape(), bounds):
+                out.append(
+                    LaneInfo(ln.getID(), np.asarray(ln.getShape(), dtype=float), ln.getWidth(),
+                             edge.getID(), ln.getIndex(), True)
+                )
+    return out
+
+
+def _region_junction_shapes(net, bounds) -> dict[str, np.ndarray]:
+    out = {}
+    for node in net.getNodes():
+        shape = node.getShape()
+        if node.getType() == "dead_end" or len(shape) < 3 or not _in_bounds(shape, bounds):
+            continue
+        out[node.getID()] = np.asarray(shape, dtype=float)[:, :2]
+    return out

@@ -1,0 +1,311 @@
+"""Scenarios: one YAML file per driving environment, loaded into frozen dataclasses.
+
+A scenario names its SUMO files (network, demand, static objects), the region of
+the network it covers, the learning cars' (ACs') spawn lanes, routes and goals,
+the reward weights and the termination rules. Adding an environment means adding
+SUMO files and one YAML; no code changes. Paths inside a YAML are relative to
+the YAML file.
+
+Example (``sumo_nets/scenarios/env_3.yaml``)::
+
+    name: env_3
+    title: Four-way
+    net: ../town/town.net.xml
+    demand: [../demand/env_3.rou.xml]
+    additional: [../town/objects.add.xml]
+    region: {center: [0.0, 0.0], size: [220.0, 220.0]}
+    acs:
+      - {route: [tx_e, xr_e], depart_pos: -45, arrival_pos: 50}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from cosim.errors import ScenarioError
+
+MAX_ACS = 6
+
+
+def nets_dir() -> Path:
+    """The folder holding the bundled network, demand and scenario files."""
+    return Path(str(resources.files("sumo_nets")))
+
+
+def scenarios_dir() -> Path:
+    return nets_dir() / "scenarios"
+
+
+@dataclass(frozen=True)
+class RewardWeights:
+    """Weights of the named reward terms (SPEC §3): R = sum of weight * term."""
+
+    collision: float = -50.0
+    """Per step in collision with a vehicle, road object or pedestrian."""
+    efficiency: float = 10.0
+    """Multiplies (progress towards the goal in metres + forward speed / speed limit)."""
+    lane: float = -0.5
+    """Per step off the road or outside the lanes of the AC's own travel direction."""
+    step: float = -1.0
+    """Constant per-step penalty (phi) that pushes the car to make progress."""
+
+
+@dataclass(frozen=True)
+class Termination:
+    """When an AC's episode ends early."""
+
+    on_collision: bool = True
+    """End the AC's episode at its first collision (on for training, off for testing)."""
+    on_goal: bool = True
+    """End the AC's episode when it reaches its goal."""
+    on_offroad: bool = False
+    """End the AC's episode when it leaves the drivable surface."""
+    out_of_region: bool = True
+    """End the AC's episode when it leaves the scenario region (there is no world beyond it)."""
+    goal_radius: float = 3.0
+    """Metres from the goal point that count as reached."""
+
+    def __post_init__(self) -> None:
+        if not self.goal_radius > 0:
+            raise ValueError(f"goal_radius must be > 0 metres, got {self.goal_radius}")
+
+
+@dataclass(frozen=True)
+class ACSpec:
+    """Where one learning car starts and where it must go."""
+
+    route: tuple[str, ...]
+    """SUMO edge ids from the spawn edge to the goal edge, consecutive and connected."""
+    depart_pos: float = 10.0
+    """Spawn position along the first edge in metres; negative counts back from its end."""
+    arrival_pos: float = -10.0
+    """Goal position along the last edge in metres; negative counts back from its end."""
+    lane: int = 0
+    """Lane of the first edge, counted among the lanes cars may use, 0 = rightmost."""
+
+    def __post_init__(self) -> None:
+        if not self.route:
+            raise ValueError("route must name at least one edge")
+        if self.lane < 0:
+            raise ValueError(f"lane must be >= 0, got {self.lane}")
+
+
+@dataclass(frozen=True)
+class Region:
+    """Axis-aligned box of the network that the environment simulates and renders."""
+
+    center: tuple[float, float]
+    size: tuple[float, float]
+
+    def __post_init__(self) -> None:
+        if len(self.center) != 2 or len(self.size) != 2:
+            raise ValueError("center and size must be [x, y] pairs")
+        if min(self.size) <= 0:
+            raise ValueError(f"size must be positive, got {list(self.size)}")
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax)."""
+        cx, cy = self.center
+        hx, hy = self.size[0] / 2, self.size[1] / 2
+        return cx - hx, cy - hy, cx + hx, cy + hy
+
+    def contains(self, x: float, y: float) -> bool:
+        xmin, ymin, xmax, ymax = self.bounds
+        return xmin <= x <= xmax and ymin <= y <= ymax
+
+
+@dataclass(frozen=True)
+class Background:
+    """Auto-controlled background traffic."""
+
+    enabled: bool = True
+    """Whether the demand's background cars run at all."""
+    scale: float = 1.0
+    """Multiplies every flow rate of the demand files (SUMO --scale)."""
+
+    def __post_init__(self) -> None:
+        if self.scale < 0:
+            raise ValueError(f"scale must be >= 0, got {self.scale}")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One driving environment: a region of a SUMO network plus ACs, demand and rules."""
+
+    name: str
+    """Short id, e.g. env_3."""
+    net: Path
+    """The built SUMO network (.net.xml)."""
+    region: Region
+    """The part of the network this environment covers."""
+    acs: tuple[ACSpec, ...]
+    """Spawn/goal of up to six learning cars; an env with N ACs uses the first N."""
+    title: str = ""
+    """Human name, e.g. Four-way."""
+    description: str = ""
+    demand: tuple[Path, ...] = ()
+    """SUMO route files with the background car flows."""
+    pedestrian_demand: tuple[Path, ...] = ()
+    """SUMO route files with the person flows (loaded only when `pedestrians` is true)."""
+    additional: tuple[Path, ...] = ()
+    """SUMO additional files; polygons in them are the static road objects."""
+    dt: float = 0.1
+    """Simulation step in seconds (SUMO step length and ego dynamics step)."""
+    horizon: int = 600
+    """Steps per episode before truncation."""
+    warmup: float = 30.0
+    """Simulated seconds of background traffic before the ACs appear."""
+    speed_limit: float = 13.89
+    """m/s; the speed term of the reward is speed / speed_limit clipped to [0, 1]."""
+    background: Background = field(default_factory=Background)
+    pedestrians: bool = False
+    """Whether the pedestrian demand runs (env_2 and env_3)."""
+    reward: RewardWeights = field(default_factory=RewardWeights)
+    termination: Termination = field(default_factory=Termination)
+    source: Path | None = None
+    """The YAML file this scenario was read from."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.dt <= 1.0:
+            raise ValueError(f"dt must be in (0, 1] seconds, got {self.dt}")
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1 step, got {self.horizon}")
+        if self.warmup < 0:
+            raise ValueError(f"warmup must be >= 0 seconds, got {self.warmup}")
+        if not 1 <= len(self.acs) <= MAX_ACS:
+            raise ValueError(f"acs must list 1 to {MAX_ACS} learning cars, got {len(self.acs)}")
+        if self.speed_limit <= 0:
+            raise ValueError(f"speed_limit must be > 0 m/s, got {self.speed_limit}")
+
+    @property
+    def max_agents(self) -> int:
+        return len(self.acs)
+
+    def with_overrides(self, **changes: Any) -> Scenario:
+        """A copy with some fields replaced (e.g. ``background=Background(enabled=False)``)."""
+        return dataclasses.replace(self, **changes)
+
+
+def available_scenarios() -> list[str]:
+    """Names of the bundled scenarios, sorted."""
+    return sorted(p.stem for p in scenarios_dir().glob("*.yaml"))
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load a bundled scenario by name (``env_3``) or any scenario YAML by path.
+
+    Raises:
+        ScenarioError: unknown name (the message lists the available ones), unreadable
+            or malformed YAML, unknown keys (listing the valid ones), bad values, or
+            files it names that do not exist. The message names the file.
+    """
+    path = Path(name_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        candidate = scenarios_dir() / f"{name_or_path}.yaml"
+        if not candidate.exists():
+            raise ScenarioError(
+                f"unknown scenario {str(name_or_path)!r}; available: "
+                f"{', '.join(available_scenarios())} (or pass the path of a scenario .yaml file)"
+            )
+        path = candidate
+    if not path.exists():
+        raise ScenarioError(f"scenario file {path} does not exist")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ScenarioError(f"{path}: malformed YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{path}: expected a mapping of scenario keys at the top level")
+    return _scenario_from_dict(data, path)
+
+
+def _scenario_from_dict(data: dict[str, Any], path: Path) -> Scenario:
+    base = path.parent
+    data = dict(data)
+    data.setdefault("name", path.stem)
+
+    def resolve(value: Any, key: str) -> Path:
+        if not isinstance(value, str):
+            raise ScenarioError(f"{path}: '{key}' must be a file path string, got {value!r}")
+        file = (base / value).resolve()
+        if not file.exists():
+            raise ScenarioError(f"{path}: '{key}' names {value!r}, which does not exist ({file})")
+        return file
+
+    def resolve_list(key: str) -> tuple[Path, ...]:
+        value = data.get(key, [])
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list):
+            raise ScenarioError(f"{path}: '{key}' must be a list of file paths")
+        return tuple(resolve(v, key) for v in value)
+
+    if "net" not in data:
+        raise ScenarioError(f"{path}: missing required key 'net' (the .net.xml file)")
+    data["net"] = resolve(data["net"], "net")
+    data["demand"] = resolve_list("demand")
+    data["pedestrian_demand"] = resolve_list("pedestrian_demand")
+    data["additional"] = resolve_list("additional")
+    nested = {
+        "region": Region,
+        "background": Background,
+        "reward": RewardWeights,
+        "termination": Termination,
+    }
+    for key, cls in nested.items():
+        if key in data:
+            data[key] = _build(cls, data[key], f"{path}: '{key}'")
+    if "region" not in data:
+        raise ScenarioError(f"{path}: missing required key 'region' (center and size in metres)")
+    acs = data.get("acs")
+    if not isinstance(acs, list) or not acs:
+        raise ScenarioError(f"{path}: 'acs' must be a non-empty list of learning-car entries")
+    data["acs"] = tuple(_build(ACSpec, ac, f"{path}: acs[{i}]") for i, ac in enumerate(acs))
+    data["source"] = path
+    return _build(Scenario, data, str(path))
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    """Build a frozen dataclass from a mapping, rejecting unknown keys and bad values."""
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{where}: expected a mapping, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ScenarioError(
+            f"{where}: unknown key(s) {unknown}; valid keys: {sorted(fields)}"
+        )
+    kwargs = {}
+    for key, value in data.items():
+        ftype = str(fields[key].type)
+        if ftype.startswith("tuple[float") and isinstance(value, list):
+            value = tuple(float(v) for v in value)
+        elif ftype.startswith("tuple[str") and isinstance(value, list):
+            value = tuple(str(v) for v in value)
+        elif ftype == "float" and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if ftype in ("float", "int", "bool") and not _type_ok(value, ftype):
+            raise ScenarioError(f"{where}: '{key}' must be {ftype}, got {value!r}")
+        if ftype == "float" and not math.isfinite(value):
+            raise ScenarioError(f"{where}: '{key}' must be finite, got {value!r}")
+        kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise ScenarioError(f"{where}: {exc}") from exc
+
+
+def _type_ok(value: Any, ftype: str) -> bool:
+    if ftype == "bool":
+        return isinstance(value, bool)
+    if ftype == "int":
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, float)
