@@ -301,7 +301,8 @@ def _a3c_worker(
                 optimizers[aid].step()
             link.send((env_steps, episodes, metrics))
     finally:
-        env.close()
+        if hasattr(env, "close"):
+            env.close()
 
 
 def _clone(shared: nn.Module) -> nn.Module:
@@ -337,7 +338,8 @@ def train_a3c(
         num_workers: Number of actor-learner processes.
         seed: Seeds network init (agent k: ``seed + k``) and the workers' envs.
         callback: Called in the parent after each worker report with a
-            :class:`TrainProgress`; return False to stop early.
+            :class:`TrainProgress`; return True to stop early
+            (as in :func:`agents.loop.run_loop`).
         start_method: ``"spawn"`` or ``"forkserver"``.
 
     Returns:
@@ -381,7 +383,7 @@ def train_a3c(
             progress = TrainProgress(
                 int(global_steps.value), episodes, agents, pool.pids, time.monotonic() - start, metrics
             )
-            if callback is not None and callback(progress) is False:
+            if callback is not None and callback(progress):
                 logger.info("A3C: callback stopped training at %d steps", progress.env_steps)
                 break
         pool.check()

@@ -96,20 +96,22 @@ class NatureCNN(nn.Module):
 
 
 class MLPEncoder(nn.Module):
-    """A tanh MLP for flat observation vectors.
+    """An MLP for flat observation vectors (tanh by default, as in PPO's MLP policies).
 
     Attributes:
         features_dim: Size of the output feature vector (the last hidden width).
     """
 
-    def __init__(self, obs_dim: int, hidden: tuple[int, ...] = (64, 64)):
+    def __init__(
+        self, obs_dim: int, hidden: tuple[int, ...] = (64, 64), activation: type[nn.Module] = nn.Tanh
+    ):
         super().__init__()
         if obs_dim < 1 or not hidden:
             raise ValueError(f"MLPEncoder needs obs_dim >= 1 and >= 1 hidden layer, got {obs_dim}, {hidden}")
         layers: list[nn.Module] = []
         width = obs_dim
         for size in hidden:
-            layers += [layer_init(nn.Linear(width, size)), nn.Tanh()]
+            layers += [layer_init(nn.Linear(width, size)), activation()]
             width = size
         self.net = nn.Sequential(*layers)
         self.features_dim = width
@@ -124,13 +126,16 @@ def _is_image_space(observation_space: gymnasium.spaces.Box) -> bool:
 
 
 def make_encoder(
-    observation_space: gymnasium.spaces.Box, hidden: tuple[int, ...] = (64, 64)
+    observation_space: gymnasium.spaces.Box,
+    hidden: tuple[int, ...] = (64, 64),
+    activation: type[nn.Module] = nn.Tanh,
 ) -> nn.Module:
     """Build the encoder suited to an observation space.
 
     Args:
         observation_space: A Box; 3-D shapes are treated as ``(H, W, C)`` images.
         hidden: Hidden sizes for the MLP encoder (ignored for images).
+        activation: Activation class of the MLP encoder (ignored for images).
 
     Returns:
         A module with a ``features_dim`` attribute: :class:`NatureCNN` for images,
@@ -146,7 +151,7 @@ def make_encoder(
         )
     if _is_image_space(observation_space):
         return NatureCNN(tuple(observation_space.shape))
-    return MLPEncoder(int(np.prod(observation_space.shape)), hidden)
+    return MLPEncoder(int(np.prod(observation_space.shape)), hidden, activation)
 
 
 def obs_to_tensor(obs: np.ndarray, device) -> torch.Tensor:
@@ -162,18 +167,34 @@ def obs_to_tensor(obs: np.ndarray, device) -> torch.Tensor:
 
 
 class ActorCritic(nn.Module):
-    """Shared encoder with a categorical policy head and a state-value head."""
+    """Encoder(s) with a categorical policy head and a state-value head.
 
-    def __init__(self, observation_space, n_actions: int, hidden: tuple[int, ...] = (64, 64)):
+    Images share one Nature CNN between policy and value (the Atari recipe);
+    vector observations get separate policy and value MLPs by default (the
+    CleanRL/SB3 MLP recipe: a large value loss then cannot disturb the policy's
+    features). ``share_encoder`` overrides either choice.
+    """
+
+    def __init__(
+        self,
+        observation_space,
+        n_actions: int,
+        hidden: tuple[int, ...] = (64, 64),
+        share_encoder: bool | None = None,
+    ):
         super().__init__()
+        if share_encoder is None:
+            share_encoder = _is_image_space(observation_space)
         self.encoder = make_encoder(observation_space, hidden)
+        self.value_encoder = None if share_encoder else make_encoder(observation_space, hidden)
         self.policy_head = layer_init(nn.Linear(self.encoder.features_dim, n_actions), std=0.01)
         self.value_head = layer_init(nn.Linear(self.encoder.features_dim, 1), std=1.0)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Return ``(logits (B, n_actions), value (B,))``."""
         features = self.encoder(obs)
-        return self.policy_head(features), self.value_head(features).squeeze(-1)
+        value_features = features if self.value_encoder is None else self.value_encoder(obs)
+        return self.policy_head(features), self.value_head(value_features).squeeze(-1)
 
 
 def dueling_aggregate(value: torch.Tensor, advantages: torch.Tensor) -> torch.Tensor:
@@ -196,7 +217,8 @@ class DuelingQNetwork(nn.Module):
 
     def __init__(self, observation_space, n_actions: int, hidden: tuple[int, ...] = (64, 64)):
         super().__init__()
-        self.encoder = make_encoder(observation_space, hidden)
+        # ReLU for value regression (DQN/SB3 QNetwork); tanh MLPs saturate on large Q targets.
+        self.encoder = make_encoder(observation_space, hidden, nn.ReLU)
         width = self.encoder.features_dim
         self.value_head = layer_init(nn.Linear(width, 1), std=1.0)
         self.advantage_head = layer_init(nn.Linear(width, n_actions), std=1.0)
@@ -220,7 +242,7 @@ class DeterministicActor(nn.Module):
     def __init__(self, observation_space, action_space: gymnasium.spaces.Box, hidden: tuple[int, ...] = (256, 256)):
         super().__init__()
         _check_box(action_space)
-        self.encoder = make_encoder(observation_space, hidden)
+        self.encoder = make_encoder(observation_space, hidden, nn.ReLU)
         self.mu = layer_init(nn.Linear(self.encoder.features_dim, action_space.shape[0]), std=0.01)
         low = torch.as_tensor(action_space.low, dtype=torch.float32)
         high = torch.as_tensor(action_space.high, dtype=torch.float32)

@@ -55,6 +55,7 @@ __all__ = [
     "WorkerPool",
     "categorical_policy",
     "get_context",
+    "live_pids",
     "make_parallel_env",
     "worker_seed",
 ]
@@ -97,6 +98,31 @@ def get_context(start_method: str = "spawn"):
             "'fork' is unsafe with torch threads and one-simulation-per-process simulators"
         )
     return mp.get_context(start_method)
+
+
+def live_pids(pids: Sequence[int]) -> list[int]:
+    """The pids among ``pids`` that are still running (zombies count as gone).
+
+    Uses ``os.kill(pid, 0)`` and, on Linux, ``/proc/<pid>/stat`` to tell a
+    zombie (exited, not yet reaped) from a live process. Used to check that a
+    trainer left no worker behind.
+    """
+    alive = []
+    for pid in pids:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            continue
+        except PermissionError:  # exists, owned by someone else
+            pass
+        try:
+            with open(f"/proc/{pid}/stat") as stat:
+                state = stat.read().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            state = "?"
+        if state not in ("Z", "X"):
+            alive.append(pid)
+    return alive
 
 
 def worker_seed(seed: int, index: int) -> int:

@@ -83,6 +83,21 @@ class Polyline:
         lateral = float(np.sqrt(dist2[i])) * (1.0 if cross >= 0 else -1.0)
         return float(self.cumlen[i] + t[i] * np.sqrt(seglen2[i])), lateral
 
+    def project_many(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorised :meth:`project` for points (k, 2): (arc lengths, signed lateral offsets)."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        a, d = self.points[:-1], np.diff(self.points, axis=0)
+        seglen2 = np.einsum("ij,ij->i", d, d)
+        rel = pts[:, None, :] - a[None, :, :]  # (k, m, 2)
+        t = np.clip(np.einsum("kmj,mj->km", rel, d) / seglen2, 0.0, 1.0)
+        off = rel - t[..., None] * d[None]
+        dist2 = np.einsum("kmj,kmj->km", off, off)
+        i = np.argmin(dist2, axis=1)
+        k = np.arange(len(pts))
+        cross = d[i, 0] * rel[k, i, 1] - d[i, 1] * rel[k, i, 0]
+        lateral = np.sqrt(dist2[k, i]) * np.where(cross >= 0, 1.0, -1.0)
+        return self.cumlen[i] + t[k, i] * np.sqrt(seglen2[i]), lateral
+
     def point_at(self, s: float) -> np.ndarray:
         """The point at arc length s (clamped to the ends)."""
         s = min(max(s, 0.0), self.length)

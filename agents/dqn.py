@@ -1,0 +1,173 @@
+"""Deep Q-learning (Mnih et al. 2015) with a dueling head (Wang et al. 2016).
+
+As SPEC section 5 asks: dueling, one atom, no noisy nets, 1-step targets, a
+hard-updated target network, epsilon-greedy exploration annealed linearly,
+Huber loss and gradient clipping. Double DQN (van Hasselt et al. 2016) is an
+option, off in the paper preset. Reads top to bottom: config, schedule, agent.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import logging
+from typing import Any, ClassVar
+
+import gymnasium
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from agents.base import Agent, AgentConfig, check_range
+from agents.buffers import ReplayBuffer
+from agents.networks import DuelingQNetwork
+
+__all__ = ["DQN", "DQNConfig", "linear_schedule"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class DQNConfig(AgentConfig):
+    """DQN hyperparameters. ``preset("paper")`` gives SPEC section 5 (the paper's Table 3).
+
+    The paper's replay of 400 transitions holds less than one episode of driving,
+    so it cannot decorrelate updates; the default keeps 100k transitions.
+    """
+
+    learning_rate: float = 1e-4
+    """Adam learning rate."""
+    buffer_size: int = 100_000
+    """replay capacity in transitions (paper: 400, which prevents learning)."""
+    batch_size: int = 128
+    """minibatch size per gradient step."""
+    gamma: float = 0.99
+    """discount factor."""
+    learning_starts: int = 1_000
+    """transitions collected before the first gradient step."""
+    train_freq: int = 4
+    """env steps between gradient steps."""
+    gradient_steps: int = 1
+    """gradient steps each time training happens."""
+    target_update_interval: int = 500
+    """env steps between hard target-network copies."""
+    exploration_initial_eps: float = 1.0
+    """epsilon at step 0."""
+    exploration_final_eps: float = 0.02
+    """epsilon after the annealing period."""
+    exploration_steps: int = 50_000
+    """env steps over which epsilon falls linearly to its final value."""
+    max_grad_norm: float = 40.0
+    """global gradient-norm clip."""
+    double_q: bool = False
+    """pick next actions with the online network (Double DQN)."""
+    hidden: tuple[int, ...] = (64, 64)
+    """MLP hidden sizes for vector observations (images use the Nature CNN)."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        # SPEC section 5, Table 3. Unlisted fields keep the defaults above.
+        "paper": {"learning_rate": 1e-4, "buffer_size": 400, "exploration_final_eps": 0.02, "max_grad_norm": 40.0},
+    }
+
+    def __post_init__(self):
+        check_range("learning_rate", self.learning_rate, 0, 1, low_inclusive=False)
+        check_range("buffer_size", self.buffer_size, 2)
+        check_range("batch_size", self.batch_size, 1)
+        check_range("gamma", self.gamma, 0, 1)
+        check_range("learning_starts", self.learning_starts, 0)
+        check_range("train_freq", self.train_freq, 1)
+        check_range("gradient_steps", self.gradient_steps, 1)
+        check_range("target_update_interval", self.target_update_interval, 1)
+        check_range("exploration_initial_eps", self.exploration_initial_eps, 0, 1)
+        check_range("exploration_final_eps", self.exploration_final_eps, 0, 1)
+        check_range("exploration_steps", self.exploration_steps, 1)
+        check_range("max_grad_norm", self.max_grad_norm, 0, None, low_inclusive=False)
+
+
+def linear_schedule(start: float, end: float, duration: int, step: int) -> float:
+    """Linear interpolation from ``start`` to ``end`` over ``duration`` steps, then ``end``."""
+    fraction = min(max(step, 0) / duration, 1.0)
+    return start + fraction * (end - start)
+
+
+class DQN(Agent):
+    """Dueling DQN with a replay buffer and a hard-updated target network."""
+
+    algo = "dqn"
+    config_class = DQNConfig
+    config: DQNConfig
+
+    @classmethod
+    def check_spaces(cls, observation_space, action_space) -> None:
+        if not isinstance(action_space, gymnasium.spaces.Discrete):
+            raise ValueError(f"DQN needs a Discrete action space, got {action_space!r}; use DDPG or TD3 for Box")
+        if not isinstance(observation_space, gymnasium.spaces.Box):
+            raise ValueError(f"DQN needs a Box observation space, got {observation_space!r}")
+
+    def _build(self) -> None:
+        cfg = self.config
+        n_actions = int(self.action_space.n)
+        self.q_network = DuelingQNetwork(self.observation_space, n_actions, cfg.hidden).to(self.device)
+        self.target_network = copy.deepcopy(self.q_network).requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.q_network.parameters(), lr=cfg.learning_rate)
+        self.networks = {"q_network": self.q_network, "target_network": self.target_network}
+        self.optimizers = {"optimizer": self.optimizer}
+        self.buffer = ReplayBuffer(cfg.buffer_size, self.observation_space, self.action_space, seed=self.seed)
+        self.steps = 0
+        self.gradient_updates = 0
+
+    @property
+    def epsilon(self) -> float:
+        """Current exploration rate."""
+        cfg = self.config
+        return linear_schedule(cfg.exploration_initial_eps, cfg.exploration_final_eps, cfg.exploration_steps, self.steps)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> int:
+        if not deterministic and self.rng.random() < self.epsilon:
+            return int(self.rng.integers(self.action_space.n))
+        return int(self.q_network(self.obs_batch(obs)).argmax(-1).item())
+
+    def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
+        # A truncated step is stored as non-terminal, so its target bootstraps.
+        self.buffer.add(obs, int(action), reward, next_obs, terminated, truncated)
+        self.steps += 1
+
+    def update(self) -> dict[str, float]:
+        cfg = self.config
+        if self.steps % cfg.target_update_interval == 0:
+            self.target_network.load_state_dict(self.q_network.state_dict())
+        if self.steps < cfg.learning_starts or self.steps % cfg.train_freq != 0:
+            return {}
+        for _ in range(cfg.gradient_steps):
+            loss, q_mean = self._gradient_step()
+        return {"losses/td_loss": loss, "losses/q_values": q_mean, "charts/epsilon": self.epsilon}
+
+    def _gradient_step(self) -> tuple[float, float]:
+        cfg = self.config
+        data = self.buffer.sample(cfg.batch_size, self.device)
+        with torch.no_grad():
+            next_q = self.target_network(data.next_obs)
+            if cfg.double_q:
+                next_actions = self.q_network(data.next_obs).argmax(-1, keepdim=True)
+                next_value = next_q.gather(1, next_actions).squeeze(1)
+            else:
+                next_value = next_q.max(-1).values
+            td_target = data.rewards + cfg.gamma * (1.0 - data.terminateds) * next_value
+        q_values = self.q_network(data.obs).gather(1, data.actions.long().unsqueeze(1)).squeeze(1)
+        loss = F.smooth_l1_loss(q_values, td_target)  # Huber: bounded gradients for large TD errors
+        self.optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.q_network.parameters(), cfg.max_grad_norm)
+        self.optimizer.step()
+        self.gradient_updates += 1
+        return loss.item(), q_values.mean().item()
+
+    def _extra_state(self) -> dict[str, Any]:
+        return {"steps": self.steps, "gradient_updates": self.gradient_updates}
+
+    def _load_extra_state(self, state) -> None:
+        self.steps = int(state.get("steps", 0))
+        self.gradient_updates = int(state.get("gradient_updates", 0))

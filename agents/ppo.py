@@ -1,0 +1,232 @@
+"""Proximal Policy Optimisation (Schulman et al. 2017) for Discrete action spaces.
+
+Reads top to bottom: config, agent (act / observe / update), loss. The loss is
+the clipped surrogate PLUS an adaptive KL penalty, as in RLlib (which the
+paper used): ``coef *= 1.5`` when the KL exceeds twice its target, ``*= 0.5``
+when it falls below half of it. Advantages come from GAE over one rollout of
+``rollout_steps`` transitions of this agent, and truncated episodes bootstrap
+from the value of their final observation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any, ClassVar
+
+import gymnasium
+import numpy as np
+import torch
+from torch import nn
+from torch.distributions import Categorical, kl_divergence
+
+from agents.base import Agent, AgentConfig, check_range
+from agents.buffers import RolloutBuffer
+from agents.networks import ActorCritic, obs_to_tensor
+from agents.returns import gae
+
+__all__ = ["PPO", "PPOConfig"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig(AgentConfig):
+    """PPO hyperparameters. ``preset("paper")`` gives SPEC section 5 (the paper's Table 3)."""
+
+    learning_rate: float = 3e-4
+    """Adam learning rate."""
+    rollout_steps: int = 2048
+    """transitions collected per training iteration (per agent)."""
+    batch_size: int = 128
+    """SGD minibatch size."""
+    epochs: int = 10
+    """passes over each rollout."""
+    gamma: float = 0.99
+    """discount factor."""
+    gae_lambda: float = 0.95
+    """GAE lambda (bias/variance trade-off of the advantages)."""
+    clip_coef: float = 0.2
+    """surrogate clipping range epsilon."""
+    kl_coef: float = 0.2
+    """initial coefficient of the KL penalty (0 disables it)."""
+    kl_target: float = 0.01
+    """KL divergence the adaptive coefficient aims for."""
+    vf_coef: float = 0.5
+    """value-loss coefficient."""
+    ent_coef: float = 0.0
+    """entropy-bonus coefficient."""
+    max_grad_norm: float = 0.5
+    """global gradient-norm clip."""
+    norm_adv: bool = True
+    """normalise advantages per minibatch."""
+    hidden: tuple[int, ...] = (64, 64)
+    """MLP hidden sizes for vector observations (images use the Nature CNN)."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        # SPEC section 5, Table 3. Unlisted fields keep the defaults above.
+        "paper": {
+            "learning_rate": 1e-3, "epochs": 8, "vf_coef": 1.0, "ent_coef": 0.01, "clip_coef": 0.3,
+            "kl_coef": 0.3, "kl_target": 0.03, "gae_lambda": 0.99,
+        },
+    }
+
+    def __post_init__(self):
+        check_range("learning_rate", self.learning_rate, 0, 1, low_inclusive=False)
+        check_range("rollout_steps", self.rollout_steps, 1)
+        check_range("batch_size", self.batch_size, 1, self.rollout_steps)
+        check_range("epochs", self.epochs, 1)
+        check_range("gamma", self.gamma, 0, 1)
+        check_range("gae_lambda", self.gae_lambda, 0, 1)
+        check_range("clip_coef", self.clip_coef, 0, None, low_inclusive=False)
+        check_range("kl_coef", self.kl_coef, 0)
+        check_range("kl_target", self.kl_target, 0, None, low_inclusive=False)
+        check_range("vf_coef", self.vf_coef, 0)
+        check_range("ent_coef", self.ent_coef, 0)
+        check_range("max_grad_norm", self.max_grad_norm, 0, None, low_inclusive=False)
+
+
+class PPO(Agent):
+    """Clipped-surrogate PPO with an adaptive KL penalty on one ActorCritic network."""
+
+    algo = "ppo"
+    config_class = PPOConfig
+    config: PPOConfig
+
+    @classmethod
+    def check_spaces(cls, observation_space, action_space) -> None:
+        if not isinstance(action_space, gymnasium.spaces.Discrete):
+            raise ValueError(f"PPO here supports Discrete action spaces, got {action_space!r}; use DDPG or TD3 for Box")
+        if not isinstance(observation_space, gymnasium.spaces.Box):
+            raise ValueError(f"PPO needs a Box observation space, got {observation_space!r}")
+
+    def _build(self) -> None:
+        cfg = self.config
+        n_actions = int(self.action_space.n)
+        self.net = ActorCritic(self.observation_space, n_actions, cfg.hidden).to(self.device)
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=cfg.learning_rate, eps=1e-5)
+        self.networks = {"net": self.net}
+        self.optimizers = {"optimizer": self.optimizer}
+        self.buffer = RolloutBuffer(cfg.rollout_steps, self.observation_space, n_logits=n_actions)
+        self.kl_coef = cfg.kl_coef
+        self.iterations = 0
+        self.steps = 0
+        self._cache: tuple[int, float, float, np.ndarray] | None = None
+        self._last_next_value = 0.0
+
+    # ---- acting -----------------------------------------------------------------------
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> int:
+        logits, value = self.net(self.obs_batch(obs))
+        if deterministic:
+            action = int(logits.argmax(-1).item())
+        else:
+            probs = torch.softmax(logits, -1)
+            action = int(torch.multinomial(probs, 1, generator=self.generator).item())
+        log_prob = torch.log_softmax(logits, -1)[0, action].item()
+        self._cache = (action, log_prob, value.item(), logits[0].cpu().numpy())
+        return action
+
+    @torch.no_grad()
+    def _value(self, obs: np.ndarray) -> float:
+        return self.net(self.obs_batch(obs))[1].item()
+
+    def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
+        action = int(action)
+        if self._cache is None or self._cache[0] != action:
+            # Transition did not come from our last act() (e.g. demonstrations): score it now.
+            with torch.no_grad():
+                logits, value = self.net(self.obs_batch(obs))
+            log_prob = torch.log_softmax(logits, -1)[0, action].item()
+            self._cache = (action, log_prob, value.item(), logits[0].numpy())
+        _, log_prob, value, logits = self._cache
+        self._cache = None
+        t = self.buffer.add(obs, action, log_prob, value, reward, terminated, truncated, logits)
+        self.steps += 1
+        if truncated and not terminated:
+            # Time limit, not a real end: bootstrap from the final observation (Pardo et al. 2018).
+            self.buffer.next_values[t] = self._value(next_obs)
+        if self.buffer.full and not (terminated or truncated):
+            self._last_next_value = self._value(next_obs)
+
+    # ---- learning ---------------------------------------------------------------------
+    def update(self) -> dict[str, float]:
+        if not self.buffer.full:
+            return {}
+        cfg, buf = self.config, self.buffer
+        next_values = buf.bootstrap_values(self._last_next_value)
+        advantages, returns = gae(
+            buf.rewards, buf.values, next_values, buf.terminateds, buf.truncateds, cfg.gamma, cfg.gae_lambda
+        )
+        b_obs = obs_to_tensor(buf.obs, self.device)
+        b_actions = torch.as_tensor(buf.actions, device=self.device)
+        b_log_probs = torch.as_tensor(buf.log_probs, device=self.device)
+        b_logits = torch.as_tensor(buf.logits, device=self.device)
+        b_advantages = torch.as_tensor(advantages, device=self.device)
+        b_returns = torch.as_tensor(returns, device=self.device)
+
+        n = cfg.rollout_steps
+        for _epoch in range(cfg.epochs):
+            epoch_stats: list[list[float]] = []
+            for mb in np.array_split(self.rng.permutation(n), max(1, n // cfg.batch_size)):
+                mb = torch.as_tensor(mb, device=self.device)
+                epoch_stats.append(
+                    self._minibatch_step(
+                        b_obs[mb], b_actions[mb], b_log_probs[mb], b_logits[mb], b_advantages[mb], b_returns[mb]
+                    )
+                )
+        pg_loss, v_loss, entropy, kl, clipfrac = np.mean(epoch_stats, axis=0)
+
+        # Adaptive KL coefficient, RLlib's rule, from the last epoch's mean KL.
+        if kl > 2.0 * cfg.kl_target:
+            self.kl_coef *= 1.5
+        elif kl < 0.5 * cfg.kl_target:
+            self.kl_coef *= 0.5
+        self.iterations += 1
+        self.buffer.reset()
+        explained_var = 1.0 - np.var(returns - buf.values) / max(np.var(returns), 1e-8)
+        return {
+            "losses/pg_loss": float(pg_loss),
+            "losses/v_loss": float(v_loss),
+            "losses/entropy": float(entropy),
+            "losses/kl": float(kl),
+            "losses/clipfrac": float(clipfrac),
+            "losses/explained_variance": float(explained_var),
+            "charts/kl_coef": float(self.kl_coef),
+            "charts/iterations": float(self.iterations),
+        }
+
+    def _minibatch_step(self, obs, actions, old_log_probs, old_logits, advantages, returns) -> list[float]:
+        cfg = self.config
+        logits, values = self.net(obs)
+        dist = Categorical(logits=logits)
+        log_probs = dist.log_prob(actions)
+        ratio = torch.exp(log_probs - old_log_probs)
+        # Exact KL(old || new) of the categorical policies, as RLlib's penalty uses.
+        kl = kl_divergence(Categorical(logits=old_logits), dist).mean()
+        if cfg.norm_adv and len(advantages) > 1:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+        pg_loss = torch.max(
+            -advantages * ratio, -advantages * torch.clamp(ratio, 1 - cfg.clip_coef, 1 + cfg.clip_coef)
+        ).mean()
+        v_loss = 0.5 * ((values - returns) ** 2).mean()
+        entropy = dist.entropy().mean()
+        loss = pg_loss + self.kl_coef * kl + cfg.vf_coef * v_loss - cfg.ent_coef * entropy
+
+        self.optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.net.parameters(), cfg.max_grad_norm)
+        self.optimizer.step()
+        clipfrac = ((ratio - 1.0).abs() > cfg.clip_coef).float().mean()
+        return [pg_loss.item(), v_loss.item(), entropy.item(), kl.item(), clipfrac.item()]
+
+    # ---- checkpoint extras ------------------------------------------------------------
+    def _extra_state(self) -> dict[str, Any]:
+        return {"kl_coef": float(self.kl_coef), "iterations": self.iterations, "steps": self.steps}
+
+    def _load_extra_state(self, state) -> None:
+        self.kl_coef = float(state.get("kl_coef", self.config.kl_coef))
+        self.iterations = int(state.get("iterations", 0))
+        self.steps = int(state.get("steps", 0))

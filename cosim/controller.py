@@ -1,0 +1,174 @@
+"""A scripted lane-following driver, usable as an AC policy (the `autopilot` reference).
+
+It follows its route's lane centre with pure pursuit at a target speed and
+brakes for what is ahead on its path (cars, pedestrians), for red and yellow
+lights, and for cars whose predicted paths cross its own in the next seconds.
+It reads the world directly (privileged), so it is a reference driver, not a
+learning agent.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cosim.dynamics import DISCRETE_ACTIONS
+from cosim.geometry import rect_corners
+from cosim.world import World
+
+COMFORT_DECEL = 3.0  # m/s^2 used to plan stops
+STOP_MARGIN = 2.5  # metres kept to what it stops behind
+LATERAL_ACCEL = 2.0  # m/s^2 allowed in curves
+WAIT_BEFORE_CREEP = 80  # steps stopped (not at a red light) before it creeps past crossing cars
+
+
+class Autopilot:
+    """Drive one AC of a :class:`World` along its route."""
+
+    def __init__(self, world: World, ac: str, target_speed: float | None = None,
+                 horizon: float = 3.0):
+        self.world = world
+        self.ac = ac
+        self.target_speed = target_speed or world.scenario.speed_limit * 0.9
+        self.horizon = horizon
+        self._waited = 0
+
+    def act(self) -> np.ndarray:
+        """Continuous action (throttle(+)/brake(-), steer) for the AC's current state."""
+        w = self.world
+        x, y, heading, v = w.ac_state(self.ac)
+        route = w.route(self.ac)
+        path = route.path
+        s, _ = path.project(x, y)
+        steer = self._steer(x, y, heading, v, path, s)
+        v_target = min(self.target_speed, self._curve_speed(path, s))
+        for gap in self._stops(x, y, heading, v, path, s):
+            v_target = min(v_target, math.sqrt(2 * COMFORT_DECEL * max(gap - STOP_MARGIN, 0.0)))
+        tls = w.next_tls(self.ac)
+        at_red = tls is not None and tls[0] in "rRyYu" and tls[1] < 15.0
+        self._waited = self._waited + 1 if (v < 0.2 and not at_red) else 0
+        if self._waited > WAIT_BEFORE_CREEP + 30:
+            self._waited = 0
+        a = 1.5 * (v_target - v)
+        if v_target < 0.3 and v < 1.0:
+            tb = -1.0
+        elif a >= 0:
+            tb = min(a / w.vehicle.max_accel, 1.0)
+        else:
+            tb = max(a / w.vehicle.max_brake, -1.0)
+        return np.array([tb, steer], dtype=np.float32)
+
+    def act_discrete(self) -> int:
+        """The nearest of the nine discrete actions to :meth:`act`."""
+        a = self.act()
+        return int(np.argmin(np.sum((DISCRETE_ACTIONS - a) ** 2 * [1.0, 4.0], axis=1)))
+
+    # -- pieces --------------------------------------------------------------
+    def _steer(self, x, y, heading, v, path, s) -> float:
+        lookahead = max(4.0, 0.5 * v + 2.0)
+        tx, ty = path.point_at(s + lookahead)
+        dx, dy = tx - x, ty - y
+        # target in the car's frame; +ly is to the left
+        lx = math.cos(heading) * dx + math.sin(heading) * dy
+        ly = -math.sin(heading) * dx + math.cos(heading) * dy
+        dist2 = max(lx * lx + ly * ly, 1e-6)
+        curvature = 2.0 * ly / dist2
+        delta = math.atan(curvature * self.world.vehicle.wheelbase)
+        return float(np.clip(-delta / self.world.vehicle.max_steer, -1.0, 1.0))
+
+    def _curve_speed(self, path, s) -> float:
+        h0 = path.heading_at(s)
+        worst = 0.0
+        for ahead in (5.0, 10.0, 15.0, 20.0):
+            dh = abs((path.heading_at(s + ahead) - h0 + math.pi) % (2 * math.pi) - math.pi)
+            worst = max(worst, dh / ahead)
+        return math.sqrt(LATERAL_ACCEL / worst) if worst > 1e-4 else float("inf")
+
+    def _stops(self, x, y, heading, v, path, s):
+        """Gaps (metres from the AC's centre) to everything it must stop behind."""
+        snap = self.world.snapshot
+        half = self.world.vehicle.length / 2
+        gaps = []
+        others = [j for j, vid in enumerate(snap.vehicle_ids) if self._respects(vid, j, heading)]
+        if others:
+            oxy = snap.vehicle_xy[others]
+            near = np.hypot(oxy[:, 0] - x, oxy[:, 1] - y) < 50.0
+            idx = np.array(others)[near]
+            if len(idx):
+                # a car blocks us when any corner of it is within our half width (+ margin)
+                # of our path ahead; corners, not centres, so a car half-way through a turn counts
+                corners = np.concatenate([
+                    rect_corners(*snap.vehicle_xy[j], snap.vehicle_heading[j],
+                                 snap.vehicle_length[j], snap.vehicle_width[j]) for j in idx
+                ])
+                sc, lat = path.project_many(corners)
+                sc, lat = sc.reshape(-1, 4), np.abs(lat).reshape(-1, 4)
+                inside = (sc > s) & (sc - s < 45.0) & (lat < self.world.vehicle.width / 2 + 0.5)
+                blocking = inside.any(axis=1)
+                for row in np.flatnonzero(blocking):
+                    gaps.append(float(sc[row][inside[row]].min()) - s - half)
+                gaps += self._crossing_gaps(x, y, v, path, s, idx[~blocking])
+        if len(snap.person_xy):
+            near = np.hypot(snap.person_xy[:, 0] - x, snap.person_xy[:, 1] - y) < 35.0
+            if near.any():
+                # where they are and where they will be in the next 3 s at walking speed:
+                # SUMO pedestrians do not avoid cars, so stop before their path, not in it
+                ph = snap.person_heading[near]
+                step = np.stack([np.cos(ph), np.sin(ph)], axis=1)
+                pts = [snap.person_xy[near] + d * step for d in (0.0, 1.3, 2.6, 3.9)]
+                sp, lat = path.project_many(np.concatenate(pts))
+                ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < 3.0)
+                gaps += list(sp[ahead] - s - half - 1.5)
+        tls = self.world.next_tls(self.ac)
+        if tls is not None:
+            state, dist = tls
+            if state in "rRyYu" and dist < 60.0:
+                # yellow: go if it cannot stop comfortably before the line
+                if state in "yY" and dist < v * v / (2 * COMFORT_DECEL):
+                    pass
+                else:
+                    gaps.append(dist + STOP_MARGIN - 1.0)
+        return gaps
+
+    def _respects(self, vid: str, j: int, heading: float) -> bool:
+        """Whether to stop for vehicle j. Same-direction leaders always count; among ACs
+        crossing or facing each other the lower index goes first (so ACs never gridlock);
+        after waiting too long it creeps past crossing traffic (a gridlock breaker)."""
+        if vid == self.ac:
+            return False
+        snap = self.world.snapshot
+        diff = abs((snap.vehicle_heading[j] - heading + math.pi) % (2 * math.pi) - math.pi)
+        if diff < math.pi / 4:
+            return True
+        if self._waited > WAIT_BEFORE_CREEP:
+            return False
+        if snap.vehicle_is_ac[j]:
+            return self.world.ac_ids.index(vid) < self.world.ac_ids.index(self.ac)
+        return True
+
+    def _crossing_gaps(self, x, y, v, path, s, idx) -> list[float]:
+        """Yield to cars whose straight-line paths meet ours within the horizon."""
+        snap = self.world.snapshot
+        if len(idx) == 0:
+            return []
+        ts = np.arange(0.5, self.horizon + 1e-9, 0.5)
+        v_self = max(v, 4.0)
+        mine = np.array([path.point_at(s + v_self * t) for t in ts])  # (T, 2)
+        gaps = []
+        for j in idx:
+            hj, vj = snap.vehicle_heading[j], snap.vehicle_speed[j]
+            if vj < 0.5:
+                continue
+            if snap.vehicle_is_ac[j]:  # ACs follow known routes: predict along them
+                other = self.world.route(snap.vehicle_ids[j]).path
+                sj, _ = other.project(*snap.vehicle_xy[j])
+                theirs = np.array([other.point_at(sj + vj * t) for t in ts])
+            else:
+                theirs = snap.vehicle_xy[j] + np.outer(ts * vj, [math.cos(hj), math.sin(hj)])
+            d = np.hypot(*(mine - theirs).T)
+            hit = np.flatnonzero(d < 3.5)
+            if len(hit):
+                conflict_s = s + v_self * ts[hit[0]]
+                gaps.append(conflict_s - s - 6.0)
+        return gaps

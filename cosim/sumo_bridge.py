@@ -1,0 +1,362 @@
+"""The SUMO side of the co-simulation: libsumo in-process, one simulation per process.
+
+SUMO runs the background cars and pedestrians. Each learning car (AC) is also a
+SUMO vehicle of its own vType, on a route to its goal (so foes see it and yield),
+with speed mode 0, moved every step with ``moveToXY(keepRoute=2)`` so it can leave
+the road. We read every actor near the region with two context subscriptions on
+POIs at the region centre: one call per step for cars, one for pedestrians.
+
+SUMO positions are front-bumper centres and compass angles (degrees clockwise
+from north); the bridge converts to vehicle centres and radians counter-clockwise
+from east, the convention of the rest of cosim.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cosim.errors import SimulatorUnavailable, SumoError
+from cosim.scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+# libsumo is one simulation per process: remember which bridge owns it, to fail clearly.
+_owner: weakref.ReferenceType | None = None
+
+PERSON_RADIUS = 0.3  # metres; a person's footprint is a circle
+_VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE = 0x42, 0x43, 0x40, 0x4F
+_CMD_GET_VEHICLE_VARIABLE, _CMD_GET_PERSON_VARIABLE = 0xA4, 0xAE
+
+
+def _libsumo():
+    try:
+        import sumo
+
+        os.environ.setdefault("SUMO_HOME", sumo.SUMO_HOME)
+        import libsumo
+    except ImportError as exc:  # reported when the simulation starts, never at import time
+        raise SimulatorUnavailable(
+            f"libsumo is not importable ({exc}); install it with "
+            "`pip install eclipse-sumo==1.28.0 libsumo==1.28.0`"
+        ) from exc
+    return libsumo
+
+
+def sumo_to_heading(angle_deg: float | np.ndarray):
+    """SUMO compass angle (deg, clockwise from north) -> radians counter-clockwise from east."""
+    return np.radians(90.0 - np.asarray(angle_deg))
+
+
+def heading_to_sumo(heading: float) -> float:
+    return (90.0 - math.degrees(heading)) % 360.0
+
+
+@dataclass
+class Snapshot:
+    """Every actor near the region at one instant (centres, radians, metres).
+
+    Cars include the ACs (``is_ac``); ``vehicle_ids`` of ACs are their agent names.
+    """
+
+    time: float
+    vehicle_ids: list[str]
+    vehicle_xy: np.ndarray  # (n, 2) centres
+    vehicle_heading: np.ndarray  # (n,)
+    vehicle_speed: np.ndarray  # (n,)
+    vehicle_length: np.ndarray  # (n,)
+    vehicle_width: np.ndarray  # (n,)
+    vehicle_is_ac: np.ndarray  # (n,) bool
+    person_ids: list[str]
+    person_xy: np.ndarray  # (m, 2)
+    person_heading: np.ndarray  # (m,)
+    extra: dict = field(default_factory=dict)
+
+    def actors(self) -> list[Actor]:
+        """The snapshot as a flat list, for the mirror and for people."""
+        out = [
+            Actor(vid, "ac" if ac else "car", float(x), float(y), float(h), float(ln), float(w))
+            for vid, (x, y), h, ln, w, ac in zip(
+                self.vehicle_ids,
+                self.vehicle_xy,
+                self.vehicle_heading,
+                self.vehicle_length,
+                self.vehicle_width,
+                self.vehicle_is_ac,
+                strict=True,
+            )
+        ]
+        out += [
+            Actor(pid, "pedestrian", float(x), float(y), float(h), 2 * PERSON_RADIUS, 2 * PERSON_RADIUS)
+            for pid, (x, y), h in zip(self.person_ids, self.person_xy, self.person_heading, strict=True)
+        ]
+        return out
+
+
+@dataclass(frozen=True)
+class Actor:
+    """One actor of a snapshot: id, kind (ac / car / pedestrian), pose, size."""
+
+    id: str
+    kind: str
+    x: float
+    y: float
+    heading: float
+    length: float
+    width: float
+
+
+class SumoBridge:
+    """Start / reset / step / close one SUMO simulation through libsumo.
+
+    Usable as a context manager; ``close()`` is idempotent. Every libsumo failure
+    surfaces as a :class:`SumoError` carrying SUMO's message, after SUMO is closed.
+    """
+
+    def __init__(self, scenario: Scenario, *, background: bool = True, pedestrians: bool = True):
+        self.scenario = scenario
+        self.background = background and scenario.background.enabled
+        self.pedestrians = pedestrians and scenario.pedestrians
+        self._ls = None
+        self._running = False
+        self._type_size: dict[str, tuple[float, float]] = {}
+        self._acs: dict[str, tuple[str, int, float]] = {}  # id -> (route id, lane, pos)
+        self.time = 0.0
+
+    # -- lifecycle -----------------------------------------------------------
+    def command(self, seed: int) -> list[str]:
+        sc = self.scenario
+        routes = list(sc.demand if self.background else ()) + list(
+            sc.pedestrian_demand if self.pedestrians else ()
+        )
+        cmd = [
+            "sumo",
+            "--net-file", str(sc.net),
+            "--step-length", repr(sc.dt),
+            "--seed", str(int(seed) % (2**31)),
+            "--collision.action", "none",  # we decide collisions ourselves
+            "--time-to-teleport", "-1",
+            "--time-to-teleport.disconnected", "-1",
+            "--scale", repr(sc.background.scale),
+            "--no-step-log", "true",
+            "--no-warnings", "true",
+            "--duration-log.disable", "true",
+        ]
+        if routes:
+            cmd += ["--route-files", ",".join(str(p) for p in routes)]
+        if sc.additional:
+            cmd += ["--additional-files", ",".join(str(p) for p in sc.additional)]
+        return cmd
+
+    def start(self, seed: int) -> None:
+        """Start (or restart with a new seed) the simulation and subscribe to the region."""
+        global _owner
+        ls = _libsumo()
+        owner = _owner() if _owner is not None else None
+        if owner is not None and owner is not self and owner._running:
+            raise SumoError(
+                "libsumo runs one SUMO simulation per process and another environment in this "
+                "process still has one open; close() it first, or run environments in worker "
+                "processes (one simulation per process)"
+            )
+        self._ls = ls
+        try:
+            if self._running:
+                ls.load(self.command(seed)[1:])
+            else:
+                ls.start(self.command(seed))
+                self._running = True
+                _owner = weakref.ref(self)
+            self._subscribe()
+        except ls.TraCIException as exc:
+            self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc)
+        except Exception as exc:  # libsumo raises FatalTraCIError/RuntimeError for broken input
+            self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc)
+        self._acs.clear()
+        self.time = 0.0
+
+    def _subscribe(self) -> None:
+        ls = self._ls
+        cx, cy = self.scenario.region.center
+        w, h = self.scenario.region.size
+        radius = math.hypot(w, h) / 2 + 30.0
+        ls.poi.add("cosim_region", cx, cy, (0, 0, 0, 0))
+        ls.poi.subscribeContext(
+            "cosim_region", _CMD_GET_VEHICLE_VARIABLE, radius,
+            [_VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE],
+        )
+        if self.pedestrians:
+            ls.poi.add("cosim_region_p", cx, cy, (0, 0, 0, 0))
+            ls.poi.subscribeContext(
+                "cosim_region_p", _CMD_GET_PERSON_VARIABLE, radius, [_VAR_POSITION, _VAR_ANGLE]
+            )
+
+    def close(self) -> None:
+        """Close SUMO. Safe to call twice or after a failure."""
+        global _owner
+        if self._running and self._ls is not None:
+            self._running = False
+            try:
+                self._ls.close()
+            except Exception as exc:  # already gone: nothing left to release
+                log.debug("libsumo.close() raised %s", exc)
+            if _owner is not None and _owner() is self:
+                _owner = None
+
+    @property
+    def running(self) -> bool:
+        return self._running
+
+    def __enter__(self) -> SumoBridge:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: modules may already be gone
+            pass
+
+    def _fail(self, what: str, exc: Exception):
+        self.close()
+        raise SumoError(f"{what}: {exc}") from exc
+
+    def _check(self):
+        if not self._running:
+            raise SumoError("the SUMO simulation is not running; call start()/reset() first")
+        return self._ls
+
+    # -- per-step ------------------------------------------------------------
+    def advance(self, seconds: float) -> None:
+        """Run background traffic alone for some simulated seconds (warm-up)."""
+        ls = self._check()
+        steps = int(round(seconds / self.scenario.dt))
+        try:
+            for _ in range(steps):
+                ls.simulationStep()
+        except ls.TraCIException as exc:
+            self._fail("SUMO failed during warm-up", exc)
+        self.time = ls.simulation.getTime()
+
+    def clear_around(self, points: np.ndarray, radius: float) -> int:
+        """Remove background cars within `radius` of any point (free the AC spawn spots)."""
+        ls = self._check()
+        res = ls.poi.getContextSubscriptionResults("cosim_region") or {}
+        removed = 0
+        for vid, var in res.items():
+            if vid in self._acs:
+                continue
+            x, y = var[_VAR_POSITION]
+            if np.min(np.hypot(points[:, 0] - x, points[:, 1] - y)) < radius:
+                ls.vehicle.remove(vid)
+                removed += 1
+        return removed
+
+    def add_ac(self, ac_id: str, edges, sumo_lane: int, pos: float, length: float, width: float,
+               color=(255, 40, 40, 255)) -> None:
+        """Add a learning car as a SUMO vehicle of its own vType on its route."""
+        ls = self._check()
+        try:
+            route_id = f"{ac_id}__route"
+            ls.route.add(route_id, list(edges))
+            type_id = f"{ac_id}__type"
+            ls.vehicletype.copy("DEFAULT_VEHTYPE", type_id)
+            ls.vehicletype.setLength(type_id, length)
+            ls.vehicletype.setWidth(type_id, width)
+            ls.vehicletype.setColor(type_id, color)
+            ls.vehicle.add(
+                ac_id, route_id, typeID=type_id, depart="now",
+                departLane=str(sumo_lane), departPos=f"{pos:.2f}", departSpeed="0",
+            )
+            ls.vehicle.setSpeedMode(ac_id, 0)
+            ls.vehicle.setLaneChangeMode(ac_id, 0)
+        except ls.TraCIException as exc:
+            self._fail(f"SUMO refused learning car {ac_id!r} on route {list(edges)}", exc)
+        self._acs[ac_id] = (route_id, sumo_lane, pos)
+
+    def move_ac(self, ac_id: str, x: float, y: float, heading: float, length: float) -> None:
+        """Place an AC (centre pose) for the next SUMO step; it may leave the road."""
+        ls = self._ls
+        fx = x + math.cos(heading) * length / 2
+        fy = y + math.sin(heading) * length / 2
+        try:
+            ls.vehicle.moveToXY(ac_id, "", -1, fx, fy, heading_to_sumo(heading), 2)
+        except ls.TraCIException:
+            # SUMO removed it (e.g. it ran off the end of its route): put it back, then move.
+            route_id, lane, pos = self._acs[ac_id]
+            try:
+                ls.vehicle.add(ac_id, route_id, typeID=f"{ac_id}__type", depart="now",
+                               departLane=str(lane), departPos=f"{pos:.2f}", departSpeed="0")
+                ls.vehicle.setSpeedMode(ac_id, 0)
+                ls.vehicle.moveToXY(ac_id, "", -1, fx, fy, heading_to_sumo(heading), 2)
+            except ls.TraCIException as exc:
+                self._fail(f"SUMO lost learning car {ac_id!r} and could not re-insert it", exc)
+
+    def remove_ac(self, ac_id: str) -> None:
+        """Take a finished AC out of SUMO so it no longer blocks traffic."""
+        if ac_id not in self._acs:
+            return
+        del self._acs[ac_id]
+        try:
+            self._ls.vehicle.remove(ac_id)
+        except self._ls.TraCIException:
+            pass  # not inserted (yet) or already gone: either way it is out
+
+    def step(self) -> None:
+        """Advance SUMO by one dt."""
+        ls = self._check()
+        try:
+            ls.simulationStep()
+        except ls.TraCIException as exc:
+            self._fail("SUMO failed during simulationStep", exc)
+        self.time += self.scenario.dt
+
+    def background_actors(self) -> tuple:
+        """(car ids, centres, headings, speeds, lengths, widths, person ids, xy, headings)."""
+        ls = self._ls
+        cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
+        ids, xy, hd, sp, ln, wd = [], [], [], [], [], []
+        for vid, var in cars.items():
+            if vid in self._acs:
+                continue
+            vtype = var[_VAR_TYPE]
+            size = self._type_size.get(vtype)
+            if size is None:
+                size = (ls.vehicletype.getLength(vtype), ls.vehicletype.getWidth(vtype))
+                self._type_size[vtype] = size
+            ids.append(vid)
+            xy.append(var[_VAR_POSITION])
+            hd.append(var[_VAR_ANGLE])
+            sp.append(var[_VAR_SPEED])
+            ln.append(size[0])
+            wd.append(size[1])
+        xy_a = np.asarray(xy, dtype=float).reshape(-1, 2)
+        heading = sumo_to_heading(np.asarray(hd, dtype=float))
+        length = np.asarray(ln, dtype=float)
+        # front bumper -> centre
+        xy_a = xy_a - np.stack([np.cos(heading), np.sin(heading)], axis=1) * (length[:, None] / 2)
+        persons = (
+            ls.poi.getContextSubscriptionResults("cosim_region_p") or {} if self.pedestrians else {}
+        )
+        pids = list(persons)
+        pxy = np.asarray([persons[p][_VAR_POSITION] for p in pids], dtype=float).reshape(-1, 2)
+        phd = sumo_to_heading(np.asarray([persons[p][_VAR_ANGLE] for p in pids], dtype=float))
+        return ids, xy_a, heading, np.asarray(sp, dtype=float), length, np.asarray(wd, dtype=float), pids, pxy, phd
+
+    def next_tls(self, ac_id: str) -> tuple[str, float] | None:
+        """(state char, distance m) of the next traffic light on the AC's route, if any."""
+        try:
+            nxt = self._ls.vehicle.getNextTLS(ac_id)
+        except self._ls.TraCIException:
+            return None
+        if not nxt:
+            return None
+        _tls, _index, dist, state = nxt[0]
+        return state, float(dist)

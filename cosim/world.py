@@ -1,0 +1,244 @@
+"""The world without cameras: SUMO traffic + ego dynamics + events + reward.
+
+:class:`World` owns one SUMO simulation and the state of N learning cars (ACs).
+The environments (:mod:`cosim.env`) add the PyBullet mirror and the cameras on
+top of it; benchmarks and the scripted controller use it directly.
+
+The order of one step (DESIGN.md), done in :meth:`World.step`:
+
+1. actions -> controls (throttle/brake, steer), validated per AC
+2. ego dynamics: kinematic bicycle over dt, for every active AC
+3. SUMO: each AC's pose pushed with moveToXY(keepRoute=2)
+4. SUMO: simulationStep(); background cars and pedestrians react
+5. SUMO: snapshot of every actor through the context subscriptions
+6. events: collisions (vehicle / pedestrian / object), off-road, wrong lane, goal
+7. reward: named terms + weighted sum
+8. termination / truncation; finished ACs leave SUMO
+(the env then syncs the PyBullet mirror to the snapshot and renders one camera per AC)
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cosim.dynamics import VehicleParams, bicycle_step
+from cosim.errors import EnvStateError, ScenarioError
+from cosim.events import Events, detect, reward_terms
+from cosim.roadmap import RoadMap, road_map
+from cosim.scenario import Scenario, load_scenario
+from cosim.sumo_bridge import Snapshot, SumoBridge
+
+log = logging.getLogger(__name__)
+
+SPAWN_CLEARANCE = 12.0  # metres around each spawn point cleared of background cars
+AC_COLORS = (
+    (230, 40, 40, 255), (250, 140, 20, 255), (200, 40, 200, 255),
+    (40, 200, 60, 255), (240, 220, 30, 255), (30, 200, 220, 255),
+)
+
+
+@dataclass
+class ACResult:
+    """One AC's outcome of a step."""
+
+    events: Events
+    reward_terms: dict[str, float]
+    reward: float
+    terminated: bool
+    truncated: bool
+    x: float
+    y: float
+    heading: float
+
+    def info(self) -> dict:
+        d = self.events.as_dict()
+        d.update(x=self.x, y=self.y, heading=self.heading, reward_terms=dict(self.reward_terms))
+        return d
+
+
+@dataclass
+class StepTimes:
+    """Wall seconds spent in each phase, accumulated since the last reset."""
+
+    dynamics: float = 0.0
+    sumo: float = 0.0
+    snapshot: float = 0.0
+    events: float = 0.0
+    steps: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+class World:
+    """SUMO + N ACs of one scenario. See the module docstring for the step order."""
+
+    def __init__(
+        self,
+        scenario: Scenario | str,
+        num_acs: int | None = None,
+        *,
+        background: bool = True,
+        pedestrians: bool = True,
+        vehicle: VehicleParams | None = None,
+    ):
+        self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
+        n = self.scenario.max_agents if num_acs is None else int(num_acs)
+        if not 1 <= n <= self.scenario.max_agents:
+            raise ScenarioError(
+                f"scenario {self.scenario.name!r} has spawn points for 1..{self.scenario.max_agents} "
+                f"learning cars, asked for {num_acs}"
+            )
+        self.num_acs = n
+        self.ac_ids = [f"ac_{i}" for i in range(n)]
+        self.vehicle = vehicle or VehicleParams()
+        self.roadmap: RoadMap = road_map(self.scenario)
+        self.routes = self.roadmap.routes[:n]
+        self.bridge = SumoBridge(self.scenario, background=background, pedestrians=pedestrians)
+        self.times = StepTimes()
+        self.snapshot: Snapshot | None = None
+        self.active: list[str] = []
+        self.step_count = 0
+        self._state = np.zeros((n, 4))  # x, y, heading, speed
+        self._distance = np.zeros(n)
+        self._started = False
+
+    # -- lifecycle -----------------------------------------------------------
+    def reset(self, seed: int = 0) -> dict[str, ACResult]:
+        """Restart SUMO with `seed`, warm up the traffic, place the ACs at their spawn poses."""
+        self.bridge.start(seed)
+        self._started = True
+        self.bridge.advance(self.scenario.warmup)
+        spawns = np.array([r.spawn_xy for r in self.routes])
+        self.bridge.clear_around(spawns, SPAWN_CLEARANCE)
+        for i, (ac, route) in enumerate(zip(self.ac_ids, self.routes, strict=True)):
+            x, y = route.spawn_xy
+            self._state[i] = (x, y, route.spawn_heading, 0.0)
+            self._distance[i] = route.goal_s - route.spawn_s
+            self.bridge.add_ac(
+                ac, route.edges, route.sumo_lane, route.spawn_s, self.vehicle.length,
+                self.vehicle.width, AC_COLORS[i % len(AC_COLORS)],
+            )
+        self.active = list(self.ac_ids)
+        self.step_count = 0
+        self.times = StepTimes()
+        # one SUMO step so the ACs are inserted and every actor has a pose
+        for i, ac in enumerate(self.ac_ids):
+            x, y, h, _ = self._state[i]
+            self.bridge.move_ac(ac, x, y, h, self.vehicle.length)
+        self.bridge.step()
+        self.snapshot = self._make_snapshot()
+        return {ac: self._result(i, initial=True) for i, ac in enumerate(self.ac_ids)}
+
+    def close(self) -> None:
+        """Close SUMO (idempotent)."""
+        self.bridge.close()
+        self._started = False
+
+    def __enter__(self) -> World:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- stepping ------------------------------------------------------------
+    def step(self, controls: dict[str, tuple[float, float]]) -> dict[str, ACResult]:
+        """Advance one dt. `controls` maps each active AC to (throttle/brake, steer) in [-1, 1].
+
+        Returns a result for every AC that was active at the start of the step;
+        the ones that terminated or were truncated are no longer active after it.
+        """
+        if not self._started or self.snapshot is None:
+            raise EnvStateError("World.step() called before reset()")
+        if not self.active:
+            raise EnvStateError("every learning car is done; call reset() to start a new episode")
+        t0 = time.perf_counter()
+        idx = np.array([self.ac_ids.index(a) for a in self.active])
+        tb = np.array([controls[a][0] for a in self.active], dtype=float)
+        steer = np.array([controls[a][1] for a in self.active], dtype=float)
+        s = self._state[idx]
+        # 2. ego dynamics
+        nx, ny, nh, nv = bicycle_step(
+            s[:, 0], s[:, 1], s[:, 2], s[:, 3], tb, steer, self.vehicle, self.scenario.dt
+        )
+        self._state[idx] = np.stack([nx, ny, nh, nv], axis=1)
+        # 3. poses to SUMO
+        for k, i in enumerate(idx):
+            self.bridge.move_ac(self.ac_ids[i], nx[k], ny[k], nh[k], self.vehicle.length)
+        t1 = time.perf_counter()
+        # 4. SUMO step
+        self.bridge.step()
+        t2 = time.perf_counter()
+        # 5. snapshot
+        self.snapshot = self._make_snapshot()
+        t3 = time.perf_counter()
+        # 6-8. events, reward, termination
+        self.step_count += 1
+        results = {self.ac_ids[i]: self._result(i) for i in idx}
+        for ac, res in results.items():
+            if res.terminated or res.truncated:
+                self.active.remove(ac)
+                self.bridge.remove_ac(ac)
+        t4 = time.perf_counter()
+        tm = self.times
+        tm.dynamics += t1 - t0
+        tm.sumo += t2 - t1
+        tm.snapshot += t3 - t2
+        tm.events += t4 - t3
+        tm.steps += 1
+        return results
+
+    def _make_snapshot(self) -> Snapshot:
+        ids, xy, hd, sp, ln, wd, pids, pxy, phd = self.bridge.background_actors()
+        active = [self.ac_ids.index(a) for a in self.active]
+        n = len(active)
+        st = self._state[active]
+        return Snapshot(
+            time=self.bridge.time,
+            vehicle_ids=ids + [self.ac_ids[i] for i in active],
+            vehicle_xy=np.concatenate([xy, st[:, :2]]) if n else xy,
+            vehicle_heading=np.concatenate([hd, st[:, 2]]),
+            vehicle_speed=np.concatenate([sp, st[:, 3]]),
+            vehicle_length=np.concatenate([ln, np.full(n, self.vehicle.length)]),
+            vehicle_width=np.concatenate([wd, np.full(n, self.vehicle.width)]),
+            vehicle_is_ac=np.concatenate([np.zeros(len(ids), bool), np.ones(n, bool)]),
+            person_ids=pids,
+            person_xy=pxy,
+            person_heading=phd,
+        )
+
+    def _result(self, i: int, initial: bool = False) -> ACResult:
+        sc = self.scenario
+        x, y, h, v = self._state[i]
+        ev = detect(
+            self.ac_ids[i], x, y, h, v, self.vehicle.length, self.vehicle.width,
+            self.snapshot, self.roadmap, self.routes[i], self._distance[i],
+            sc.termination.goal_radius,
+        )
+        self._distance[i] = ev.distance_to_goal
+        if initial:
+            ev.progress = 0.0
+        terms = reward_terms(ev, sc.reward, sc.speed_limit)
+        term = sc.termination
+        terminated = (
+            (term.on_collision and ev.collision)
+            or (term.on_goal and ev.goal_reached)
+            or (term.on_offroad and ev.off_road)
+            or (term.out_of_region and ev.out_of_region)
+        )
+        truncated = (not terminated) and self.step_count >= sc.horizon
+        return ACResult(ev, terms, float(sum(terms.values())), bool(terminated and not initial),
+                        bool(truncated), float(x), float(y), float(h))
+
+    # -- views for controllers and the mirror ---------------------------------
+    def ac_state(self, ac: str) -> tuple[float, float, float, float]:
+        """(x, y, heading, speed) of an AC."""
+        return tuple(float(v) for v in self._state[self.ac_ids.index(ac)])
+
+    def route(self, ac: str):
+        return self.routes[self.ac_ids.index(ac)]
+
+    def next_tls(self, ac: str):
+        return self.bridge.next_tls(ac)

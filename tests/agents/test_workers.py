@@ -1,0 +1,207 @@
+"""Tests of the worker-process machinery shared by A3C and IMPALA (agents/workers.py).
+
+Rollouts and the env runner are checked against hand-worked cases on fake
+envs; the pool is checked for what matters in production: a worker's
+exception reaches the parent with its traceback, and no worker survives a
+normal end, an exception or an interrupt.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from agents.envs import MultiColourBar
+from agents.workers import (
+    EnvRunner,
+    Rollout,
+    RolloutBuilder,
+    WorkerError,
+    WorkerPool,
+    get_context,
+    live_pids,
+    worker_seed,
+)
+
+# ----------------------------------------------------------------------------- worker targets
+# Top-level functions: spawn pickles them by name.
+
+
+def _report_then_wait(link, payload):
+    link.send((link.index, os.getpid(), payload))
+    while not link.should_stop():
+        time.sleep(0.01)
+
+
+def _raise_value_error(link):
+    raise ValueError("boom from a worker")
+
+
+def _ignore_stop(link):
+    link.send((link.index, os.getpid()))
+    while True:  # a stuck worker: never looks at the stop event
+        time.sleep(0.05)
+
+
+def _die_by_signal(link):
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+# ----------------------------------------------------------------------------- rollouts
+
+
+def _obs(value: float) -> np.ndarray:
+    return np.full(2, value, dtype=np.float32)
+
+
+def test_rollout_builder_keeps_next_obs_only_at_boundaries():
+    builder = RolloutBuilder("a")
+    builder.add(_obs(0), 1, 1.0, _obs(1), False, False, -0.5)
+    builder.add(_obs(1), 0, 2.0, _obs(2), False, True, -0.6)  # truncated: final obs is _obs(2)
+    builder.add(_obs(10), 1, 3.0, _obs(11), False, False, -0.7)  # after a reset
+    rollout = builder.build()
+
+    assert len(rollout) == 3 and len(builder) == 0
+    np.testing.assert_array_equal(rollout.final_index, [1, 2])
+    np.testing.assert_array_equal(rollout.final_obs, [_obs(2), _obs(11)])
+    np.testing.assert_array_equal(rollout.boundaries, [False, True, True])
+    np.testing.assert_array_equal(rollout.dones, [False, True, False])
+    np.testing.assert_allclose(rollout.log_probs, [-0.5, -0.6, -0.7])
+
+    values = np.array([10.0, 20.0, 30.0], dtype=np.float32)
+    next_values = rollout.next_values(values, lambda obs: obs[:, 0] * 100)
+    # step 0 -> V(obs[1]) = 20; steps 1 and 2 -> value_fn of their final obs.
+    np.testing.assert_allclose(next_values, [20.0, 200.0, 1100.0])
+
+
+def test_rollout_builder_marks_a_gap_in_the_stream_as_a_boundary():
+    builder = RolloutBuilder("a")
+    builder.add(_obs(0), 0, 0.0, _obs(1), False, False)
+    builder.add(_obs(5), 0, 0.0, _obs(6), False, False)  # obs is not the previous next_obs
+    rollout = builder.build()
+    np.testing.assert_array_equal(rollout.final_index, [0, 1])
+    np.testing.assert_array_equal(rollout.final_obs[0], _obs(1))
+
+
+def test_rollout_concat_shifts_boundaries():
+    parts = []
+    for start in (0, 100):
+        builder = RolloutBuilder("a")
+        for t in range(3):
+            builder.add(_obs(start + t), 0, 1.0, _obs(start + t + 1), False, False)
+        parts.append(builder.build())
+    batch = Rollout.concat(parts)
+    assert len(batch) == 6
+    np.testing.assert_array_equal(batch.final_index, [2, 5])
+    np.testing.assert_array_equal(batch.final_obs, [_obs(3), _obs(103)])
+
+
+def test_rollout_builder_refuses_an_empty_build():
+    with pytest.raises(ValueError, match="no transitions"):
+        RolloutBuilder("a").build()
+
+
+def test_env_runner_cuts_per_agent_rollouts_as_agents_leave():
+    # agent_0 lives 3 steps per episode, agent_1 lives 4: the episode lasts 4 env steps.
+    env = MultiColourBar([False, False], size=9, episode_length=3)
+    runner = EnvRunner(env, ["agent_0", "agent_1"], seed=0)
+    rollouts, episodes, env_steps = runner.collect(
+        {aid: (lambda obs: (1, -1.1)) for aid in env.possible_agents}, num_steps=10
+    )
+    assert env_steps == 10
+    # Steps 1-4, 5-8 are full episodes, 9-10 a partial one; agent_0 skips steps 4 and 8.
+    assert len(rollouts["agent_0"]) == 8 and len(rollouts["agent_1"]) == 10
+    assert len(episodes) == 2
+    assert [ep.lengths for ep in episodes] == [{"agent_0": 3, "agent_1": 4}] * 2
+    agent_1 = rollouts["agent_1"]
+    np.testing.assert_array_equal(np.flatnonzero(agent_1.truncateds), [3, 7])
+    np.testing.assert_array_equal(agent_1.final_index, [3, 7, 9])
+    first_return = episodes[0].returns["agent_1"]
+    assert first_return == pytest.approx(agent_1.rewards[:4].sum())
+
+
+def test_env_runner_rejects_agents_without_a_model():
+    env = MultiColourBar([False, False], size=9)
+    with pytest.raises(ValueError, match="agent_1"):
+        EnvRunner(env, ["agent_0"], seed=0)
+
+
+def test_worker_seeds_differ_and_repeat():
+    assert worker_seed(0, 0) != worker_seed(0, 1)
+    assert worker_seed(3, 1) == worker_seed(3, 1)
+
+
+def test_get_context_refuses_fork():
+    with pytest.raises(ValueError, match="fork"):
+        get_context("fork")
+
+
+# ----------------------------------------------------------------------------- pool
+
+
+def _assert_no_workers_left(pids):
+    assert live_pids(pids) == []
+    assert multiprocessing.active_children() == []
+
+
+def test_pool_delivers_messages_and_cleans_up():
+    with WorkerPool(_report_then_wait, [("x",), ("y",)]) as pool:
+        messages = []
+        while len(messages) < 2:
+            message = pool.get(timeout=30)
+            assert message is not None, "no message from the workers within 30 s"
+            messages.append(message)
+        pids = pool.pids
+        assert sorted(live_pids(pids)) == sorted(pids)
+    assert sorted((index, pid, payload) for index, pid, payload in messages) == [
+        (0, pids[0], "x"),
+        (1, pids[1], "y"),
+    ]
+    _assert_no_workers_left(pids)
+
+
+def test_worker_exception_is_raised_in_parent_with_its_traceback():
+    with pytest.raises(WorkerError) as info:
+        with WorkerPool(_raise_value_error, [()]) as pool:
+            pids = pool.pids
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                pool.get(timeout=0.2)
+    error = info.value
+    assert error.worker_index == 0
+    assert "ValueError: boom from a worker" in str(error)
+    assert "_raise_value_error" in error.worker_traceback  # the worker's frame, not the parent's
+    _assert_no_workers_left(pids)
+
+
+def test_worker_killed_by_a_signal_is_reported():
+    with pytest.raises(WorkerError, match="exited with code"):
+        with WorkerPool(_die_by_signal, [()]) as pool:
+            pids = pool.pids
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                pool.get(timeout=0.2)
+    _assert_no_workers_left(pids)
+
+
+def test_interrupt_terminates_even_a_stuck_worker():
+    with pytest.raises(KeyboardInterrupt):
+        with WorkerPool(_ignore_stop, [(), ()], join_timeout=0.5) as pool:
+            pids = pool.pids
+            for _ in range(2):
+                assert pool.get(timeout=30) is not None
+            raise KeyboardInterrupt  # what Ctrl-C does in the parent
+    _assert_no_workers_left(pids)
+
+
+def test_pool_restores_the_sigterm_handler():
+    before = signal.getsignal(signal.SIGTERM)
+    with WorkerPool(_report_then_wait, [("x",)]) as pool:
+        assert signal.getsignal(signal.SIGTERM) is not before
+        pool.get(timeout=30)
+    assert signal.getsignal(signal.SIGTERM) is before
