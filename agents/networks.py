@@ -5,7 +5,7 @@ Encoders turn an observation batch into a feature vector: :class:`NatureCNN`
 vectors; :func:`make_encoder` picks one from the observation space. The heads
 built on them are the ones the algorithms need: :class:`ActorCritic` (PPO, A3C,
 IMPALA), :class:`DuelingQNetwork` (DQN), :class:`DeterministicActor` and
-:class:`QCritic` (DDPG, TD3). :func:`polyak_update` is the soft target update.
+:class:`QCritic` / :class:`QEnsemble` (DDPG, TD3). :func:`polyak_update` is the soft target update.
 
 Only torch, numpy and Gymnasium spaces are used here: the driving simulator is
 invisible to this package.
@@ -27,6 +27,7 @@ __all__ = [
     "MLPEncoder",
     "NatureCNN",
     "QCritic",
+    "QEnsemble",
     "dueling_aggregate",
     "layer_init",
     "make_encoder",
@@ -255,44 +256,66 @@ class DeterministicActor(nn.Module):
         return self.action_bias + self.action_scale * torch.tanh(self.mu(self.encoder(obs)))
 
 
-class QCritic(nn.Module):
-    """State-action value ``Q(s, a) -> (B,)``; the action joins after the encoder.
+class QEnsemble(nn.Module):
+    """``n_critics`` state-action values ``Q_i(s, a) -> (n_critics, B)``.
 
-    Actions are normalised to [-1, 1] before concatenation so the critic sees the
-    same scale whatever the Box bounds are.
+    For images the heads share one Nature CNN (as SB3's ``ContinuousCritic``
+    does); for vectors each head is its own MLP on ``concat(obs, action)``
+    (CleanRL's TD3). Actions are normalised to [-1, 1] before concatenation so
+    the critic sees the same scale whatever the Box bounds are.
     """
 
-    def __init__(self, observation_space, action_space: gymnasium.spaces.Box, hidden: tuple[int, ...] = (256, 256)):
+    def __init__(
+        self,
+        observation_space,
+        action_space: gymnasium.spaces.Box,
+        n_critics: int = 2,
+        hidden: tuple[int, ...] = (256, 256),
+    ):
         super().__init__()
         _check_box(action_space)
-        action_dim = action_space.shape[0]
+        if n_critics < 1:
+            raise ValueError(f"QEnsemble needs n_critics >= 1, got {n_critics}")
         if _is_image_space(observation_space):
-            self.encoder = NatureCNN(tuple(observation_space.shape))
-            self.head = nn.Sequential(
-                layer_init(nn.Linear(self.encoder.features_dim + action_dim, hidden[-1])),
-                nn.ReLU(),
-                layer_init(nn.Linear(hidden[-1], 1), std=1.0),
-            )
+            self.encoder: nn.Module = NatureCNN(tuple(observation_space.shape))
+            in_dim = self.encoder.features_dim
         else:
-            # Flat observations: CleanRL-style MLP on concat(obs, action) from the start.
             self.encoder = nn.Flatten()
-            layers: list[nn.Module] = []
-            width = int(np.prod(observation_space.shape)) + action_dim
-            for size in hidden:
-                layers += [layer_init(nn.Linear(width, size)), nn.ReLU()]
-                width = size
-            layers.append(layer_init(nn.Linear(width, 1), std=1.0))
-            self.head = nn.Sequential(*layers)
+            in_dim = int(np.prod(observation_space.shape))
+        in_dim += action_space.shape[0]
+        self.heads = nn.ModuleList(_mlp(in_dim, hidden, 1) for _ in range(n_critics))
         low = torch.as_tensor(action_space.low, dtype=torch.float32)
         high = torch.as_tensor(action_space.high, dtype=torch.float32)
         self.register_buffer("action_scale", (high - low) / 2.0)
         self.register_buffer("action_bias", (high + low) / 2.0)
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Return ``Q(obs, action)`` with shape ``(B,)``."""
+        """Return ``Q_i(obs, action)`` stacked to shape ``(n_critics, B)``."""
         features = self.encoder(obs if isinstance(self.encoder, NatureCNN) else obs.float())
         normalised = (action.float() - self.action_bias) / self.action_scale
-        return self.head(torch.cat([features, normalised], dim=-1)).squeeze(-1)
+        x = torch.cat([features, normalised], dim=-1)
+        return torch.stack([head(x).squeeze(-1) for head in self.heads])
+
+
+def _mlp(in_dim: int, hidden: tuple[int, ...], out_dim: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for size in hidden:
+        layers += [layer_init(nn.Linear(in_dim, size)), nn.ReLU()]
+        in_dim = size
+    layers.append(layer_init(nn.Linear(in_dim, out_dim), std=1.0))
+    return nn.Sequential(*layers)
+
+
+class QCritic(nn.Module):
+    """One state-action value ``Q(s, a) -> (B,)`` (a one-head :class:`QEnsemble`)."""
+
+    def __init__(self, observation_space, action_space: gymnasium.spaces.Box, hidden: tuple[int, ...] = (256, 256)):
+        super().__init__()
+        self.ensemble = QEnsemble(observation_space, action_space, 1, hidden)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Return ``Q(obs, action)`` with shape ``(B,)``."""
+        return self.ensemble(obs, action)[0]
 
 
 @torch.no_grad()

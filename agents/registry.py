@@ -17,8 +17,8 @@ ALGORITHMS: dict[str, str] = {
     "dqn": "agents.dqn:DQN",
     "ddpg": "agents.ddpg:DDPG",
     "td3": "agents.td3:TD3",
-    # "a3c": "agents.a3c:A3C",
-    # "impala": "agents.impala:IMPALA",
+    "a3c": "agents.a3c:A3C",
+    "impala": "agents.impala:IMPALA",
 }
 # ---------------------------------------------------------------------------------------
 

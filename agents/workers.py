@@ -97,7 +97,13 @@ def get_context(start_method: str = "spawn"):
             f"start_method must be one of {START_METHODS}, got {start_method!r}; "
             "'fork' is unsafe with torch threads and one-simulation-per-process simulators"
         )
-    return mp.get_context(start_method)
+    context = mp.get_context(start_method)
+    if start_method == "forkserver":
+        # The fork server imports torch once; every worker forks from it ready-made
+        # (~0.05 s instead of ~2 s per spawned process). Nothing simulator-side is
+        # preloaded, so each worker still builds its own simulation.
+        context.set_forkserver_preload(["agents.workers"])
+    return context
 
 
 def live_pids(pids: Sequence[int]) -> list[int]:
@@ -138,13 +144,15 @@ class WorkerLink:
         index: Worker index, 0..N-1.
         stop_event: Set by the parent when every worker must stop.
         results: Queue of messages for the parent.
-        parent_pid: The parent's pid, so a worker notices when its parent died.
+        parent_pid: Pid of the worker's parent process, recorded when the worker
+            starts (the main process under spawn, the fork server under
+            forkserver); when it changes, the parent died and we were reparented.
     """
 
     index: int
     stop_event: Any
     results: Any
-    parent_pid: int
+    parent_pid: int | None = None
 
     def should_stop(self) -> bool:
         """True when the parent asked to stop, or is gone (we must not outlive it)."""
@@ -171,6 +179,7 @@ def _worker_entry(target: Callable, link: WorkerLink, args: tuple, errors) -> No
     torch.set_num_threads(1)
     # The parent owns Ctrl-C; it tells us to stop through the event.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    link.parent_pid = os.getppid()
     try:
         target(link, *args)
     except BaseException as exc:  # KeyboardInterrupt, SystemExit too: all must reach the parent
@@ -246,7 +255,7 @@ class WorkerPool:
         self._install_sigterm_handler()
         try:
             for index, args in enumerate(self.worker_args):
-                link = WorkerLink(index, self.stop_event, self.results, os.getpid())
+                link = WorkerLink(index, self.stop_event, self.results)
                 process = self.context.Process(
                     target=_worker_entry,
                     args=(self.target, link, args, self.errors),

@@ -33,6 +33,7 @@ class Autopilot:
         self.target_speed = target_speed or world.scenario.speed_limit * 0.9
         self.horizon = horizon
         self._waited = 0
+        self._conflicts: dict[str, tuple[float, float] | None] = {}
 
     def act(self) -> np.ndarray:
         """Continuous action (throttle(+)/brake(-), steer) for the AC's current state."""
@@ -66,15 +67,18 @@ class Autopilot:
 
     # -- pieces --------------------------------------------------------------
     def _steer(self, x, y, heading, v, path, s) -> float:
-        lookahead = max(4.0, 0.5 * v + 2.0)
-        tx, ty = path.point_at(s + lookahead)
-        dx, dy = tx - x, ty - y
+        """Pure pursuit from the rear axle, which tracks arcs of the path exactly."""
+        wb = self.world.vehicle.wheelbase
+        rx, ry = x - math.cos(heading) * wb / 2, y - math.sin(heading) * wb / 2
+        s_rear, _ = path.project(rx, ry)
+        lookahead = max(3.5, 0.4 * v + 2.0)
+        tx, ty = path.point_at(s_rear + lookahead)
+        dx, dy = tx - rx, ty - ry
         # target in the car's frame; +ly is to the left
         lx = math.cos(heading) * dx + math.sin(heading) * dy
         ly = -math.sin(heading) * dx + math.cos(heading) * dy
         dist2 = max(lx * lx + ly * ly, 1e-6)
-        curvature = 2.0 * ly / dist2
-        delta = math.atan(curvature * self.world.vehicle.wheelbase)
+        delta = math.atan(2.0 * wb * ly / dist2)
         return float(np.clip(-delta / self.world.vehicle.max_steer, -1.0, 1.0))
 
     def _curve_speed(self, path, s) -> float:
@@ -89,6 +93,7 @@ class Autopilot:
         """Gaps (metres from the AC's centre) to everything it must stop behind."""
         snap = self.world.snapshot
         half = self.world.vehicle.length / 2
+        half_w = self.world.vehicle.width / 2
         gaps = []
         others = [j for j, vid in enumerate(snap.vehicle_ids) if self._respects(vid, j, heading)]
         if others:
@@ -114,12 +119,17 @@ class Autopilot:
             if near.any():
                 # where they are and where they will be in the next 3 s at walking speed:
                 # SUMO pedestrians do not avoid cars, so stop before their path, not in it
-                ph = snap.person_heading[near]
-                step = np.stack([np.cos(ph), np.sin(ph)], axis=1)
-                pts = [snap.person_xy[near] + d * step for d in (0.0, 1.3, 2.6, 3.9)]
-                sp, lat = path.project_many(np.concatenate(pts))
-                ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < 3.0)
+                ph, pv = snap.person_heading[near], snap.person_speed[near]
+                step = np.stack([np.cos(ph), np.sin(ph)], axis=1) * pv[:, None]
+                pts = np.concatenate([snap.person_xy[near] + t * step for t in (0.0, 1.0, 2.0, 3.0)])
+                # people standing still (waiting at the kerb for us) block only right in front
+                reach = np.tile(np.where(pv > 0.2, 1.8, half_w + 0.3), 4)
+                on_road = self.world.roadmap.drivable.lookup(pts)
+                pts, reach = pts[on_road], reach[on_road]
+                sp, lat = path.project_many(pts) if len(pts) else (np.zeros(0), np.zeros(0))
+                ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < reach)
                 gaps += list(sp[ahead] - s - half - 1.5)
+        gaps += self._ac_conflict_gaps(s)
         tls = self.world.next_tls(self.ac)
         if tls is not None:
             state, dist = tls
@@ -130,6 +140,42 @@ class Autopilot:
                 else:
                     gaps.append(dist + STOP_MARGIN - 1.0)
         return gaps
+
+    def _ac_conflict_gaps(self, s: float) -> list[float]:
+        """Give way to lower-index ACs whose routes cross or merge with ours, until they pass."""
+        gaps = []
+        me = self.world.ac_ids.index(self.ac)
+        for other in self.world.active:
+            j = self.world.ac_ids.index(other)
+            if j >= me:
+                continue
+            conflict = self._conflict(other)
+            if conflict is None:
+                continue
+            my_s, their_s = conflict
+            ox, oy, _, vj = self.world.ac_state(other)
+            sj, _ = self.world.route(other).path.project(ox, oy)
+            to_go = their_s - sj
+            # a waiting AC (red light, queue) far from the conflict does not hold us up
+            they_approach = -6.0 < to_go < 35.0 and (vj > 1.0 or to_go < 8.0)
+            if they_approach and s < my_s - 1.0 and my_s - s < 40.0:
+                gaps.append(my_s - s - 4.0)
+        return gaps
+
+    def _conflict(self, other: str):
+        """(our arc length, their arc length) where the two routes first come within 3 m
+        of each other, ignoring a shared start (same lane, car-following handles that)."""
+        if other not in self._conflicts:
+            mine = self.world.route(self.ac).path
+            theirs = self.world.route(other).path
+            pts = np.array([mine.point_at(t) for t in np.arange(0, mine.length, 1.0)])
+            st, lat = theirs.project_many(pts)
+            close = np.flatnonzero(np.abs(lat) < 3.0)
+            result = None
+            if len(close) and close[0] > 0:
+                result = (float(close[0]), float(st[close[0]]))
+            self._conflicts[other] = result
+        return self._conflicts[other]
 
     def _respects(self, vid: str, j: int, heading: float) -> bool:
         """Whether to stop for vehicle j. Same-direction leaders always count; among ACs
@@ -160,12 +206,9 @@ class Autopilot:
             hj, vj = snap.vehicle_heading[j], snap.vehicle_speed[j]
             if vj < 0.5:
                 continue
-            if snap.vehicle_is_ac[j]:  # ACs follow known routes: predict along them
-                other = self.world.route(snap.vehicle_ids[j]).path
-                sj, _ = other.project(*snap.vehicle_xy[j])
-                theirs = np.array([other.point_at(sj + vj * t) for t in ts])
-            else:
-                theirs = snap.vehicle_xy[j] + np.outer(ts * vj, [math.cos(hj), math.sin(hj)])
+            if snap.vehicle_is_ac[j]:
+                continue  # ACs are handled by route conflicts (_ac_conflict_gaps)
+            theirs = snap.vehicle_xy[j] + np.outer(ts * vj, [math.cos(hj), math.sin(hj)])
             d = np.hypot(*(mine - theirs).T)
             hit = np.flatnonzero(d < 3.5)
             if len(hit):

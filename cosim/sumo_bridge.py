@@ -75,6 +75,7 @@ class Snapshot:
     person_ids: list[str]
     person_xy: np.ndarray  # (m, 2)
     person_heading: np.ndarray  # (m,)
+    person_speed: np.ndarray  # (m,)
     extra: dict = field(default_factory=dict)
 
     def actors(self) -> list[Actor]:
@@ -126,6 +127,7 @@ class SumoBridge:
         self._running = False
         self._type_size: dict[str, tuple[float, float]] = {}
         self._acs: dict[str, tuple[str, int, float]] = {}  # id -> (route id, lane, pos)
+        self._pinned: dict[str, tuple[float, float, str]] = {}  # person id -> (x, y, edge)
         self.time = 0.0
 
     # -- lifecycle -----------------------------------------------------------
@@ -178,6 +180,7 @@ class SumoBridge:
         except Exception as exc:  # libsumo raises FatalTraCIError/RuntimeError for broken input
             self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc)
         self._acs.clear()
+        self._pinned.clear()
         self.time = 0.0
 
     def _subscribe(self) -> None:
@@ -193,7 +196,8 @@ class SumoBridge:
         if self.pedestrians:
             ls.poi.add("cosim_region_p", cx, cy, (0, 0, 0, 0))
             ls.poi.subscribeContext(
-                "cosim_region_p", _CMD_GET_PERSON_VARIABLE, radius, [_VAR_POSITION, _VAR_ANGLE]
+                "cosim_region_p", _CMD_GET_PERSON_VARIABLE, radius,
+                [_VAR_POSITION, _VAR_ANGLE, _VAR_SPEED],
             )
 
     def close(self) -> None:
@@ -299,6 +303,41 @@ class SumoBridge:
             except ls.TraCIException as exc:
                 self._fail(f"SUMO lost learning car {ac_id!r} and could not re-insert it", exc)
 
+    def place_car(self, vid: str, x: float, y: float, heading: float, edge: str) -> None:
+        """Put a standing background car at a centre pose (for tests and scripted set-ups).
+
+        `edge` is any edge it could drive on; the car never moves by itself.
+        """
+        ls = self._check()
+        try:
+            if "cosim_parked" not in ls.vehicletype.getIDList():
+                ls.vehicletype.copy("DEFAULT_VEHTYPE", "cosim_parked")
+                ls.vehicletype.setLength("cosim_parked", 4.5)
+                ls.vehicletype.setWidth("cosim_parked", 1.8)
+            ls.route.add(f"{vid}__route", [edge])
+            ls.vehicle.add(vid, f"{vid}__route", typeID="cosim_parked", depart="now", departSpeed="0")
+            ls.vehicle.setSpeedMode(vid, 0)
+            ls.vehicle.setSpeed(vid, 0.0)
+            fx, fy = x + math.cos(heading) * 2.25, y + math.sin(heading) * 2.25
+            ls.vehicle.moveToXY(vid, edge, -1, fx, fy, heading_to_sumo(heading), 2)
+        except ls.TraCIException as exc:
+            self._fail(f"SUMO refused to place car {vid!r}", exc)
+
+    def place_person(self, pid: str, x: float, y: float, edge: str) -> None:
+        """Pin a standing pedestrian at (x, y), e.g. on a crossing (tests, scripted set-ups).
+
+        SUMO puts a waiting person back on its edge, so the bridge re-places pinned
+        people before every step.
+        """
+        ls = self._check()
+        try:
+            ls.person.add(pid, edge, 0.0)
+            ls.person.appendWaitingStage(pid, 100000.0)
+            ls.person.moveToXY(pid, edge, x, y, keepRoute=2)
+        except ls.TraCIException as exc:
+            self._fail(f"SUMO refused to place person {pid!r}", exc)
+        self._pinned[pid] = (x, y, edge)
+
     def remove_ac(self, ac_id: str) -> None:
         """Take a finished AC out of SUMO so it no longer blocks traffic."""
         if ac_id not in self._acs:
@@ -313,13 +352,15 @@ class SumoBridge:
         """Advance SUMO by one dt."""
         ls = self._check()
         try:
+            for pid, (x, y, edge) in self._pinned.items():
+                ls.person.moveToXY(pid, edge, x, y, keepRoute=2)
             ls.simulationStep()
         except ls.TraCIException as exc:
             self._fail("SUMO failed during simulationStep", exc)
         self.time += self.scenario.dt
 
     def background_actors(self) -> tuple:
-        """(car ids, centres, headings, speeds, lengths, widths, person ids, xy, headings)."""
+        """(car ids, centres, headings, speeds, lengths, widths, person ids, xy, headings, speeds)."""
         ls = self._ls
         cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
         ids, xy, hd, sp, ln, wd = [], [], [], [], [], []
@@ -348,7 +389,9 @@ class SumoBridge:
         pids = list(persons)
         pxy = np.asarray([persons[p][_VAR_POSITION] for p in pids], dtype=float).reshape(-1, 2)
         phd = sumo_to_heading(np.asarray([persons[p][_VAR_ANGLE] for p in pids], dtype=float))
-        return ids, xy_a, heading, np.asarray(sp, dtype=float), length, np.asarray(wd, dtype=float), pids, pxy, phd
+        psp = np.asarray([persons[p][_VAR_SPEED] for p in pids], dtype=float)
+        return (ids, xy_a, heading, np.asarray(sp, dtype=float), length, np.asarray(wd, dtype=float),
+                pids, pxy, phd, psp)
 
     def next_tls(self, ac_id: str) -> tuple[str, float] | None:
         """(state char, distance m) of the next traffic light on the AC's route, if any."""

@@ -191,7 +191,7 @@ class World:
         return results
 
     def _make_snapshot(self) -> Snapshot:
-        ids, xy, hd, sp, ln, wd, pids, pxy, phd = self.bridge.background_actors()
+        ids, xy, hd, sp, ln, wd, pids, pxy, phd, psp = self.bridge.background_actors()
         active = [self.ac_ids.index(a) for a in self.active]
         n = len(active)
         st = self._state[active]
@@ -207,6 +207,7 @@ class World:
             person_ids=pids,
             person_xy=pxy,
             person_heading=phd,
+            person_speed=psp,
         )
 
     def _result(self, i: int, initial: bool = False) -> ACResult:
@@ -231,6 +232,13 @@ class World:
         truncated = (not terminated) and self.step_count >= sc.horizon
         return ACResult(ev, terms, float(sum(terms.values())), bool(terminated and not initial),
                         bool(truncated), float(x), float(y), float(h))
+
+    def place_ac(self, ac: str, x: float, y: float, heading: float, speed: float = 0.0) -> None:
+        """Teleport an AC to a pose (scripted set-ups and tests); takes effect next step."""
+        i = self.ac_ids.index(ac)
+        self._state[i] = (x, y, heading, speed)
+        s, _ = self.routes[i].path.project(x, y)
+        self._distance[i] = max(self.routes[i].goal_s - s, 0.0)
 
     # -- views for controllers and the mirror ---------------------------------
     def ac_state(self, ac: str) -> tuple[float, float, float, float]:

@@ -143,6 +143,10 @@ def test_get_context_refuses_fork():
 
 # ----------------------------------------------------------------------------- pool
 
+# forkserver: workers fork from a server that imported torch once, so each pool
+# starts in ~0.05 s; the spawn path is exercised by the trainers' tests.
+FORKSERVER = get_context("forkserver")
+
 
 def _assert_no_workers_left(pids):
     assert live_pids(pids) == []
@@ -150,7 +154,7 @@ def _assert_no_workers_left(pids):
 
 
 def test_pool_delivers_messages_and_cleans_up():
-    with WorkerPool(_report_then_wait, [("x",), ("y",)]) as pool:
+    with WorkerPool(_report_then_wait, [("x",), ("y",)], context=FORKSERVER) as pool:
         messages = []
         while len(messages) < 2:
             message = pool.get(timeout=30)
@@ -167,7 +171,7 @@ def test_pool_delivers_messages_and_cleans_up():
 
 def test_worker_exception_is_raised_in_parent_with_its_traceback():
     with pytest.raises(WorkerError) as info:
-        with WorkerPool(_raise_value_error, [()]) as pool:
+        with WorkerPool(_raise_value_error, [()], context=FORKSERVER) as pool:
             pids = pool.pids
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline:
@@ -181,7 +185,7 @@ def test_worker_exception_is_raised_in_parent_with_its_traceback():
 
 def test_worker_killed_by_a_signal_is_reported():
     with pytest.raises(WorkerError, match="exited with code"):
-        with WorkerPool(_die_by_signal, [()]) as pool:
+        with WorkerPool(_die_by_signal, [()], context=FORKSERVER) as pool:
             pids = pool.pids
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline:
@@ -191,7 +195,7 @@ def test_worker_killed_by_a_signal_is_reported():
 
 def test_interrupt_terminates_even_a_stuck_worker():
     with pytest.raises(KeyboardInterrupt):
-        with WorkerPool(_ignore_stop, [(), ()], join_timeout=0.5) as pool:
+        with WorkerPool(_ignore_stop, [(), ()], context=FORKSERVER, join_timeout=0.5) as pool:
             pids = pool.pids
             for _ in range(2):
                 assert pool.get(timeout=30) is not None
@@ -201,7 +205,7 @@ def test_interrupt_terminates_even_a_stuck_worker():
 
 def test_pool_restores_the_sigterm_handler():
     before = signal.getsignal(signal.SIGTERM)
-    with WorkerPool(_report_then_wait, [("x",)]) as pool:
+    with WorkerPool(_report_then_wait, [("x",)], context=FORKSERVER) as pool:
         assert signal.getsignal(signal.SIGTERM) is not before
         pool.get(timeout=30)
     assert signal.getsignal(signal.SIGTERM) is before

@@ -1,0 +1,199 @@
+"""Twin Delayed DDPG (Fujimoto et al. 2018), and the machinery DDPG reuses.
+
+TD3 = DDPG + three tricks: twin critics (the target takes their minimum),
+target policy smoothing (clipped Gaussian noise on the target action) and
+delayed actor/target updates. ``agents/ddpg.py`` is this class with the tricks
+switched off (one critic, no target noise, policy delay 1), as in SB3.
+
+Reads top to bottom: config, agent (act / observe / update), losses.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import logging
+from typing import Any, ClassVar
+
+import gymnasium
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from agents.base import Agent, AgentConfig, check_range
+from agents.buffers import ReplayBuffer
+from agents.networks import DeterministicActor, QEnsemble, polyak_update
+
+__all__ = ["TD3", "TD3Config"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class TD3Config(AgentConfig):
+    """TD3 hyperparameters. ``preset("paper")`` gives SPEC section 5 (the paper's Table 3).
+
+    The paper's replay of 500 transitions and tau of 0.0002 (a target network
+    that moves ~5000x slower than the online one over a short run) prevent
+    learning; the default keeps 100k transitions and the usual tau 0.005.
+    """
+
+    actor_learning_rate: float = 1e-3
+    """Adam learning rate of the actor."""
+    critic_learning_rate: float = 1e-3
+    """Adam learning rate of the critic(s)."""
+    buffer_size: int = 100_000
+    """replay capacity in transitions (paper: 500, which prevents learning)."""
+    batch_size: int = 128
+    """minibatch size per gradient step."""
+    gamma: float = 0.99
+    """discount factor."""
+    tau: float = 0.005
+    """Polyak factor of the target networks (paper: 0.0002)."""
+    learning_starts: int = 5_000
+    """transitions of uniform random actions before learning starts."""
+    train_freq: int = 1
+    """env steps between training phases."""
+    gradient_steps: int = 1
+    """gradient steps per training phase."""
+    exploration_noise: float = 0.1
+    """std of the Gaussian exploration noise, as a fraction of the action half-range (paper sigma: 0.2)."""
+    target_policy_noise: float = 0.2
+    """std of the target-policy smoothing noise, as a fraction of the half-range (0 disables)."""
+    target_noise_clip: float = 0.5
+    """clip of the target-policy smoothing noise, as a fraction of the half-range."""
+    policy_delay: int = 2
+    """critic updates per actor (and target) update."""
+    n_critics: int = 2
+    """number of critics; the target uses their minimum."""
+    hidden: tuple[int, ...] = (256, 256)
+    """hidden sizes of the MLPs (after the Nature CNN for images)."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        # SPEC section 5, Table 3. Unlisted fields keep the defaults above.
+        "paper": {
+            "actor_learning_rate": 1e-3, "critic_learning_rate": 1e-3, "tau": 0.0002,
+            "exploration_noise": 0.2, "target_policy_noise": 0.2, "buffer_size": 500,
+        },
+    }
+
+    def __post_init__(self):
+        check_range("actor_learning_rate", self.actor_learning_rate, 0, 1, low_inclusive=False)
+        check_range("critic_learning_rate", self.critic_learning_rate, 0, 1, low_inclusive=False)
+        check_range("buffer_size", self.buffer_size, 2)
+        check_range("batch_size", self.batch_size, 1)
+        check_range("gamma", self.gamma, 0, 1)
+        check_range("tau", self.tau, 0, 1, low_inclusive=False)
+        check_range("learning_starts", self.learning_starts, 0)
+        check_range("train_freq", self.train_freq, 1)
+        check_range("gradient_steps", self.gradient_steps, 1)
+        check_range("exploration_noise", self.exploration_noise, 0)
+        check_range("target_policy_noise", self.target_policy_noise, 0)
+        check_range("target_noise_clip", self.target_noise_clip, 0)
+        check_range("policy_delay", self.policy_delay, 1)
+        check_range("n_critics", self.n_critics, 1)
+
+
+class TD3(Agent):
+    """TD3 on a deterministic tanh actor and an ensemble of Q critics."""
+
+    algo = "td3"
+    config_class: ClassVar[type[AgentConfig]] = TD3Config
+    config: TD3Config
+
+    @classmethod
+    def check_spaces(cls, observation_space, action_space) -> None:
+        if not isinstance(action_space, gymnasium.spaces.Box) or len(action_space.shape) != 1:
+            raise ValueError(
+                f"{cls.algo.upper()} needs a 1-D Box action space, got {action_space!r}; use PPO or DQN for Discrete"
+            )
+        if not isinstance(observation_space, gymnasium.spaces.Box):
+            raise ValueError(f"{cls.algo.upper()} needs a Box observation space, got {observation_space!r}")
+
+    def _build(self) -> None:
+        cfg = self.config
+        self.actor = DeterministicActor(self.observation_space, self.action_space, cfg.hidden).to(self.device)
+        self.critic = QEnsemble(self.observation_space, self.action_space, cfg.n_critics, cfg.hidden).to(self.device)
+        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_learning_rate)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_learning_rate)
+        self.networks = {
+            "actor": self.actor, "critic": self.critic,
+            "actor_target": self.actor_target, "critic_target": self.critic_target,
+        }
+        self.optimizers = {"actor_optimizer": self.actor_optimizer, "critic_optimizer": self.critic_optimizer}
+        self.buffer = ReplayBuffer(cfg.buffer_size, self.observation_space, self.action_space, seed=self.seed)
+        self.low = self.action_space.low.astype(np.float32)
+        self.high = self.action_space.high.astype(np.float32)
+        self.half_range = (self.high - self.low) / 2.0
+        self.steps = 0
+        self.gradient_updates = 0
+
+    # ---- acting -----------------------------------------------------------------------
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        cfg = self.config
+        if not deterministic and self.steps < cfg.learning_starts:
+            # Uniform random warm-up fills the buffer with diverse actions (Fujimoto et al.).
+            return self.rng.uniform(self.low, self.high).astype(np.float32)
+        action = self.actor(self.obs_batch(obs))[0].cpu().numpy()
+        if not deterministic:
+            action = action + self.rng.normal(0.0, cfg.exploration_noise, action.shape) * self.half_range
+        return np.clip(action, self.low, self.high).astype(np.float32)
+
+    def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
+        action = np.asarray(action, dtype=np.float32).reshape(self.action_space.shape)
+        self.buffer.add(obs, action, reward, next_obs, terminated, truncated)
+        self.steps += 1
+
+    # ---- learning ---------------------------------------------------------------------
+    def update(self) -> dict[str, float]:
+        cfg = self.config
+        if self.steps < cfg.learning_starts or self.steps % cfg.train_freq != 0:
+            return {}
+        metrics: dict[str, float] = {}
+        for _ in range(cfg.gradient_steps):
+            metrics.update(self._gradient_step())
+        return metrics
+
+    def _gradient_step(self) -> dict[str, float]:
+        cfg = self.config
+        data = self.buffer.sample(cfg.batch_size, self.device)
+        scale = self.actor.action_scale
+        with torch.no_grad():
+            # Target policy smoothing: clipped noise on the target action (0 for DDPG).
+            noise = torch.randn(data.actions.shape, generator=self.generator, device=self.device)
+            noise = (noise * cfg.target_policy_noise).clamp(-cfg.target_noise_clip, cfg.target_noise_clip)
+            next_actions = self.actor_target(data.next_obs) + noise * scale
+            next_actions = torch.max(torch.min(next_actions, self.actor.action_bias + scale), self.actor.action_bias - scale)
+            qf_next_target = self.critic_target(data.next_obs, next_actions).min(dim=0).values
+            next_q_value = data.rewards + cfg.gamma * (1.0 - data.terminateds) * qf_next_target
+
+        qf_values = self.critic(data.obs, data.actions)
+        # Sum of the critics' MSEs (CleanRL's qf1_loss + qf2_loss).
+        qf_loss = F.mse_loss(qf_values, next_q_value.expand_as(qf_values), reduction="none").mean(1).sum()
+        self.critic_optimizer.zero_grad()
+        qf_loss.backward()
+        self.critic_optimizer.step()
+        self.gradient_updates += 1
+        metrics = {"losses/qf_loss": qf_loss.item(), "losses/qf_values": qf_values.mean().item()}
+
+        if self.gradient_updates % cfg.policy_delay == 0:
+            actor_loss = -self.critic(data.obs, self.actor(data.obs))[0].mean()
+            self.actor_optimizer.zero_grad()
+            actor_loss.backward()
+            self.actor_optimizer.step()
+            polyak_update(self.actor.parameters(), self.actor_target.parameters(), cfg.tau)
+            polyak_update(self.critic.parameters(), self.critic_target.parameters(), cfg.tau)
+            metrics["losses/actor_loss"] = actor_loss.item()
+        return metrics
+
+    # ---- checkpoint extras ------------------------------------------------------------
+    def _extra_state(self) -> dict[str, Any]:
+        return {"steps": self.steps, "gradient_updates": self.gradient_updates}
+
+    def _load_extra_state(self, state) -> None:
+        self.steps = int(state.get("steps", 0))
+        self.gradient_updates = int(state.get("gradient_updates", 0))

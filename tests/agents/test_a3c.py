@@ -1,0 +1,247 @@
+"""Tests of A3C (agents/a3c.py): config, loss, in-process and asynchronous training.
+
+The learning benchmark (CartPole >= 475) lives in bench/agents_async_reference.py;
+these tests run in seconds: the loss moves the policy the right way, both modes
+run end to end and change the weights, checkpoints round-trip, and no worker
+process outlives a failure or an interrupt.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+
+import agents
+from agents.a3c import A3C, A3CConfig, SharedAdam, a3c_loss, train_a3c
+from agents.envs import MultiColourBar, SingleAgentParallel
+from agents.loop import run_loop
+from agents.workers import RolloutBuilder, WorkerError, live_pids
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CARTPOLE = functools.partial(gymnasium.make, "CartPole-v1")
+SPACES = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spaces.Discrete(2))
+
+
+class _Explodes(gymnasium.Wrapper):
+    """CartPole that raises after some steps: a simulator crash inside a worker."""
+
+    def __init__(self, after: int):
+        super().__init__(gymnasium.make("CartPole-v1"))
+        self.after, self.steps = after, 0
+
+    def step(self, action):
+        self.steps += 1
+        if self.steps > self.after:
+            raise RuntimeError("simulated simulator crash")
+        return super().step(action)
+
+
+def _weights(agent) -> torch.Tensor:
+    return torch.cat([p.detach().flatten().clone() for p in agent.model.parameters()])
+
+
+# ----------------------------------------------------------------------------- config and loss
+
+
+def test_paper_preset_matches_table_3():
+    config = A3CConfig.preset("paper")
+    assert (config.learning_rate, config.vf_coef, config.ent_coef) == (5e-3, 1.0, 0.01)
+    assert (config.gae_lambda, config.max_grad_norm, config.gamma) == (1.0, 30.0, 0.99)
+
+
+def test_config_rejects_bad_values_with_the_field_name():
+    with pytest.raises(ValueError, match="n_steps"):
+        A3CConfig(n_steps=0)
+    with pytest.raises(ValueError, match="gae_lambda"):
+        A3CConfig.preset("paper", gae_lambda=1.5)
+
+
+@pytest.mark.parametrize("reward, direction", [(10.0, 1), (-10.0, -1)])
+def test_loss_step_moves_probability_with_the_advantage(reward, direction):
+    agent = A3C.from_spaces(*SPACES, A3CConfig(ent_coef=0.0, vf_coef=0.0, learning_rate=1e-2))
+    obs = np.array([0.1, -0.2, 0.05, 0.3], dtype=np.float32)
+    builder = RolloutBuilder("a")
+    builder.add(obs, 1, reward, obs, True, False)  # terminal: the return is just the reward
+    rollout = builder.build()
+
+    @torch.no_grad()
+    def log_prob_of_action() -> float:
+        logits, _ = agent.model(torch.as_tensor(obs[None]))
+        return float(torch.log_softmax(logits, -1)[0, 1])
+
+    before = log_prob_of_action()
+    loss, metrics = a3c_loss(agent.model, rollout, agent.config)
+    agent.optimizer.zero_grad()
+    loss.backward()
+    agent.optimizer.step()
+    assert np.sign(log_prob_of_action() - before) == direction
+    assert set(metrics) == {"losses/policy_loss", "losses/value_loss", "losses/entropy"}
+
+
+def test_value_loss_uses_n_step_returns():
+    agent = A3C.from_spaces(*SPACES, A3CConfig(gamma=0.5))
+    builder = RolloutBuilder("a")
+    obs = [np.full(4, i, dtype=np.float32) for i in range(3)]
+    builder.add(obs[0], 0, 1.0, obs[1], False, False)
+    builder.add(obs[1], 0, 2.0, obs[2], True, False)
+    rollout = builder.build()
+    with torch.no_grad():
+        _, values = agent.model(torch.as_tensor(np.stack(obs[:2])))
+    returns = np.array([1.0 + 0.5 * 2.0, 2.0])  # terminal at step 1: no bootstrap
+    expected = 0.5 * np.mean((returns - values.numpy()) ** 2)
+    _, metrics = a3c_loss(agent.model, rollout, agent.config)
+    assert metrics["losses/value_loss"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_shared_adam_state_is_shared_memory():
+    agent = A3C.from_spaces(*SPACES)
+    optimizer = agent.optimizer.share_memory()
+    assert isinstance(optimizer, SharedAdam)
+    assert all(v.is_shared() for state in optimizer.state.values() for v in state.values())
+
+
+# ----------------------------------------------------------------------------- in-process
+
+
+def test_in_process_trains_through_the_common_loop():
+    config = A3CConfig(n_steps=5)
+    agent = A3C.from_spaces(*SPACES, config, seed=1)
+    before = _weights(agent)
+    stats = run_loop({"agent_0": agent}, SingleAgentParallel(CARTPOLE()), total_steps=300, seed=1)
+    assert stats.updates == 300 // config.n_steps
+    assert all(np.isfinite(v) for v in stats.last_metrics["agent_0"].values())
+    assert not torch.equal(before, _weights(agent))
+
+
+def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
+    agent = A3C.from_spaces(*SPACES, A3CConfig(n_steps=5), seed=3)
+    run_loop({"agent_0": agent}, SingleAgentParallel(CARTPOLE()), total_steps=100)
+    agent.save(tmp_path / "a3c.ckpt")
+    loaded = agents.load(tmp_path / "a3c.ckpt")
+    assert isinstance(loaded, A3C) and loaded.config == agent.config
+    observations = np.random.default_rng(0).normal(size=(50, 4)).astype(np.float32)
+    assert [agent.act(o, deterministic=True) for o in observations] == [
+        loaded.act(o, deterministic=True) for o in observations
+    ]
+    assert loaded.num_updates == agent.num_updates == 20
+
+
+# ----------------------------------------------------------------------------- asynchronous
+
+
+def test_async_training_updates_the_shared_model():
+    reports = []
+    trained = train_a3c(
+        CARTPOLE, *SPACES, config=A3CConfig(n_steps=10), total_steps=3000, num_workers=2,
+        seed=0, callback=reports.append, start_method="forkserver",
+    )
+    agent = trained["agent_0"]
+    untrained = A3C.from_spaces(*SPACES, A3CConfig(n_steps=10), seed=0)
+    assert isinstance(agent, A3C)
+    assert not torch.equal(_weights(agent), _weights(untrained))
+    assert 3000 <= reports[-1].env_steps <= 3000 + 2 * 10  # both workers counted, none overshoots a rollout
+    assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both workers played
+    assert live_pids(reports[-1].worker_pids) == []
+    assert isinstance(agent.act(np.zeros(4, np.float32)), int)
+
+
+def test_async_multi_agent_trains_one_network_per_agent():
+    env_fn = functools.partial(MultiColourBar, [False, False], size=36)
+    observation_space = gymnasium.spaces.Box(0, 255, (36, 36, 3), np.uint8)
+    ids = ["agent_0", "agent_1"]
+    trained = train_a3c(
+        env_fn, observation_space, gymnasium.spaces.Discrete(3), ids, A3CConfig(n_steps=8),
+        total_steps=400, num_workers=2, seed=0, start_method="forkserver",
+    )
+    assert set(trained) == set(ids)
+    for k, aid in enumerate(ids):
+        untrained = A3C.from_spaces(observation_space, gymnasium.spaces.Discrete(3), A3CConfig(n_steps=8), seed=k)
+        assert not torch.equal(_weights(trained[aid]), _weights(untrained)), aid
+    assert not torch.equal(_weights(trained["agent_0"]), _weights(trained["agent_1"]))
+
+
+def test_a_raising_worker_surfaces_its_traceback_and_leaves_no_process():
+    pids = []
+
+    def record(progress):
+        pids[:] = progress.worker_pids
+
+    with pytest.raises(WorkerError, match="simulated simulator crash") as info:
+        train_a3c(
+            functools.partial(_Explodes, 200), *SPACES, total_steps=10**6, num_workers=2,
+            callback=record, start_method="forkserver",
+        )
+    assert "in step" in info.value.worker_traceback  # the frame inside the worker
+    assert pids and live_pids(pids) == []
+    assert multiprocessing.active_children() == []
+
+
+def test_keyboard_interrupt_in_the_callback_leaves_no_process():
+    pids = []
+
+    def interrupt(progress):
+        pids[:] = progress.worker_pids
+        if progress.env_steps > 500:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_a3c(CARTPOLE, *SPACES, total_steps=10**6, num_workers=2, callback=interrupt, start_method="forkserver")
+    assert pids and live_pids(pids) == []
+    assert multiprocessing.active_children() == []
+
+
+_SIGNAL_SCRIPT = """
+import functools, json, sys
+import gymnasium, numpy as np
+from agents.{module} import {train}
+pid_file = sys.argv[1]
+def write_pids(progress):
+    with open(pid_file, "w") as f:
+        json.dump(progress.worker_pids, f)
+spaces = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spaces.Discrete(2))
+{train}(functools.partial(gymnasium.make, "CartPole-v1"), *spaces, total_steps=10**9, callback=write_pids)
+"""
+
+
+def interrupt_training_process(tmp_path, module: str, train: str, signum: int) -> None:
+    """Run ``train`` in a child Python, send it ``signum``, check no worker survives.
+
+    Shared with tests/agents/test_impala.py through this function's arguments.
+    """
+    pid_file = tmp_path / "pids.json"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
+    script = _SIGNAL_SCRIPT.format(module=module, train=train)
+    child = subprocess.Popen([sys.executable, "-c", script, str(pid_file)], env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not pid_file.exists() and time.monotonic() < deadline and child.poll() is None:
+            time.sleep(0.1)
+        assert pid_file.exists(), f"training never reported its workers: {child.stderr.read() if child.poll() is not None else ''}"
+        time.sleep(0.2)  # let the write finish
+        pids = json.loads(pid_file.read_text())
+        assert len(pids) == 2 and sorted(live_pids(pids)) == sorted(pids)
+        child.send_signal(signum)
+        _, stderr = child.communicate(timeout=30)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.communicate()
+    assert child.returncode != 0
+    assert "KeyboardInterrupt" in stderr  # the parent went through its cleanup path
+    assert live_pids(pids) == []
+
+
+def test_sigint_to_the_training_process_leaves_no_worker(tmp_path):
+    interrupt_training_process(tmp_path, "a3c", "train_a3c", signal.SIGINT)

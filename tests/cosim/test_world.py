@@ -1,0 +1,232 @@
+"""The world in the real simulator: traffic, events on purpose, determinism, SUMO errors."""
+
+import math
+
+import numpy as np
+import pytest
+
+from cosim.controller import Autopilot
+from cosim.errors import EnvStateError, SumoError
+from cosim.scenario import load_scenario
+from cosim.world import World
+
+ENVS = ["env_1", "env_2", "env_3", "env_4", "env_5"]
+
+
+def drive(world: World, steps: int, seed: int):
+    results = world.reset(seed=seed)
+    pilots = {a: Autopilot(world, a) for a in world.ac_ids}
+    final = dict(results)
+    events = {a: set() for a in world.ac_ids}
+    cars = peds = 0
+    for _ in range(steps):
+        if not world.active:
+            break
+        out = world.step({a: tuple(pilots[a].act()) for a in world.active})
+        cars = max(cars, int((~world.snapshot.vehicle_is_ac).sum()))
+        peds = max(peds, len(world.snapshot.person_ids))
+        for a, r in out.items():
+            final[a] = r
+            ev = r.events
+            for name in ("collision_vehicle", "collision_pedestrian", "collision_object", "off_road"):
+                if getattr(ev, name):
+                    events[a].add(name)
+    return final, events, cars, peds
+
+
+@pytest.mark.parametrize("env", ENVS)
+def test_six_autopilot_acs_run_500_steps(env):
+    with World(env, 6) as w:
+        final, events, cars, peds = drive(w, 500, seed=1)
+    assert cars > 0, "background cars exist in every environment"
+    if env in ("env_2", "env_3"):
+        assert peds > 0
+    else:
+        assert peds == 0
+    good = [
+        a for a in w.ac_ids
+        if (final[a].events.goal_reached or final[a].events.distance_to_goal < 15.0) and not events[a]
+    ]
+    assert len(good) >= 4, f"only {good} reached (or got within 15 m of) their goals cleanly: {events}"
+
+
+def _straight_world(**kw) -> World:
+    sc = load_scenario("env_1")
+    return World(sc, 1, background=False, **kw)
+
+
+def test_driving_into_a_background_car_and_passing_beside_it():
+    with _straight_world() as w:
+        w.reset(seed=0)
+        x, y, h, _ = w.ac_state("ac_0")
+        w.bridge.place_car("stopped", x + 30, y, h, "st_e")
+        hits = [w.step({"ac_0": (1.0, 0.0)})["ac_0"] for _ in range(60) if w.active]
+        assert hits[-1].events.collision_vehicle and hits[-1].events.hit == "stopped"
+        assert hits[-1].terminated and not w.active  # training default: collision ends it
+    with _straight_world() as w:
+        w.reset(seed=0)
+        x, y, h, _ = w.ac_state("ac_0")
+        # 0.5 m between the two cars' sides
+        w.bridge.place_car("beside", x + 30, y + 1.8 + 0.5, h, "st_e")
+        out = [w.step({"ac_0": (1.0, 0.0)})["ac_0"] for _ in range(60)]
+        assert max(r.x for r in out) > x + 40, "it drove past the parked car"
+        assert not any(r.events.collision for r in out)
+
+
+def test_driving_into_a_pedestrian_on_a_crossing_and_a_near_miss():
+    sc = load_scenario("env_3")
+    route = None
+    with World(sc, 1, background=False) as w:
+        w.reset(seed=0)
+        route = w.route("ac_0")
+        crossing = min(
+            w.roadmap.crossings,
+            key=lambda c: route.path.project(*c.shape.mean(axis=0))[1] ** 2
+            + 1e3 * (route.path.project(*c.shape.mean(axis=0))[0] < route.spawn_s),
+        )
+        cx, cy = crossing.shape.mean(axis=0)
+        s, _ = route.path.project(cx, cy)
+        px, py = route.path.point_at(s)
+        w.bridge.place_person("walker", px, py, "tx_e")
+        out = [w.step({"ac_0": (0.6, 0.0)})["ac_0"] for _ in range(150) if w.active]
+        assert any(r.events.collision_pedestrian and r.events.hit == "walker" for r in out)
+    with World(sc, 1, background=False) as w:
+        w.reset(seed=0)
+        h = route.path.heading_at(s)
+        # 0.5 m from the car's right side (car half width 0.9, person radius 0.3)
+        off = 0.9 + 0.5 + 0.3
+        w.bridge.place_person("walker", px + off * math.sin(h), py - off * math.cos(h), "tx_e")
+        x0 = w.ac_state("ac_0")[0]
+        out = [w.step({"ac_0": (0.6, 0.0)})["ac_0"] for _ in range(150) if w.active]
+        assert max(r.x for r in out) > px + 5 > x0
+        assert not any(r.events.collision_pedestrian for r in out)
+
+
+def _pole_beside_straight(w: World):
+    route = w.route("ac_0")
+    poles = [o for o in w.roadmap.objects if o.kind == "pole"]
+    ahead = [
+        p for p in poles
+        if 40 < route.path.project(*p.centre)[0] < 150 and route.path.project(*p.centre)[1] < 0
+    ]
+    return route, min(ahead, key=lambda p: route.path.project(*p.centre)[0])
+
+
+def test_steering_off_the_road_into_a_pole_and_a_near_miss():
+    with _straight_world() as w:
+        w.reset(seed=0)
+        route, pole = _pole_beside_straight(w)
+        px, py = pole.centre
+        # 15 m before the pole, on the lane, heading 20 degrees right of the road towards it
+        start = px - 15.0 * math.cos(math.radians(20)), py + 15.0 * math.sin(math.radians(20))
+        w.place_ac("ac_0", *start, -math.radians(20), 8.0)
+        out = [w.step({"ac_0": (0.3, 0.0)})["ac_0"] for _ in range(40) if w.active]
+        assert any(r.events.collision_object and r.events.hit == pole.id for r in out)
+        assert any(r.events.off_road for r in out), "it left the road before hitting the pole"
+    with _straight_world() as w:
+        w.reset(seed=0)
+        route, pole = _pole_beside_straight(w)
+        px, py = pole.centre
+        # parallel to the road, its right side 0.5 m from the pole's face (pole half size 0.15)
+        w.place_ac("ac_0", px - 20, py + 0.15 + 0.5 + 0.9, 0.0, 8.0)
+        out = [w.step({"ac_0": (0.3, 0.0)})["ac_0"] for _ in range(40) if w.active]
+        assert max(r.x for r in out) > px + 5
+        assert not any(r.events.collision_object for r in out)
+
+
+def test_out_of_lane_and_off_road():
+    with _straight_world() as w:
+        w.reset(seed=0)
+        for _ in range(30):
+            r = w.step({"ac_0": (0.5, 0.0)})["ac_0"]
+        assert not r.events.wrong_lane and not r.events.off_road
+        lefts = [w.step({"ac_0": (0.3, -0.3)})["ac_0"] for _ in range(25)]
+        assert any(r.events.wrong_lane for r in lefts), "crossed into the opposite direction"
+        assert lefts[-1].reward_terms["lane"] == pytest.approx(-0.5)
+    with _straight_world() as w:
+        w.reset(seed=0)
+        for _ in range(30):
+            w.step({"ac_0": (0.5, 0.0)})
+        rights = [w.step({"ac_0": (0.3, 0.3)})["ac_0"] for _ in range(40) if w.active]
+        assert any(r.events.off_road for r in rights)
+        assert not any(r.events.wrong_lane and not r.events.off_road for r in rights[:3])
+
+
+def test_reward_terms_follow_the_formula():
+    with _straight_world() as w:
+        w.reset(seed=0)
+        for _ in range(20):
+            r = w.step({"ac_0": (1.0, 0.0)})["ac_0"]
+        ev = r.events
+        assert ev.progress == pytest.approx(ev.speed * 0.1, rel=0.05)  # straight: dD = v dt
+        expected = 10 * (ev.progress + min(ev.speed / 13.89, 1.0)) - 1.0
+        assert r.reward == pytest.approx(expected)
+        assert set(r.reward_terms) == {"collision", "efficiency", "lane", "step"}
+
+
+def _trajectory(seed: int, steps: int = 150):
+    with World("env_3", 6) as w:
+        w.reset(seed=seed)
+        pilots = {a: Autopilot(w, a) for a in w.ac_ids}
+        poses, background = [], []
+        for _ in range(steps):
+            if not w.active:
+                break
+            out = w.step({a: tuple(pilots[a].act()) for a in w.active})
+            poses.append([(a, r.x, r.y, r.events.collision, r.events.off_road) for a, r in sorted(out.items())])
+            snap = w.snapshot
+            background.append(sorted(
+                (vid, round(float(x), 3), round(float(y), 3))
+                for vid, (x, y), ac in zip(snap.vehicle_ids, snap.vehicle_xy, snap.vehicle_is_ac)
+                if not ac
+            ))
+    return poses, background
+
+
+def test_same_seed_same_run_different_seed_different_traffic():
+    a_poses, a_bg = _trajectory(7)
+    b_poses, b_bg = _trajectory(7)
+    _, c_bg = _trajectory(8)
+    assert a_poses == b_poses and a_bg == b_bg
+    assert a_bg != c_bg
+
+
+def test_step_before_reset_and_after_done():
+    with _straight_world() as w:
+        with pytest.raises(EnvStateError, match="before reset"):
+            w.step({"ac_0": (0.0, 0.0)})
+        w.reset(seed=0)
+        w.place_ac("ac_0", *w.route("ac_0").goal_xy, 0.0)
+        assert w.step({"ac_0": (0.0, 0.0)})["ac_0"].events.goal_reached
+        with pytest.raises(EnvStateError, match="reset"):
+            w.step({"ac_0": (0.0, 0.0)})
+
+
+def test_sumo_error_surfaces_with_sumos_message_and_sumo_is_closed(tmp_path):
+    bad = tmp_path / "bad.rou.xml"
+    bad.write_text('<routes><flow id="f" from="no_such_edge" to="xs_s" begin="0" end="10" period="1"/></routes>')
+    sc = load_scenario("env_3").with_overrides(demand=(bad,))
+    w = World(sc, 1)
+    with pytest.raises(SumoError, match="no_such_edge"):
+        w.reset(seed=0)
+    assert not w.bridge.running
+    with World("env_1", 1) as ok:  # SUMO was closed: a new simulation starts in this process
+        ok.reset(seed=0)
+        assert ok.step({"ac_0": (0.0, 0.0)})
+
+
+def test_malformed_demand_names_the_file(tmp_path):
+    bad = tmp_path / "garbled.rou.xml"
+    bad.write_text("<routes><flow id=")
+    sc = load_scenario("env_1").with_overrides(demand=(bad,))
+    with World(sc, 1) as w, pytest.raises(SumoError, match="garbled.rou.xml"):
+        w.reset(seed=0)
+
+
+def test_two_simulations_in_one_process_fail_clearly():
+    with World("env_1", 1) as a:
+        a.reset(seed=0)
+        b = World("env_2", 1)
+        with pytest.raises(SumoError, match="one SUMO simulation per process"):
+            b.reset(seed=0)
+        assert a.step({"ac_0": (0.0, 0.0)})  # the first one is untouched
