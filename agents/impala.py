@@ -363,7 +363,7 @@ def train_impala(
     # The actors read these copies, never the learner's own weights mid-update.
     published = {aid: _private_copy(agent.model).share_memory() for aid, agent in agents.items()}
 
-    context = get_context(start_method)
+    context = get_context(start_method, preload=[__name__])
     policy_version = context.Value("q", 0)
     actor_args = [
         (env_fn, agent_ids, config, published, policy_version, worker_seed(seed, i))

@@ -83,11 +83,19 @@ class WorkerError(RuntimeError):
         super().__init__(text)
 
 
-def get_context(start_method: str = "spawn"):
+def get_context(start_method: str = "spawn", preload: Sequence[str] = ("agents.workers",)):
     """Return the torch multiprocessing context for ``start_method``.
 
     ``fork`` is refused: forking a process that holds torch threads (or a
     simulator) can deadlock, and a forked child would share the parent's SUMO.
+
+    Args:
+        start_method: ``"spawn"`` (default; each worker imports everything
+            afresh, ~2 s) or ``"forkserver"`` (workers fork from a server that
+            imported ``preload`` once, ~0.05 s each).
+        preload: Modules the fork server imports when it starts (forkserver
+            only; the first start in a process fixes them). Nothing
+            simulator-side belongs here: each worker builds its own simulation.
 
     Raises:
         ValueError: For a start method other than ``spawn`` or ``forkserver``.
@@ -99,10 +107,7 @@ def get_context(start_method: str = "spawn"):
         )
     context = mp.get_context(start_method)
     if start_method == "forkserver":
-        # The fork server imports torch once; every worker forks from it ready-made
-        # (~0.05 s instead of ~2 s per spawned process). Nothing simulator-side is
-        # preloaded, so each worker still builds its own simulation.
-        context.set_forkserver_preload(["agents.workers"])
+        context.set_forkserver_preload(list(preload))
     return context
 
 

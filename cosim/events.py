@@ -60,70 +60,91 @@ class Events:
         return d
 
 
-def detect(
-    ac_id: str,
-    x: float,
-    y: float,
-    heading: float,
-    speed: float,
+def _batch_corners(xy: np.ndarray, heading: np.ndarray, length, width) -> np.ndarray:
+    """Corners (n, 4, 2) of n oriented rectangles (counter-clockwise, like rect_corners)."""
+    c, s = np.cos(heading), np.sin(heading)
+    hl = np.broadcast_to(np.asarray(length, dtype=float) / 2, c.shape)
+    hw = np.broadcast_to(np.asarray(width, dtype=float) / 2, c.shape)
+    lx = np.stack([hl, hl, -hl, -hl], axis=1)
+    ly = np.stack([-hw, hw, hw, -hw], axis=1)
+    x = xy[:, 0:1] + lx * c[:, None] - ly * s[:, None]
+    y = xy[:, 1:2] + lx * s[:, None] + ly * c[:, None]
+    return np.stack([x, y], axis=2)
+
+
+def detect_all(
+    ac_ids: list[str],
+    state: np.ndarray,
     length: float,
     width: float,
     snapshot: Snapshot,
     roadmap: RoadMap,
-    route: Route,
-    previous_distance: float,
+    routes: list[Route],
+    previous_distance: np.ndarray,
     goal_radius: float,
-) -> Events:
-    """Events of one AC (its own row in the snapshot is skipped for vehicle collisions)."""
-    ev = Events(speed=speed)
-    corners = rect_corners(x, y, heading, length, width)
+) -> list[Events]:
+    """Events of several ACs at once. `state` rows are (x, y, heading, speed).
+
+    Batched over ACs: one distance matrix per kind of obstacle, exact overlap tests
+    only for the few close pairs, one raster lookup for every footprint corner.
+    """
+    n = len(ac_ids)
+    xy, heading, speed = state[:, :2], state[:, 2], state[:, 3]
+    events = [Events(speed=float(v)) for v in speed]
+    corners = _batch_corners(xy, heading, length, width)
     reach = 0.5 * float(np.hypot(length, width))
 
-    # vehicles: cheap circle test first, exact oriented-rectangle test on the few left
     vxy = snapshot.vehicle_xy
-    if len(vxy):
+    if len(vxy) > 1:
         other_reach = 0.5 * np.hypot(snapshot.vehicle_length, snapshot.vehicle_width)
-        d = np.hypot(vxy[:, 0] - x, vxy[:, 1] - y)
-        for j in np.flatnonzero(d <= reach + other_reach):
-            if snapshot.vehicle_ids[j] == ac_id:
+        d = np.hypot(xy[:, None, 0] - vxy[None, :, 0], xy[:, None, 1] - vxy[None, :, 1])
+        for i, j in zip(*np.nonzero(d <= reach + other_reach[None, :]), strict=True):
+            ev = events[i]
+            if ev.collision_vehicle or snapshot.vehicle_ids[j] == ac_ids[i]:
                 continue
             other = rect_corners(
                 vxy[j, 0], vxy[j, 1], snapshot.vehicle_heading[j],
                 snapshot.vehicle_length[j], snapshot.vehicle_width[j],
             )
-            if convex_overlap(corners, other):
+            if convex_overlap(corners[i], other):
                 ev.collision_vehicle = True
                 ev.hit = snapshot.vehicle_ids[j]
-                break
     pxy = snapshot.person_xy
     if len(pxy):
-        d = np.hypot(pxy[:, 0] - x, pxy[:, 1] - y)
-        for j in np.flatnonzero(d <= reach + PERSON_RADIUS):
-            if rect_circle_overlap(corners, pxy[j, 0], pxy[j, 1], PERSON_RADIUS):
+        d = np.hypot(xy[:, None, 0] - pxy[None, :, 0], xy[:, None, 1] - pxy[None, :, 1])
+        for i, j in zip(*np.nonzero(d <= reach + PERSON_RADIUS), strict=True):
+            ev = events[i]
+            if not ev.collision_pedestrian and rect_circle_overlap(
+                corners[i], pxy[j, 0], pxy[j, 1], PERSON_RADIUS
+            ):
                 ev.collision_pedestrian = True
                 ev.hit = ev.hit or snapshot.person_ids[j]
-                break
-    for obj in roadmap.objects_near(x, y, reach):
-        if convex_overlap(corners, obj.polygon):
+    for i, k in roadmap.objects_near_many(xy, reach):
+        ev = events[i]
+        obj = roadmap.objects[k]
+        if not ev.collision_object and convex_overlap(corners[i], obj.polygon):
             ev.collision_object = True
             ev.hit = ev.hit or obj.id
-            break
 
-    inner = rect_corners(
-        x, y, heading, length - 2 * OFFROAD_TOLERANCE, width - 2 * OFFROAD_TOLERANCE
+    inner = _batch_corners(
+        xy, heading, length - 2 * OFFROAD_TOLERANCE, width - 2 * OFFROAD_TOLERANCE
     )
-    ev.off_road = not bool(roadmap.drivable.lookup(inner).all())
-    ev.wrong_lane = not bool(route.lane_mask.lookup(np.array([[x, y]]))[0])
-    ev.out_of_region = not roadmap.scenario.region.contains(x, y)
-
-    s, _lateral = route.path.project(x, y)
-    ev.distance_to_goal = max(route.goal_s - s, 0.0)
-    ev.progress = previous_distance - ev.distance_to_goal
-    goal = route.goal_xy
-    ev.goal_reached = bool(
-        np.hypot(goal[0] - x, goal[1] - y) <= goal_radius or ev.distance_to_goal <= 0.0
-    )
-    return ev
+    on_road = roadmap.drivable.lookup(inner.reshape(-1, 2)).reshape(n, 4).all(axis=1)
+    xmin, ymin, xmax, ymax = roadmap.bounds
+    for i, ev in enumerate(events):
+        x, y = float(xy[i, 0]), float(xy[i, 1])
+        route = routes[i]
+        ev.off_road = not bool(on_road[i])
+        ev.wrong_lane = not route.lane_mask.value_at(x, y)
+        ev.out_of_region = not (xmin <= x <= xmax and ymin <= y <= ymax)
+        s = route.arc_length(x, y)
+        ev.distance_to_goal = max(route.goal_s - s, 0.0)
+        ev.progress = float(previous_distance[i]) - ev.distance_to_goal
+        gx, gy = route.goal_point
+        ev.goal_reached = bool(
+            (gx - x) ** 2 + (gy - y) ** 2 <= goal_radius**2 or ev.distance_to_goal <= 0.0
+        )
+    return events
 
 
 def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float) -> dict[str, float]:

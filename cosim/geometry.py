@@ -7,6 +7,7 @@ at the bridge.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,19 +22,30 @@ def rect_corners(x: float, y: float, heading: float, length: float, width: float
     return local @ rot.T + np.array([x, y])
 
 
-def _axes(poly: np.ndarray) -> np.ndarray:
-    edges = np.roll(poly, -1, axis=0) - poly
-    normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
-    norms = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(norms == 0, 1, norms)
-
-
 def convex_overlap(a: np.ndarray, b: np.ndarray) -> bool:
-    """Separating-axis test: do two convex polygons (k, 2) overlap (touching counts)?"""
-    for axis in np.concatenate([_axes(a), _axes(b)]):
-        pa, pb = a @ axis, b @ axis
-        if pa.max() < pb.min() or pb.max() < pa.min():
-            return False
+    """Separating-axis test: do two convex polygons (k, 2) overlap (touching counts)?
+
+    Plain Python over the few vertices: for 4-8 points numpy's per-call overhead
+    costs more than the arithmetic (this runs for every close pair every step).
+    """
+    pa = [(float(x), float(y)) for x, y in a]
+    pb = [(float(x), float(y)) for x, y in b]
+    for poly in (pa, pb):
+        n = len(poly)
+        for k in range(n):
+            x0, y0 = poly[k]
+            x1, y1 = poly[(k + 1) % n]
+            nx, ny = y0 - y1, x1 - x0  # edge normal (length does not matter)
+            amin = amax = pa[0][0] * nx + pa[0][1] * ny
+            for x, y in pa[1:]:
+                v = x * nx + y * ny
+                amin, amax = min(amin, v), max(amax, v)
+            bmin = bmax = pb[0][0] * nx + pb[0][1] * ny
+            for x, y in pb[1:]:
+                v = x * nx + y * ny
+                bmin, bmax = min(bmin, v), max(bmax, v)
+            if amax < bmin or bmax < amin:
+                return False
     return True
 
 
@@ -168,6 +180,14 @@ class Raster:
             inside ^= crosses & (gx < xint)
         self.grid[sl] |= inside
 
+    def value_at(self, x: float, y: float) -> bool:
+        """The value at one point (False outside the box); plain Python, for hot loops."""
+        i = int((x - self.xmin) // self.res)
+        j = int((y - self.ymin) // self.res)
+        if 0 <= i < self.nx and 0 <= j < self.ny:
+            return bool(self.grid[j, i])
+        return False
+
     def lookup(self, points: np.ndarray) -> np.ndarray:
         """Values at points (k, 2); points outside the box read False."""
         pts = np.asarray(points, dtype=float).reshape(-1, 2)
@@ -177,3 +197,73 @@ class Raster:
         out = np.zeros(len(pts), dtype=bool)
         out[ok] = self.grid[j[ok], i[ok]]
         return out
+
+
+WINDOW = 8  # segments searched either side of the cell's nearest one
+
+
+class SegmentField:
+    """For every cell near a polyline, the index of its nearest segment.
+
+    Turns projection onto a long route into a grid lookup plus an exact projection
+    onto three segments. Cells farther than `radius` fall back to the full search.
+    """
+
+    def __init__(self, path: Polyline, bounds, radius: float = 8.0, resolution: float = 0.5):
+        self.path = path
+        self.xmin, self.ymin, xmax, ymax = bounds
+        self.res = resolution
+        self.nx = int(np.ceil((xmax - self.xmin) / resolution))
+        self.ny = int(np.ceil((ymax - self.ymin) / resolution))
+        self.index = np.full((self.ny, self.nx), -1, dtype=np.int32)
+        best = np.full((self.ny, self.nx), np.inf)
+        for i, (a, b) in enumerate(zip(path.points[:-1], path.points[1:], strict=True)):
+            lo, hi = np.minimum(a, b) - radius, np.maximum(a, b) + radius
+            i0 = max(int((lo[0] - self.xmin) / resolution), 0)
+            j0 = max(int((lo[1] - self.ymin) / resolution), 0)
+            i1 = min(int((hi[0] - self.xmin) / resolution) + 2, self.nx)
+            j1 = min(int((hi[1] - self.ymin) / resolution) + 2, self.ny)
+            if i0 >= i1 or j0 >= j1:
+                continue
+            gx, gy = np.meshgrid(
+                self.xmin + (np.arange(i0, i1) + 0.5) * resolution,
+                self.ymin + (np.arange(j0, j1) + 0.5) * resolution,
+            )
+            d = b - a
+            L2 = float(d @ d) or 1e-12
+            t = np.clip(((gx - a[0]) * d[0] + (gy - a[1]) * d[1]) / L2, 0.0, 1.0)
+            dist2 = (gx - a[0] - t * d[0]) ** 2 + (gy - a[1] - t * d[1]) ** 2
+            win = best[j0:j1, i0:i1]
+            closer = (dist2 < win) & (dist2 <= radius * radius)
+            win[closer] = dist2[closer]
+            self.index[j0:j1, i0:i1][closer] = i
+
+    def project(self, x: float, y: float) -> float:
+        """Arc length of the nearest point on the path (same answer as Polyline.project)."""
+        i = int((x - self.xmin) // self.res)
+        j = int((y - self.ymin) // self.res)
+        seg = int(self.index[j, i]) if 0 <= i < self.nx and 0 <= j < self.ny else -1
+        if seg < 0:
+            return self.path.project(x, y)[0]
+        pts, cum = self._pts, self._cum
+        best_d, best_s = float("inf"), 0.0
+        # a cell is 0.5 m wide but segments of junction lanes can be shorter: search around
+        for k in range(max(seg - WINDOW, 0), min(seg + WINDOW, len(pts) - 2) + 1):
+            ax, ay = pts[k]
+            bx, by = pts[k + 1]
+            dx, dy = bx - ax, by - ay
+            L2 = dx * dx + dy * dy
+            t = 0.0 if L2 == 0 else min(max(((x - ax) * dx + (y - ay) * dy) / L2, 0.0), 1.0)
+            px, py = ax + t * dx - x, ay + t * dy - y
+            d = px * px + py * py
+            if d < best_d:
+                best_d, best_s = d, cum[k] + t * L2**0.5
+        return best_s
+
+    @functools.cached_property
+    def _pts(self) -> list[tuple[float, float]]:
+        return [(float(x), float(y)) for x, y in self.path.points]
+
+    @functools.cached_property
+    def _cum(self) -> list[float]:
+        return [float(c) for c in self.path.cumlen]

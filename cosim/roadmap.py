@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.errors import NetError, ScenarioError
-from cosim.geometry import Polyline, Raster
+from cosim.geometry import Polyline, Raster, SegmentField
 from cosim.scenario import ACSpec, Scenario
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,19 @@ class Route:
     spawn_s: float
     goal_s: float
     lane_mask: Raster  # lanes of its own travel direction (+ junctions it crosses)
+
+    field: SegmentField | None = None
+
+    def arc_length(self, x: float, y: float) -> float:
+        """Arc length along the route of the point nearest to (x, y)."""
+        if self.field is None:
+            return self.path.project(x, y)[0]
+        return self.field.project(x, y)
+
+    @functools.cached_property
+    def goal_point(self) -> tuple[float, float]:
+        gx, gy = self.path.point_at(self.goal_s)
+        return float(gx), float(gy)
 
     @property
     def spawn_xy(self) -> np.ndarray:
@@ -100,6 +113,14 @@ class RoadMap:
         self.routes = tuple(self._build_route(i, ac) for i, ac in enumerate(scenario.acs))
 
     # -- queries ---------------------------------------------------------------
+    def objects_near_many(self, xy: np.ndarray, reach: float) -> list[tuple[int, int]]:
+        """(row of xy, object index) pairs whose bounding circles come within `reach`."""
+        if not self.objects:
+            return []
+        c = self._object_centres
+        d = np.hypot(xy[:, None, 0] - c[None, :, 0], xy[:, None, 1] - c[None, :, 1])
+        return list(zip(*np.nonzero(d <= self._object_radii[None, :] + reach), strict=True))
+
     def objects_near(self, x: float, y: float, reach: float) -> list[RoadObject]:
         """Objects whose bounding circle comes within `reach` metres of (x, y)."""
         if not self.objects:
@@ -172,6 +193,7 @@ class RoadMap:
             spawn_s=float(depart),
             goal_s=float(goal_s),
             lane_mask=mask,
+            field=SegmentField(path, self.bounds),
         )
 
 

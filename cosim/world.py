@@ -27,7 +27,7 @@ import numpy as np
 
 from cosim.dynamics import VehicleParams, bicycle_step
 from cosim.errors import EnvStateError, ScenarioError
-from cosim.events import Events, detect, reward_terms
+from cosim.events import Events, detect_all, reward_terms
 from cosim.roadmap import RoadMap, road_map
 from cosim.scenario import Scenario, load_scenario
 from cosim.sumo_bridge import Snapshot, SumoBridge
@@ -130,7 +130,7 @@ class World:
             self.bridge.move_ac(ac, x, y, h, self.vehicle.length)
         self.bridge.step()
         self.snapshot = self._make_snapshot()
-        return {ac: self._result(i, initial=True) for i, ac in enumerate(self.ac_ids)}
+        return self._results(np.arange(self.num_acs), initial=True)
 
     def close(self) -> None:
         """Close SUMO (idempotent)."""
@@ -176,7 +176,7 @@ class World:
         t3 = time.perf_counter()
         # 6-8. events, reward, termination
         self.step_count += 1
-        results = {self.ac_ids[i]: self._result(i) for i in idx}
+        results = self._results(idx)
         for ac, res in results.items():
             if res.terminated or res.truncated:
                 self.active.remove(ac)
@@ -210,28 +210,33 @@ class World:
             person_speed=psp,
         )
 
-    def _result(self, i: int, initial: bool = False) -> ACResult:
+    def _results(self, idx: np.ndarray, initial: bool = False) -> dict[str, ACResult]:
         sc = self.scenario
-        x, y, h, v = self._state[i]
-        ev = detect(
-            self.ac_ids[i], x, y, h, v, self.vehicle.length, self.vehicle.width,
-            self.snapshot, self.roadmap, self.routes[i], self._distance[i],
-            sc.termination.goal_radius,
+        events = detect_all(
+            [self.ac_ids[i] for i in idx], self._state[idx], self.vehicle.length,
+            self.vehicle.width, self.snapshot, self.roadmap, [self.routes[i] for i in idx],
+            self._distance[idx], sc.termination.goal_radius,
         )
-        self._distance[i] = ev.distance_to_goal
-        if initial:
-            ev.progress = 0.0
-        terms = reward_terms(ev, sc.reward, sc.speed_limit)
         term = sc.termination
-        terminated = (
-            (term.on_collision and ev.collision)
-            or (term.on_goal and ev.goal_reached)
-            or (term.on_offroad and ev.off_road)
-            or (term.out_of_region and ev.out_of_region)
-        )
-        truncated = (not terminated) and self.step_count >= sc.horizon
-        return ACResult(ev, terms, float(sum(terms.values())), bool(terminated and not initial),
-                        bool(truncated), float(x), float(y), float(h))
+        out = {}
+        for i, ev in zip(idx, events, strict=True):
+            self._distance[i] = ev.distance_to_goal
+            if initial:
+                ev.progress = 0.0
+            terms = reward_terms(ev, sc.reward, sc.speed_limit)
+            terminated = not initial and bool(
+                (term.on_collision and ev.collision)
+                or (term.on_goal and ev.goal_reached)
+                or (term.on_offroad and ev.off_road)
+                or (term.out_of_region and ev.out_of_region)
+            )
+            truncated = not terminated and self.step_count >= sc.horizon
+            x, y, h, _ = self._state[i]
+            out[self.ac_ids[i]] = ACResult(
+                ev, terms, float(sum(terms.values())), terminated, truncated,
+                float(x), float(y), float(h),
+            )
+        return out
 
     def place_ac(self, ac: str, x: float, y: float, heading: float, speed: float = 0.0) -> None:
         """Teleport an AC to a pose (scripted set-ups and tests); takes effect next step."""

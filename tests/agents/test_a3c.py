@@ -9,14 +9,7 @@ process outlives a failure or an interrupt.
 from __future__ import annotations
 
 import functools
-import json
 import multiprocessing
-import os
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -29,7 +22,6 @@ from agents.envs import MultiColourBar, SingleAgentParallel
 from agents.loop import run_loop
 from agents.workers import RolloutBuilder, WorkerError, live_pids
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 CARTPOLE = functools.partial(gymnasium.make, "CartPole-v1")
 SPACES = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spaces.Discrete(2))
 
@@ -200,48 +192,3 @@ def test_keyboard_interrupt_in_the_callback_leaves_no_process():
         train_a3c(CARTPOLE, *SPACES, total_steps=10**6, num_workers=2, callback=interrupt, start_method="forkserver")
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
-
-
-_SIGNAL_SCRIPT = """
-import functools, json, sys
-import gymnasium, numpy as np
-from agents.{module} import {train}
-pid_file = sys.argv[1]
-def write_pids(progress):
-    with open(pid_file, "w") as f:
-        json.dump(progress.worker_pids, f)
-spaces = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spaces.Discrete(2))
-{train}(functools.partial(gymnasium.make, "CartPole-v1"), *spaces, total_steps=10**9, callback=write_pids)
-"""
-
-
-def interrupt_training_process(tmp_path, module: str, train: str, signum: int) -> None:
-    """Run ``train`` in a child Python, send it ``signum``, check no worker survives.
-
-    Shared with tests/agents/test_impala.py through this function's arguments.
-    """
-    pid_file = tmp_path / "pids.json"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
-    script = _SIGNAL_SCRIPT.format(module=module, train=train)
-    child = subprocess.Popen([sys.executable, "-c", script, str(pid_file)], env=env, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 60
-        while not pid_file.exists() and time.monotonic() < deadline and child.poll() is None:
-            time.sleep(0.1)
-        assert pid_file.exists(), f"training never reported its workers: {child.stderr.read() if child.poll() is not None else ''}"
-        time.sleep(0.2)  # let the write finish
-        pids = json.loads(pid_file.read_text())
-        assert len(pids) == 2 and sorted(live_pids(pids)) == sorted(pids)
-        child.send_signal(signum)
-        _, stderr = child.communicate(timeout=30)
-    finally:
-        if child.poll() is None:
-            child.kill()
-            child.communicate()
-    assert child.returncode != 0
-    assert "KeyboardInterrupt" in stderr  # the parent went through its cleanup path
-    assert live_pids(pids) == []
-
-
-def test_sigint_to_the_training_process_leaves_no_worker(tmp_path):
-    interrupt_training_process(tmp_path, "a3c", "train_a3c", signal.SIGINT)

@@ -8,10 +8,14 @@ normal end, an exception or an interrupt.
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import os
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,6 +31,8 @@ from agents.workers import (
     live_pids,
     worker_seed,
 )
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 # ----------------------------------------------------------------------------- worker targets
 # Top-level functions: spawn pickles them by name.
@@ -209,3 +215,52 @@ def test_pool_restores_the_sigterm_handler():
         assert signal.getsignal(signal.SIGTERM) is not before
         pool.get(timeout=30)
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+# ----------------------------------------------------------------------------- signals to a trainer
+
+_TRAIN_SCRIPT = """
+import functools, json, sys
+import gymnasium, numpy as np
+from agents.{module} import {train}
+def write_pids(progress):
+    with open(sys.argv[1] + ".tmp", "w") as f:
+        json.dump(progress.worker_pids, f)
+    __import__("os").replace(sys.argv[1] + ".tmp", sys.argv[1])
+spaces = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spaces.Discrete(2))
+{train}(functools.partial(gymnasium.make, "CartPole-v1"), *spaces, total_steps=10**9,
+        callback=write_pids, start_method="{start_method}")
+"""
+
+
+@pytest.mark.parametrize(
+    "module, train, start_method, signum",
+    [
+        ("a3c", "train_a3c", "spawn", signal.SIGINT),  # Ctrl-C
+        ("impala", "train_impala", "forkserver", signal.SIGTERM),  # kill <pid>, a scheduler's stop
+    ],
+)
+def test_signal_to_the_training_process_leaves_no_worker(tmp_path, module, train, start_method, signum):
+    pid_file = tmp_path / "pids.json"
+    python_path = os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))
+    script = _TRAIN_SCRIPT.format(module=module, train=train, start_method=start_method)
+    child = subprocess.Popen(
+        [sys.executable, "-c", script, str(pid_file)],
+        env={**os.environ, "PYTHONPATH": python_path}, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + 90
+        while not pid_file.exists() and time.monotonic() < deadline and child.poll() is None:
+            time.sleep(0.1)
+        assert pid_file.exists(), f"training never reported its workers (exit code {child.poll()})"
+        pids = json.loads(pid_file.read_text())
+        assert len(pids) == 2 and sorted(live_pids(pids)) == sorted(pids)
+        child.send_signal(signum)
+        _, stderr = child.communicate(timeout=30)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.communicate()
+    assert child.returncode != 0
+    assert "KeyboardInterrupt" in stderr  # the trainer went through its cleanup path
+    assert live_pids(pids) == []

@@ -1,0 +1,61 @@
+"""SUMO-side throughput: World.step() (dynamics + SUMO + snapshot + events + reward), no rendering.
+
+Runs env_3 (signalised four-way with pedestrians) with 1, 3 and 6 learning cars
+driven by a fixed cheap policy (throttle with a gentle random steer, so the
+policy itself costs nothing), resetting whenever every AC is done; resets are not
+timed. Prints steps/s (median of repeats) and the time split per phase.
+
+    python bench/sumo_side.py [--steps 3000] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from cosim.world import World
+
+
+def run(num_acs: int, steps: int, seed: int) -> tuple[float, dict[str, float]]:
+    rng = np.random.default_rng(seed)
+    phases = {"dynamics": 0.0, "sumo": 0.0, "snapshot": 0.0, "events": 0.0}
+    with World("env_3", num_acs) as w:
+        w.reset(seed=seed)
+        done = 0
+        elapsed = 0.0
+        while done < steps:
+            if not w.active:
+                for k in phases:
+                    phases[k] += getattr(w.times, k)
+                w.reset(seed=seed + done)
+            controls = {a: (0.6, float(rng.normal(0, 0.05))) for a in w.active}
+            t0 = time.perf_counter()
+            w.step(controls)
+            elapsed += time.perf_counter() - t0
+            done += 1
+        for k in phases:
+            phases[k] += getattr(w.times, k)
+    return steps / elapsed, {k: 1e3 * v / steps for k, v in phases.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    print("| ACs | steps/s (median) | dynamics ms | SUMO ms | snapshot ms | events+reward ms |")
+    print("|---|---|---|---|---|---|")
+    for n in (1, 3, 6):
+        runs = [run(n, args.steps, seed=10 + r) for r in range(args.repeats)]
+        rates = [r[0] for r in runs]
+        best = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
+        ph = best[1]
+        print(f"| {n} | {statistics.median(rates):.0f} | {ph['dynamics']:.3f} | {ph['sumo']:.3f} | "
+              f"{ph['snapshot']:.3f} | {ph['events']:.3f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,690 @@
+"""The PyBullet mirror: the scenario region as a few coloured meshes, the actors as
+pooled boxes, and one front camera per learning car (AC).
+
+SUMO simulates the traffic; the mirror only draws it. One :class:`Mirror` owns one
+``pybullet.DIRECT`` client (never the global default client) and builds, once:
+
+- the static world from the :class:`~cosim.roadmap.RoadMap`: road surface (lanes +
+  junction polygons), lane markings (white dashes between lanes of
+  one direction, white edge lines, yellow centre lines next to the opposite
+  direction), raised sidewalks, zebra crossings and the road objects as extruded
+  prisms; one visual-only body per material, so the whole region is ~10 bodies;
+- a fixed pool of boxes: red ACs, blue background cars, orange pedestrians. Each
+  :meth:`Mirror.sync` re-poses them; unused ones are parked far below the ground
+  and made transparent, which TinyRenderer skips at no cost. Bodies are never
+  created or destroyed after construction;
+- no grass or sky geometry: wherever nothing was drawn (depth buffer at its clear
+  value) the image takes a fixed backdrop, grass below the horizon and sky above.
+  The world is flat and the camera height and pitch fixed, so the horizon is the
+  same image row for every camera.
+
+Cameras sit 1.4 m high just ahead of the AC's front bumper (so its own box is
+behind the eye), look along its heading with a 90 degree field of view and render
+with TinyRenderer on the CPU, or with the EGL plugin on a GPU.
+
+Measured facts this design rests on (pybullet 3.2.7, see docs/mirror.md):
+
+- TinyRenderer's cost is ~0.18 ms per image, plus ~0.17 us per triangle in the
+  scene (in view or not), plus ~0.15 us per covered pixel per layer. Two large
+  quads for grass and sky cost ~2 ms of fill per 84x84 image, more than the whole
+  road network, hence the backdrop. 100 parked boxes cost 0.28 ms; transparent
+  (alpha 0) ones cost nothing.
+- TinyRenderer in 3.2.7 clips triangles against the near plane: a 200 m road quad
+  renders the same as one cut into 0.5 m pieces (tested in tests/cosim/test_mirror.py).
+  The advice of bullet3 issue 1004 (cut quads to ~2 m) is for older builds;
+  here lanes keep SUMO's own vertices plus cuts every ``MAX_SEGMENT`` metres.
+- It back-face culls (only counter-clockwise faces, seen from the viewer, are
+  drawn) and clips at the far plane.
+- An orthographic projection renders nothing (TinyRenderer reads near/far from a
+  perspective matrix), so the overview is a narrow perspective from high above.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.dynamics import VehicleParams
+from cosim.errors import SimulatorUnavailable
+from cosim.roadmap import LaneInfo, RoadMap
+from cosim.scenario import MAX_ACS
+from cosim.sumo_bridge import Snapshot
+
+log = logging.getLogger(__name__)
+
+RENDERERS = ("tiny", "egl", "auto")
+
+# Colours (RGBA). Lit surfaces come out at 0.6-1.0 of these (ambient + diffuse light).
+COLORS = {
+    "road": (0.27, 0.27, 0.29, 1.0),
+    "white": (0.95, 0.95, 0.95, 1.0),
+    "yellow": (0.95, 0.78, 0.10, 1.0),
+    "sidewalk": (0.70, 0.70, 0.66, 1.0),
+    "pole": (0.45, 0.45, 0.50, 1.0),
+    "guardrail": (0.80, 0.82, 0.86, 1.0),
+    "building": (0.72, 0.52, 0.40, 1.0),
+    "sign": (0.55, 0.20, 0.65, 1.0),
+    "object": (0.60, 0.60, 0.60, 1.0),  # an unknown kind of road object
+    "ac": (0.90, 0.08, 0.08, 1.0),
+    "car": (0.10, 0.25, 0.90, 1.0),
+    "pedestrian": (1.00, 0.55, 0.00, 1.0),
+}
+GRASS = (84, 140, 60)  # RGB of the backdrop below the horizon
+SKY_HORIZON, SKY_ZENITH = (205, 225, 245), (110, 160, 225)  # RGB of the sky backdrop
+OBJECT_HEIGHT = {"pole": 5.0, "guardrail": 0.8, "sign": 2.5, "object": 2.0}
+BUILDING_HEIGHTS = (8.0, 11.0, 14.0, 17.0, 20.0)  # picked per building by a hash of its id
+
+# Heights above the ground (z = 0): far enough apart that TinyRenderer's depth test
+# never confuses them at 100 m, low enough to look flat from 1.4 m.
+Z_ROAD, Z_MARK, Z_SIDEWALK = 0.03, 0.06, 0.15
+MARK_WIDTH = 0.2  # metres; wider than real (0.12-0.15) so a line 10 m ahead still hits a pixel at 84x84
+DASH, GAP = 3.0, 6.0  # metres of a dashed lane line
+ZEBRA = 0.5  # metres of each zebra stripe and of each gap
+MAX_SEGMENT = 25.0  # longest road/marking quad along a lane; see the module docstring
+
+CAR_HEIGHT = 1.5
+PEDESTRIAN_SIZE = (0.5, 0.5, 1.75)  # x, y, z metres
+CAMERA_HEIGHT = 1.4
+CAMERA_AHEAD = 0.15  # metres in front of the front bumper, so the AC's own box is behind the eye
+CAMERA_PITCH = math.radians(-5.0)  # slightly down: more road, less sky
+NEAR, FAR = 0.2, 100.0
+PARK = (0.0, 0.0, -1000.0)
+_DEPTH_CLEAR = 0.9999999  # depth-buffer value where nothing was drawn (both renderers clear to 1)
+BOX_TRIANGLES = 12
+# Lighting of TinyRenderer: sun high in the south-west, strong ambient so vertical
+# faces (car sides, building walls) stay close to their colour.
+LIGHT = dict(lightDirection=(-0.4, -0.3, 1.0), lightAmbientCoeff=0.65,
+             lightDiffuseCoeff=0.4, lightSpecularCoeff=0.0)
+MAX_MESH_VERTICES = 30000  # per visual shape; pybullet refuses very large meshes
+
+
+def _pybullet():
+    """Import pybullet at use, so a missing install is reported when a Mirror starts."""
+    try:
+        import pybullet
+    except ImportError as exc:
+        raise SimulatorUnavailable(
+            f"pybullet is not importable ({exc}); install it with `pip install 'pybullet>=3.2.6'`"
+        ) from exc
+    return pybullet
+
+
+# -- geometry helpers (pure numpy) ------------------------------------------------------------
+
+
+@dataclass
+class _Mesh:
+    """Triangles of one material, accumulated before they become pybullet shapes."""
+
+    vertices: list
+    normals: list
+    indices: list
+    count: int = 0
+
+    @classmethod
+    def empty(cls) -> _Mesh:
+        return cls([], [], [])
+
+    def add(self, vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray) -> None:
+        """Append vertices (k, 3), triangles (m, 3) indexing them, normals (k, 3)."""
+        if len(triangles) == 0:
+            return
+        self.vertices.append(np.asarray(vertices, float))
+        self.normals.append(np.asarray(normals, float))
+        self.indices.append(np.asarray(triangles, int) + self.count)
+        self.count += len(vertices)
+
+    @property
+    def triangles(self) -> int:
+        return sum(len(t) for t in self.indices)
+
+    def chunks(self):
+        """(vertices, indices, normals) arrays of at most MAX_MESH_VERTICES vertices each."""
+        start = 0
+        verts, norms, tris = [], [], []
+        for v, n, t in zip(self.vertices, self.normals, self.indices, strict=True):
+            if verts and sum(len(a) for a in verts) + len(v) > MAX_MESH_VERTICES:
+                yield np.concatenate(verts), np.concatenate(tris) - start, np.concatenate(norms)
+                start += sum(len(a) for a in verts)
+                verts, norms, tris = [], [], []
+            verts.append(v)
+            norms.append(n)
+            tris.append(t)
+        if verts:
+            yield np.concatenate(verts), np.concatenate(tris) - start, np.concatenate(norms)
+
+
+def _clean(points: np.ndarray, closed: bool = False) -> np.ndarray:
+    """Drop repeated points (and the closing point of a ring)."""
+    pts = np.asarray(points, float)[:, :2]
+    keep = np.ones(len(pts), bool)
+    keep[1:] = np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-6
+    pts = pts[keep]
+    if closed and len(pts) > 1 and np.linalg.norm(pts[0] - pts[-1]) < 1e-6:
+        pts = pts[:-1]
+    return pts
+
+
+def _cut(shape: np.ndarray, s0: float, s1: float, max_len: float = MAX_SEGMENT) -> np.ndarray:
+    """Points of a polyline between arc lengths s0 < s1, keeping its vertices, no piece > max_len."""
+    seg = np.linalg.norm(np.diff(shape, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    inner = cum[(cum > s0) & (cum < s1)]
+    s = np.concatenate([[s0], inner, [s1]])
+    pieces = [s[:1]]
+    for a, b in zip(s[:-1], s[1:], strict=True):
+        n = max(1, math.ceil((b - a) / max_len - 1e-9))
+        pieces.append(np.linspace(a, b, n + 1)[1:])
+    s = np.concatenate(pieces)
+    return np.column_stack([np.interp(s, cum, shape[:, 0]), np.interp(s, cum, shape[:, 1])])
+
+
+def _left_normals(points: np.ndarray) -> np.ndarray:
+    """Unit left normals at each point of a polyline, mitred at the joints."""
+    d = np.diff(points, axis=0)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    seg_n = np.column_stack([-d[:, 1], d[:, 0]])
+    n = np.empty_like(points)
+    n[0], n[-1] = seg_n[0], seg_n[-1]
+    mid = seg_n[:-1] + seg_n[1:]
+    # mitre: scale so the ribbon keeps its width through a bend (capped for hairpins)
+    cos_half = np.clip(np.linalg.norm(mid, axis=1) / 2, 0.5, 1.0)
+    mid /= np.linalg.norm(mid, axis=1, keepdims=True) + 1e-12
+    n[1:-1] = mid / cos_half[:, None]
+    return n
+
+
+def ribbon(shape: np.ndarray, left: float, right: float, z: float, s0: float = 0.0,
+           s1: float | None = None):
+    """A flat strip along a polyline between lateral offsets `right` < `left` (metres, + = left).
+
+    Returns (vertices (k, 3), triangles (m, 3)), counter-clockwise seen from above.
+    """
+    shape = _clean(shape)
+    if len(shape) < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3), int)
+    length = float(np.linalg.norm(np.diff(shape, axis=0), axis=1).sum())
+    s1 = length if s1 is None else min(s1, length)
+    if s1 - s0 < 1e-3:
+        return np.zeros((0, 3)), np.zeros((0, 3), int)
+    pts = _cut(shape, s0, s1)
+    n = _left_normals(pts)
+    k = len(pts)
+    xy = np.concatenate([pts + n * right, pts + n * left])  # right side 0..k-1, left side k..2k-1
+    verts = np.column_stack([xy, np.full(2 * k, z)])
+    i = np.arange(k - 1)
+    tris = np.concatenate([
+        np.column_stack([i, i + 1, k + i + 1]),
+        np.column_stack([i, k + i + 1, k + i]),
+    ])
+    return verts, tris
+
+
+def dashes(shape: np.ndarray, left: float, right: float, z: float, dash: float, gap: float):
+    """Ribbon pieces of length `dash` every `dash + gap` metres along a polyline."""
+    shape = _clean(shape)
+    if len(shape) < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3), int)
+    length = float(np.linalg.norm(np.diff(shape, axis=0), axis=1).sum())
+    verts, tris, count = [], [], 0
+    # centre the pattern so both ends of a lane look alike
+    period = dash + gap
+    n = max(1, int((length + gap) // period))
+    start = (length - (n * period - gap)) / 2
+    for j in range(n):
+        a = start + j * period
+        v, t = ribbon(shape, left, right, z, max(a, 0.0), a + dash)
+        verts.append(v)
+        tris.append(t + count)
+        count += len(v)
+    return np.concatenate(verts), np.concatenate(tris)
+
+
+def _signed_area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def triangulate(polygon: np.ndarray) -> np.ndarray:
+    """Ear-clipping triangulation of a simple polygon; triangles (m, 3) counter-clockwise.
+
+    Indices refer to the polygon as given (minus repeated points, see :func:`_clean`);
+    call on ``_clean(polygon, closed=True)``.
+    """
+    poly = np.asarray(polygon, float)
+    n = len(poly)
+    if n < 3:
+        return np.zeros((0, 3), int)
+    order = list(range(n)) if _signed_area(poly) > 0 else list(range(n - 1, -1, -1))
+    tris = []
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    guard = 0
+    while len(order) > 3 and guard < 4 * n * n:
+        guard += 1
+        m = len(order)
+        for k in range(m):
+            i0, i1, i2 = order[k - 1], order[k], order[(k + 1) % m]
+            a, b, c = poly[i0], poly[i1], poly[i2]
+            if cross(a, b, c) <= 1e-12:
+                continue  # reflex or collinear corner: not an ear
+            inside = False
+            for j in order:
+                if j in (i0, i1, i2):
+                    continue
+                p = poly[j]
+                if cross(a, b, p) >= 0 and cross(b, c, p) >= 0 and cross(c, a, p) >= 0:
+                    inside = True
+                    break
+            if not inside:
+                tris.append((i0, i1, i2))
+                order.pop(k)
+                break
+        else:
+            break  # no ear left: not a simple polygon
+    if len(order) > 3:
+        log.debug("polygon of %d points is not simple; fan-filling the rest", n)
+        tris += [(order[0], order[j], order[j + 1]) for j in range(1, len(order) - 1)]
+    elif len(order) == 3:
+        tris.append(tuple(order))
+    return np.array(tris, int).reshape(-1, 3)
+
+
+def flat_polygon(polygon: np.ndarray, z: float):
+    """A horizontal polygon at height z: (vertices (k, 3), triangles (m, 3))."""
+    poly = _clean(polygon, closed=True)
+    tris = triangulate(poly)
+    return np.column_stack([poly, np.full(len(poly), z)]), tris
+
+
+def prism(polygon: np.ndarray, height: float):
+    """A convex polygon extruded from z=0 to `height`: (vertices, triangles, normals).
+
+    The top shares no vertices with the sides so each face is lit by its own normal.
+    """
+    poly = _clean(polygon, closed=True)
+    if _signed_area(poly) < 0:
+        poly = poly[::-1]
+    k = len(poly)
+    top = np.column_stack([poly, np.full(k, height)])
+    verts = [top]
+    normals = [np.tile([0.0, 0.0, 1.0], (k, 1))]
+    tris = [np.column_stack([np.zeros(k - 2, int), np.arange(1, k - 1), np.arange(2, k)])]
+    base = k
+    for j in range(k):
+        a, b = poly[j], poly[(j + 1) % k]
+        d = b - a
+        out = np.array([d[1], -d[0], 0.0]) / (np.hypot(*d) + 1e-12)
+        verts.append(np.array([[*a, 0.0], [*b, 0.0], [*b, height], [*a, height]]))
+        normals.append(np.tile(out, (4, 1)))
+        tris.append(np.array([[base, base + 1, base + 2], [base, base + 2, base + 3]]))
+        base += 4
+    return np.concatenate(verts), np.concatenate(tris), np.concatenate(normals)
+
+
+def _up(verts: np.ndarray) -> np.ndarray:
+    return np.tile([0.0, 0.0, 1.0], (len(verts), 1))
+
+
+def _opposite(edge: str) -> str | None:
+    """SUMO edges are named <road>_<dir>; the opposite direction of x_e is x_w, of x_n is x_s."""
+    road, _, d = edge.rpartition("_")
+    flip = {"e": "w", "w": "e", "n": "s", "s": "n"}.get(d)
+    return f"{road}_{flip}" if road and flip else None
+
+
+def build_static(roadmap: RoadMap) -> dict[str, _Mesh]:
+    """The region's static meshes, one per material (see the module docstring)."""
+    meshes = {name: _Mesh.empty() for name in COLORS}
+    for lane in roadmap.lanes:
+        v, t = ribbon(lane.shape, lane.width / 2, -lane.width / 2, Z_ROAD)
+        meshes["road"].add(v, t, _up(v))
+    for poly in roadmap.junctions.values():
+        v, t = flat_polygon(poly, Z_ROAD)
+        meshes["road"].add(v, t, _up(v))
+    _add_markings(meshes, roadmap.lanes)
+    for walk in roadmap.sidewalks:
+        if walk.is_internal:  # a walking area: its shape is the outline
+            v, t = flat_polygon(walk.shape, Z_SIDEWALK)
+        else:
+            v, t = ribbon(walk.shape, walk.width / 2, -walk.width / 2, Z_SIDEWALK)
+        meshes["sidewalk"].add(v, t, _up(v))
+    for crossing in roadmap.crossings:
+        half = crossing.width / 2 - 0.2
+        v, t = dashes(crossing.shape, half, -half, Z_MARK, ZEBRA, ZEBRA)
+        meshes["white"].add(v, t, _up(v))
+    for obj in roadmap.objects:
+        kind = obj.kind if obj.kind in COLORS else "object"
+        if kind == "building":
+            height = BUILDING_HEIGHTS[zlib.crc32(obj.id.encode()) % len(BUILDING_HEIGHTS)]
+        else:
+            height = OBJECT_HEIGHT.get(kind, OBJECT_HEIGHT["object"])
+        v, t, n = prism(obj.polygon, height)
+        meshes[kind].add(v, t, n)
+    return meshes
+
+
+def _add_markings(meshes: dict[str, _Mesh], lanes: list[LaneInfo]) -> None:
+    """White dashes between lanes of an edge, white edge lines, yellow next to the opposite way."""
+    by_edge: dict[str, list[LaneInfo]] = {}
+    for lane in lanes:
+        if not lane.is_internal:  # junction interiors carry no markings
+            by_edge.setdefault(lane.edge, []).append(lane)
+    hw = MARK_WIDTH / 2
+    for edge, group in by_edge.items():
+        group.sort(key=lambda ln: ln.index)  # SUMO: index 0 = rightmost
+        right, left = group[0], group[-1]
+        inset = 0.15  # keep lines inside the lane so they sit on the asphalt
+        off = -right.width / 2 + inset + hw
+        v, t = ribbon(right.shape, off + hw, off - hw, Z_MARK)
+        meshes["white"].add(v, t, _up(v))
+        for lane in group[1:]:
+            # the boundary between a lane and the one to its right, as seen from the left lane
+            off = -lane.width / 2
+            v, t = dashes(lane.shape, off + hw, off - hw, Z_MARK, DASH, GAP)
+            meshes["white"].add(v, t, _up(v))
+        two_way = _opposite(edge) in by_edge
+        off = left.width / 2 - inset - hw
+        v, t = ribbon(left.shape, off + hw, off - hw, Z_MARK)
+        meshes["yellow" if two_way else "white"].add(v, t, _up(v))
+
+
+# -- camera maths ---------------------------------------------------------------------------
+
+
+def camera_eye(x: float, y: float, heading: float, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eye position and unit forward direction of the camera of a car centred at (x, y)."""
+    c, s = math.cos(heading), math.sin(heading)
+    ahead = length / 2 + CAMERA_AHEAD
+    eye = np.array([x + c * ahead, y + s * ahead, CAMERA_HEIGHT])
+    cp = math.cos(CAMERA_PITCH)
+    forward = np.array([c * cp, s * cp, math.sin(CAMERA_PITCH)])
+    return eye, forward
+
+
+def camera_backdrop(size: int, fov_deg: float) -> np.ndarray:
+    """The (S, S, 3) image behind everything: sky above the horizon, grass below.
+
+    Row r looks at elevation CAMERA_PITCH + atan((S/2 - r - 0.5) / f) with f the focal
+    length in pixels; the ground is flat, so that sign decides sky or grass.
+    """
+    f = (size / 2) / math.tan(math.radians(fov_deg) / 2)
+    rows = np.arange(size) + 0.5
+    elevation = CAMERA_PITCH + np.arctan((size / 2 - rows) / f)
+    t = np.clip(elevation / math.radians(fov_deg / 2), 0.0, 1.0)[:, None]
+    sky = (1 - t) * np.array(SKY_HORIZON) + t * np.array(SKY_ZENITH)
+    column = np.where((elevation > 0)[:, None], sky, np.array(GRASS, float))
+    return np.repeat(column[:, None, :], size, axis=1).round().astype(np.uint8)
+
+
+def _quat_z(heading: float) -> tuple[float, float, float, float]:
+    return (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2))
+
+
+# -- the mirror -----------------------------------------------------------------------------
+
+
+class Mirror:
+    """A PyBullet picture of one scenario region, with pooled actors and AC cameras.
+
+    Args:
+        roadmap: the scenario's static geometry; only its region is built.
+        image_size: side S of the square camera images (pixels).
+        renderer: "tiny" (CPU TinyRenderer), "egl" (GPU through the eglRenderer
+            plugin; raises SimulatorUnavailable when it cannot load) or "auto"
+            (EGL when it works, else TinyRenderer; logs which).
+        max_cars: background cars drawn at once; ACs have their own pool of MAX_ACS.
+        max_pedestrians: pedestrians drawn at once.
+        fov_deg: field of view of the AC cameras (degrees, horizontal = vertical).
+
+    Raises:
+        SimulatorUnavailable: pybullet is missing/broken or EGL was asked for and fails.
+        ValueError: a bad argument, named with the accepted values.
+    """
+
+    def __init__(self, roadmap: RoadMap, *, image_size: int = 84, renderer: str = "tiny",
+                 max_cars: int = 40, max_pedestrians: int = 40, fov_deg: float = 90.0):
+        if renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+        if not 8 <= int(image_size) <= 1024:
+            raise ValueError(f"image_size must be 8..1024 pixels, got {image_size}")
+        if max_cars < 0 or max_pedestrians < 0:
+            raise ValueError("max_cars and max_pedestrians must be >= 0")
+        if not 10.0 <= fov_deg <= 170.0:
+            raise ValueError(f"fov_deg must be 10..170 degrees, got {fov_deg}")
+        self.roadmap = roadmap
+        self.image_size = int(image_size)
+        self.fov_deg = float(fov_deg)
+        self.vehicle = VehicleParams()
+        self._p = _pybullet()
+        self._client: int | None = None
+        self._warned_overflow = False
+        cid = self._p.connect(self._p.DIRECT)
+        if cid < 0:
+            raise SimulatorUnavailable(
+                "pybullet could not open a DIRECT client; reinstall it with "
+                "`pip install --force-reinstall 'pybullet>=3.2.6'`"
+            )
+        self._client = cid
+        try:
+            self.renderer = self._select_renderer(renderer)
+            self._static_triangles = self._build_static()
+            size = (self.vehicle.length / 2, self.vehicle.width / 2, CAR_HEIGHT / 2)
+            self._ac_pool = self._build_pool(MAX_ACS, size, COLORS["ac"])
+            self._car_pool = self._build_pool(max_cars, size, COLORS["car"])
+            ped = tuple(v / 2 for v in PEDESTRIAN_SIZE)
+            self._ped_pool = self._build_pool(max_pedestrians, ped, COLORS["pedestrian"])
+        except BaseException:
+            self.close()
+            raise
+        self._parked = {b: True for b in self._ac_pool + self._car_pool + self._ped_pool}
+        self._colors = {}
+        for pool, kind in ((self._ac_pool, "ac"), (self._car_pool, "car"),
+                           (self._ped_pool, "pedestrian")):
+            self._colors.update({b: COLORS[kind] for b in pool})
+        self._projection = self._p.computeProjectionMatrixFOV(
+            self.fov_deg, 1.0, NEAR, FAR, physicsClientId=cid
+        )
+        self._backdrop = camera_backdrop(self.image_size, self.fov_deg)
+        log.info("mirror of %s: %d triangles, renderer %s", roadmap.scenario.name,
+                 self.triangle_count, self.renderer)
+
+    # -- public API ---------------------------------------------------------------------------
+    @property
+    def client(self) -> int | None:
+        """The pybullet client id; None once closed."""
+        return self._client
+
+    @property
+    def triangle_count(self) -> int:
+        """Triangles in the scene: static meshes and every pool body, parked or not."""
+        pool = len(self._ac_pool) + len(self._car_pool) + len(self._ped_pool)
+        return self._static_triangles + BOX_TRIANGLES * pool
+
+    def sync(self, snapshot: Snapshot) -> None:
+        """Re-pose the pool to a snapshot; more actors than a pool holds: the nearest to the
+        region centre are drawn (logged once)."""
+        is_ac = np.asarray(snapshot.vehicle_is_ac, bool)
+        xy = np.asarray(snapshot.vehicle_xy, float).reshape(-1, 2)
+        heading = np.asarray(snapshot.vehicle_heading, float)
+        self._pose(self._ac_pool, xy[is_ac], heading[is_ac], CAR_HEIGHT / 2, "ACs")
+        self._pose(self._car_pool, xy[~is_ac], heading[~is_ac], CAR_HEIGHT / 2, "cars")
+        pxy = np.asarray(snapshot.person_xy, float).reshape(-1, 2)
+        self._pose(self._ped_pool, pxy, np.asarray(snapshot.person_heading, float),
+                   PEDESTRIAN_SIZE[2] / 2, "pedestrians")
+
+    def cameras(self, poses: list[tuple[float, float, float]]) -> np.ndarray:
+        """Front-camera images, one per (x, y, heading) of an AC's centre: uint8 (n, S, S, 3)."""
+        p, cid, size = self._p, self._require_open(), self.image_size
+        out = np.empty((len(poses), size, size, 3), np.uint8)
+        for i, (x, y, heading) in enumerate(poses):
+            eye, forward = camera_eye(float(x), float(y), float(heading), self.vehicle.length)
+            view = p.computeViewMatrix(eye, eye + forward, (0.0, 0.0, 1.0), physicsClientId=cid)
+            out[i] = self._render(size, size, view, self._projection, self._backdrop)
+        return out
+
+    def overview(self, size: tuple[int, int] = (320, 320), center=None, extent=None) -> np.ndarray:
+        """Top-down RGB picture (north up), uint8 (H, W, 3) for size = (W, H).
+
+        Args:
+            size: (width, height) in pixels.
+            center: (x, y) the picture is centred on; default the region centre.
+            extent: metres the picture spans across its width; default fits the region.
+        """
+        p, cid = self._p, self._require_open()
+        w, h = int(size[0]), int(size[1])
+        xmin, ymin, xmax, ymax = self.roadmap.bounds
+        cx, cy = center if center is not None else ((xmin + xmax) / 2, (ymin + ymax) / 2)
+        if extent is None:
+            extent = 1.04 * max(xmax - xmin, (ymax - ymin) * w / h)
+        half_w, half_h = extent / 2, extent / 2 * h / w
+        # TinyRenderer needs a perspective matrix: a narrow one from far above is nearly
+        # orthographic (buildings lean < 1 degree).
+        height = 40.0 * max(half_w, half_h)
+        near = height - 60.0
+        k = near / height
+        proj = p.computeProjectionMatrix(-half_w * k, half_w * k, -half_h * k, half_h * k,
+                                         near, height + 10.0, physicsClientId=cid)
+        view = p.computeViewMatrix((cx, cy, height), (cx, cy, 0.0), (0.0, 1.0, 0.0),
+                                   physicsClientId=cid)
+        return self._render(w, h, view, proj, np.array(GRASS, np.uint8))
+
+    def close(self) -> None:
+        """Disconnect the pybullet client; safe to call twice."""
+        if self._client is None:
+            return
+        cid, self._client = self._client, None
+        try:
+            self._p.disconnect(physicsClientId=cid)
+        except self._p.error as exc:  # already gone (e.g. the server died): nothing to free
+            log.debug("pybullet client %d was already disconnected: %s", cid, exc)
+
+    def __enter__(self) -> Mirror:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- construction -------------------------------------------------------------------------
+    def _select_renderer(self, renderer: str) -> str:
+        if renderer == "tiny":
+            return "tiny"
+        ok, why = self._load_egl()
+        if ok:
+            if renderer == "auto":
+                log.info("mirror renders with EGL (GPU)")
+            return "egl"
+        if renderer == "egl":
+            raise SimulatorUnavailable(
+                f"the pybullet eglRenderer plugin cannot be used ({why}); it needs a GPU with "
+                "EGL drivers (NVIDIA: libnvidia-egl; `pip install pybullet` ships the plugin). "
+                "Use renderer='tiny' (CPU) or 'auto'."
+            )
+        log.info("mirror renders with TinyRenderer (CPU): EGL unavailable (%s)", why)
+        return "tiny"
+
+    def _load_egl(self) -> tuple[bool, str]:
+        """Load the EGL plugin before any visual shape exists (shapes made earlier are not
+        uploaded to it)."""
+        import importlib.util
+
+        spec = importlib.util.find_spec("eglRenderer")
+        if spec is None or not spec.origin:
+            return False, "module eglRenderer not found"
+        plugin = self._p.loadPlugin(spec.origin, "_eglRendererPlugin",
+                                    physicsClientId=self._client)
+        if plugin < 0:
+            return False, "loadPlugin failed"
+        try:  # a plugin that loads on a machine without a usable EGL device renders nothing
+            img = self._p.getCameraImage(8, 8, renderer=self._p.ER_BULLET_HARDWARE_OPENGL,
+                                         physicsClientId=self._client)
+            ok = img is not None and len(img) >= 3
+        except self._p.error as exc:
+            ok, why = False, f"test render failed: {exc}"
+        else:
+            why = "" if ok else "test render returned nothing"
+        if not ok:
+            self._p.unloadPlugin(plugin, physicsClientId=self._client)
+        return ok, why
+
+    def _build_static(self) -> int:
+        p, cid = self._p, self._client
+        triangles = 0
+        for name, mesh in build_static(self.roadmap).items():
+            for verts, tris, normals in mesh.chunks():
+                shape = p.createVisualShape(
+                    p.GEOM_MESH, vertices=verts.tolist(), indices=tris.ravel().tolist(),
+                    normals=normals.tolist(), rgbaColor=COLORS[name], physicsClientId=cid,
+                )
+                p.createMultiBody(0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=shape,
+                                  physicsClientId=cid)
+                triangles += len(tris)
+        return triangles
+
+    def _build_pool(self, n: int, half_extents, rgba) -> list[int]:
+        if n == 0:
+            return []
+        p, cid = self._p, self._client
+        shape = p.createVisualShape(p.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba,
+                                    physicsClientId=cid)
+        return [p.createMultiBody(0, -1, shape, basePosition=PARK, physicsClientId=cid)
+                for _ in range(n)]
+
+    # -- per step -----------------------------------------------------------------------------
+    def _pose(self, pool: list[int], xy: np.ndarray, heading: np.ndarray, z: float,
+              what: str) -> None:
+        p, cid = self._p, self._require_open()
+        if len(xy) > len(pool):
+            if not self._warned_overflow:
+                log.warning("%d %s but a pool of %d: drawing the nearest to the region centre "
+                            "(raise max_cars / max_pedestrians to draw all)", len(xy), what,
+                            len(pool))
+                self._warned_overflow = True
+            xmin, ymin, xmax, ymax = self.roadmap.bounds
+            d = np.hypot(xy[:, 0] - (xmin + xmax) / 2, xy[:, 1] - (ymin + ymax) / 2)
+            keep = np.argsort(d, kind="stable")[: len(pool)]
+            xy, heading = xy[keep], heading[keep]
+        for body, (x, y), h in zip(pool, xy, heading, strict=False):
+            p.resetBasePositionAndOrientation(body, (float(x), float(y), z), _quat_z(float(h)),
+                                              physicsClientId=cid)
+            if self._parked[body]:
+                p.changeVisualShape(body, -1, rgbaColor=self._colors[body], physicsClientId=cid)
+                self._parked[body] = False
+        for body in pool[len(xy):]:
+            if not self._parked[body]:
+                self._park(body)
+
+    def _park(self, body: int) -> None:
+        """Out of sight, and transparent: TinyRenderer skips alpha-0 shapes entirely."""
+        p, cid = self._p, self._client
+        p.resetBasePositionAndOrientation(body, PARK, (0, 0, 0, 1), physicsClientId=cid)
+        p.changeVisualShape(body, -1, rgbaColor=(*self._colors[body][:3], 0.0),
+                            physicsClientId=cid)
+        self._parked[body] = True
+
+    def _render(self, width: int, height: int, view, projection,
+                backdrop: np.ndarray) -> np.ndarray:
+        """RGB image; pixels where nothing was drawn take `backdrop` ((H, W, 3) or one RGB)."""
+        p = self._p
+        if self.renderer == "egl":
+            img = p.getCameraImage(width, height, view, projection,
+                                   renderer=p.ER_BULLET_HARDWARE_OPENGL,
+                                   flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=self._client)
+        else:
+            img = p.getCameraImage(width, height, view, projection, renderer=p.ER_TINY_RENDERER,
+                                   shadow=0, flags=p.ER_NO_SEGMENTATION_MASK,
+                                   physicsClientId=self._client, **LIGHT)
+        rgb = np.asarray(img[2], np.uint8).reshape(height, width, 4)[:, :, :3]
+        empty = np.asarray(img[3], np.float32).reshape(height, width) >= _DEPTH_CLEAR
+        return np.where(empty[:, :, None], backdrop, rgb)
+
+    def _require_open(self) -> int:
+        if self._client is None:
+            raise RuntimeError("this Mirror is closed; create a new one")
+        return self._client
