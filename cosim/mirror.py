@@ -169,8 +169,10 @@ def _clean(points: np.ndarray, closed: bool = False) -> np.ndarray:
     return pts
 
 
-def _cut(shape: np.ndarray, s0: float, s1: float, max_len: float = MAX_SEGMENT) -> np.ndarray:
-    """Points of a polyline between arc lengths s0 < s1, keeping its vertices, no piece > max_len."""
+def _cut(shape: np.ndarray, s0: float, s1: float, max_len: float | None = None) -> np.ndarray:
+    """Points of a polyline between arc lengths s0 < s1, keeping its vertices, no piece longer
+    than max_len (default MAX_SEGMENT)."""
+    max_len = MAX_SEGMENT if max_len is None else max_len
     seg = np.linalg.norm(np.diff(shape, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     inner = cum[(cum > s0) & (cum < s1)]
@@ -631,8 +633,9 @@ class Mirror:
         if n == 0:
             return []
         p, cid = self._p, self._client
-        shape = p.createVisualShape(p.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba,
-                                    physicsClientId=cid)
+        # born parked: transparent until a sync shows it
+        shape = p.createVisualShape(p.GEOM_BOX, halfExtents=half_extents,
+                                    rgbaColor=(*rgba[:3], 0.0), physicsClientId=cid)
         return [p.createMultiBody(0, -1, shape, basePosition=PARK, physicsClientId=cid)
                 for _ in range(n)]
 

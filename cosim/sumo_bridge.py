@@ -13,11 +13,13 @@ from east, the convention of the rest of cosim.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import os
 import weakref
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -28,6 +30,7 @@ log = logging.getLogger(__name__)
 
 # libsumo is one simulation per process: remember which bridge owns it, to fail clearly.
 _owner: weakref.ReferenceType | None = None
+_labels = itertools.count()  # unique TraCI connection labels
 
 PERSON_RADIUS = 0.3  # metres; a person's footprint is a circle
 _VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE = 0x42, 0x43, 0x40, 0x4F
@@ -119,8 +122,13 @@ class SumoBridge:
     surfaces as a :class:`SumoError` carrying SUMO's message, after SUMO is closed.
     """
 
-    def __init__(self, scenario: Scenario, *, background: bool = True, pedestrians: bool = True):
+    def __init__(self, scenario: Scenario, *, background: bool = True, pedestrians: bool = True,
+                 backend: str = "auto"):
+        if backend not in ("auto", "libsumo", "traci"):
+            raise ValueError(f"backend must be 'auto', 'libsumo' or 'traci', got {backend!r}")
         self.scenario = scenario
+        self.backend = backend
+        self._errors: tuple[type[BaseException], ...] = (RuntimeError,)
         self.background = background and scenario.background.enabled
         self.pedestrians = pedestrians and scenario.pedestrians
         self._ls = None
@@ -156,32 +164,68 @@ class SumoBridge:
         return cmd
 
     def start(self, seed: int) -> None:
-        """Start (or restart with a new seed) the simulation and subscribe to the region."""
+        """Start (or restart with a new seed) the simulation and subscribe to the region.
+
+        The first simulation of a process runs in-process through libsumo (fast). libsumo
+        holds one simulation per process, so with ``backend="auto"`` a second one runs
+        SUMO as a child process through TraCI instead (same results, several times
+        slower; a warning says so). ``backend="libsumo"`` refuses a second one.
+        """
+        if self._running:
+            try:
+                self._ls.load(self.command(seed)[1:])
+                self._subscribe()
+            except self._errors as exc:
+                self._fail(f"SUMO could not restart scenario {self.scenario.name!r}", exc)
+            self._acs.clear()
+            self._pinned.clear()
+            self.time = 0.0
+            return
         global _owner
-        ls = _libsumo()
         owner = _owner() if _owner is not None else None
-        if owner is not None and owner is not self and owner._running:
+        libsumo_busy = owner is not None and owner is not self and owner._running
+        if libsumo_busy and self.backend == "libsumo":
             raise SumoError(
                 "libsumo runs one SUMO simulation per process and another environment in this "
-                "process still has one open; close() it first, or run environments in worker "
-                "processes (one simulation per process)"
+                "process still has one open; close() it first, use backend='traci', or run "
+                "environments in worker processes (one simulation per process)"
             )
-        self._ls = ls
+        use_traci = self.backend == "traci" or libsumo_busy
         try:
-            if self._running:
-                ls.load(self.command(seed)[1:])
+            if use_traci:
+                self._start_traci(seed)
             else:
-                ls.start(self.command(seed))
-                self._running = True
+                ls = _libsumo()
+                self._ls, self._errors = ls, (ls.TraCIException,)
+                self._running = True  # set first: a failed start still needs close()
                 _owner = weakref.ref(self)
+                ls.start(self.command(seed))
             self._subscribe()
-        except ls.TraCIException as exc:
-            self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc)
-        except Exception as exc:  # libsumo raises FatalTraCIError/RuntimeError for broken input
+        except SimulatorUnavailable:
+            raise
+        except Exception as exc:  # libsumo raises TraCIException, FatalTraCIError, RuntimeError
             self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc)
         self._acs.clear()
         self._pinned.clear()
         self.time = 0.0
+
+    def _start_traci(self, seed: int) -> None:
+        _libsumo()  # sets SUMO_HOME from the wheel, reports a missing install
+        import sumo
+        import traci
+        from traci.exceptions import FatalTraCIError, TraCIException
+
+        if self.backend == "auto":
+            log.warning(
+                "a second SUMO simulation in this process runs through TraCI (slower than "
+                "libsumo); use one environment per process for speed"
+            )
+        binary = str(Path(sumo.__file__).parent / "bin" / "sumo")
+        label = f"cosim-{id(self)}-{next(_labels)}"
+        self._errors = (TraCIException, FatalTraCIError)
+        self._running = True
+        traci.start([binary] + self.command(seed)[1:], label=label)
+        self._ls = traci.getConnection(label)
 
     def _subscribe(self) -> None:
         ls = self._ls
@@ -208,9 +252,10 @@ class SumoBridge:
             try:
                 self._ls.close()
             except Exception as exc:  # already gone: nothing left to release
-                log.debug("libsumo.close() raised %s", exc)
-            if _owner is not None and _owner() is self:
-                _owner = None
+                log.debug("closing SUMO raised %s", exc)
+        self._running = False
+        if _owner is not None and _owner() is self:
+            _owner = None
 
     @property
     def running(self) -> bool:
@@ -245,7 +290,7 @@ class SumoBridge:
         try:
             for _ in range(steps):
                 ls.simulationStep()
-        except ls.TraCIException as exc:
+        except self._errors as exc:
             self._fail("SUMO failed during warm-up", exc)
         self.time = ls.simulation.getTime()
 
@@ -281,7 +326,7 @@ class SumoBridge:
             )
             ls.vehicle.setSpeedMode(ac_id, 0)
             ls.vehicle.setLaneChangeMode(ac_id, 0)
-        except ls.TraCIException as exc:
+        except self._errors as exc:
             self._fail(f"SUMO refused learning car {ac_id!r} on route {list(edges)}", exc)
         self._acs[ac_id] = (route_id, sumo_lane, pos)
 
@@ -292,7 +337,7 @@ class SumoBridge:
         fy = y + math.sin(heading) * length / 2
         try:
             ls.vehicle.moveToXY(ac_id, "", -1, fx, fy, heading_to_sumo(heading), 2)
-        except ls.TraCIException:
+        except self._errors:
             # SUMO removed it (e.g. it ran off the end of its route): put it back, then move.
             route_id, lane, pos = self._acs[ac_id]
             try:
@@ -300,7 +345,7 @@ class SumoBridge:
                                departLane=str(lane), departPos=f"{pos:.2f}", departSpeed="0")
                 ls.vehicle.setSpeedMode(ac_id, 0)
                 ls.vehicle.moveToXY(ac_id, "", -1, fx, fy, heading_to_sumo(heading), 2)
-            except ls.TraCIException as exc:
+            except self._errors as exc:
                 self._fail(f"SUMO lost learning car {ac_id!r} and could not re-insert it", exc)
 
     def place_car(self, vid: str, x: float, y: float, heading: float, edge: str) -> None:
@@ -320,7 +365,7 @@ class SumoBridge:
             ls.vehicle.setSpeed(vid, 0.0)
             fx, fy = x + math.cos(heading) * 2.25, y + math.sin(heading) * 2.25
             ls.vehicle.moveToXY(vid, edge, -1, fx, fy, heading_to_sumo(heading), 2)
-        except ls.TraCIException as exc:
+        except self._errors as exc:
             self._fail(f"SUMO refused to place car {vid!r}", exc)
 
     def place_person(self, pid: str, x: float, y: float, edge: str) -> None:
@@ -334,7 +379,7 @@ class SumoBridge:
             ls.person.add(pid, edge, 0.0)
             ls.person.appendWaitingStage(pid, 100000.0)
             ls.person.moveToXY(pid, edge, x, y, keepRoute=2)
-        except ls.TraCIException as exc:
+        except self._errors as exc:
             self._fail(f"SUMO refused to place person {pid!r}", exc)
         self._pinned[pid] = (x, y, edge)
 
@@ -345,7 +390,7 @@ class SumoBridge:
         del self._acs[ac_id]
         try:
             self._ls.vehicle.remove(ac_id)
-        except self._ls.TraCIException:
+        except self._errors:
             pass  # not inserted (yet) or already gone: either way it is out
 
     def step(self) -> None:
@@ -355,7 +400,7 @@ class SumoBridge:
             for pid, (x, y, edge) in self._pinned.items():
                 ls.person.moveToXY(pid, edge, x, y, keepRoute=2)
             ls.simulationStep()
-        except ls.TraCIException as exc:
+        except self._errors as exc:
             self._fail("SUMO failed during simulationStep", exc)
         self.time += self.scenario.dt
 
@@ -397,7 +442,7 @@ class SumoBridge:
         """(state char, distance m) of the next traffic light on the AC's route, if any."""
         try:
             nxt = self._ls.vehicle.getNextTLS(ac_id)
-        except self._ls.TraCIException:
+        except self._errors:
             return None
         if not nxt:
             return None

@@ -83,6 +83,7 @@ class World:
         background: bool = True,
         pedestrians: bool = True,
         vehicle: VehicleParams | None = None,
+        backend: str = "auto",
     ):
         self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
         n = self.scenario.max_agents if num_acs is None else int(num_acs)
@@ -96,7 +97,9 @@ class World:
         self.vehicle = vehicle or VehicleParams()
         self.roadmap: RoadMap = road_map(self.scenario)
         self.routes = self.roadmap.routes[:n]
-        self.bridge = SumoBridge(self.scenario, background=background, pedestrians=pedestrians)
+        self.bridge = SumoBridge(
+            self.scenario, background=background, pedestrians=pedestrians, backend=backend
+        )
         self.times = StepTimes()
         self.snapshot: Snapshot | None = None
         self.active: list[str] = []

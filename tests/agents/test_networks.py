@@ -69,14 +69,14 @@ def test_heads_output_shapes(space):
     logits, value = ActorCritic(space, 3)(obs)
     assert logits.shape == (5, 3) and value.shape == (5,)
     assert DuelingQNetwork(space, 3)(obs).shape == (5, 3)
-    box = gym.spaces.Box(np.array([-2.0, 0.0]), np.array([2.0, 10.0]))
+    box = gym.spaces.Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 10.0], np.float32))
     actions = DeterministicActor(space, box)(obs)
     assert actions.shape == (5, 2)
     assert QCritic(space, box)(obs, actions).shape == (5,)
 
 
 def test_deterministic_actor_respects_general_box_bounds():
-    box = gym.spaces.Box(np.array([-2.0, 0.0]), np.array([2.0, 10.0]))
+    box = gym.spaces.Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 10.0], np.float32))
     actor = DeterministicActor(VECTOR, box)
     with torch.no_grad():
         actor.mu.weight.mul_(1000.0)  # saturate tanh

@@ -27,8 +27,9 @@ def test_gae_time_major_columns_are_independent():
     rewards = np.array([[1.0, 0.0], [1.0, 1.0]])
     adv, _ = gae(rewards, np.zeros((2, 2)), np.ones((2, 2)), np.array([[0, 1], [0, 0]]),
                  np.zeros((2, 2)), gamma=1.0, lam=1.0)
-    # column 0: no ends -> A1 = 1 + 1 = 2, A0 = 1 + 0 + A1 = 3; column 1 terminates at t0.
-    np.testing.assert_allclose(adv, [[3.0, 0.0], [2.0, 2.0]])
+    # column 0: deltas [1 + 1, 1 + 1] -> A1 = 2, A0 = 2 + A1 = 4;
+    # column 1 terminates at t0: delta0 = 0 and the trace is cut, A1 = 1 + 1 = 2.
+    np.testing.assert_allclose(adv, [[4.0, 0.0], [2.0, 2.0]])
 
 
 def test_gae_rejects_mismatched_shapes_with_the_name():

@@ -222,10 +222,18 @@ def test_malformed_demand_names_the_file(tmp_path):
         w.reset(seed=0)
 
 
-def test_two_simulations_in_one_process_fail_clearly():
+def test_a_second_simulation_in_one_process_uses_traci_with_identical_results():
+    def run(world):
+        world.reset(seed=5)
+        pilot = Autopilot(world, "ac_0")
+        return [world.step({"ac_0": tuple(pilot.act())})["ac_0"].x for _ in range(50)]
+
     with World("env_1", 1) as a:
-        a.reset(seed=0)
-        b = World("env_2", 1)
+        xs_a = run(a)
         with pytest.raises(SumoError, match="one SUMO simulation per process"):
-            b.reset(seed=0)
+            World("env_1", 1, backend="libsumo").reset(seed=0)
+        with World("env_1", 1) as b:  # auto: libsumo is busy, so TraCI
+            xs_b = run(b)
+            assert b.bridge._ls is not a.bridge._ls
         assert a.step({"ac_0": (0.0, 0.0)})  # the first one is untouched
+    assert xs_a == xs_b

@@ -1,0 +1,41 @@
+"""Shared fixtures for the agents tests: small spaces and fast configs."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from agents.ddpg import DDPGConfig
+from agents.dqn import DQNConfig
+from agents.ppo import PPOConfig
+from agents.td3 import TD3Config
+
+VECTOR_OBS = gym.spaces.Box(-np.inf, np.inf, (4,), np.float32)
+DISCRETE = gym.spaces.Discrete(2)
+PENDULUM_OBS = gym.spaces.Box(-8.0, 8.0, (3,), np.float32)
+BOX = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+
+# Configs that learn within a few hundred steps, so every code path runs in a smoke test.
+FAST = {
+    "ppo": PPOConfig(rollout_steps=64, batch_size=16, epochs=2),
+    "dqn": DQNConfig(learning_starts=32, batch_size=16, train_freq=1, target_update_interval=50,
+                     exploration_steps=100, buffer_size=1000),
+    "ddpg": DDPGConfig(learning_starts=32, batch_size=16, buffer_size=1000),
+    "td3": TD3Config(learning_starts=32, batch_size=16, buffer_size=1000),
+}
+SPACES = {
+    "ppo": (VECTOR_OBS, DISCRETE),
+    "dqn": (VECTOR_OBS, DISCRETE),
+    "ddpg": (PENDULUM_OBS, BOX),
+    "td3": (PENDULUM_OBS, BOX),
+}
+GYM_ENV = {"ppo": "CartPole-v1", "dqn": "CartPole-v1", "ddpg": "Pendulum-v1", "td3": "Pendulum-v1"}
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tests share 2 cores with other work: keep torch single-threaded."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

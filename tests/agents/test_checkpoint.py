@@ -1,0 +1,106 @@
+"""Checkpoints: round-trip gives identical actions; bad files raise CheckpointError."""
+
+import numpy as np
+import pytest
+import torch
+
+import agents
+from agents.checkpoint import FORMAT, space_from_dict, space_to_dict
+from agents.envs import ColourBar, SingleAgentParallel
+from agents.loop import run_loop
+from agents.ppo import PPO
+from agents.registry import get_agent_class
+
+from .conftest import FAST, GYM_ENV, SPACES
+
+ALGOS = ["ppo", "dqn", "ddpg", "td3"]
+
+
+def _trained(algo: str, steps: int = 100):
+    import gymnasium as gym
+
+    cls = get_agent_class(algo)
+    agent = cls.from_spaces(*SPACES[algo], config=FAST[algo], seed=3)
+    run_loop({"agent_0": agent}, SingleAgentParallel(gym.make(GYM_ENV[algo])), steps)
+    return agent
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_round_trip_gives_identical_actions_and_state(algo, tmp_path):
+    agent = _trained(algo)
+    path = tmp_path / f"{algo}.pt"
+    agent.save(path)
+    loaded = agents.load(path)
+    assert type(loaded) is type(agent) and loaded.config == agent.config
+    assert loaded.observation_space == agent.observation_space
+    assert loaded.action_space == agent.action_space
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        obs = rng.normal(size=agent.observation_space.shape).astype(np.float32)
+        np.testing.assert_array_equal(loaded.act(obs, deterministic=True), agent.act(obs, deterministic=True))
+    # Optimizer state and counters come back too (so training can resume).
+    for name, opt in agent.optimizers.items():
+        assert loaded.optimizers[name].state_dict()["state"].keys() == opt.state_dict()["state"].keys()
+    assert loaded.state_dict()["extra"] == agent.state_dict()["extra"]
+
+
+def test_image_round_trip_and_compact_space(tmp_path):
+    env = ColourBar()
+    agent = PPO.from_spaces(env.observation_space, env.action_space, FAST["ppo"])
+    agent.save(tmp_path / "img.pt")
+    payload = torch.load(tmp_path / "img.pt", weights_only=True)
+    assert payload["format"] == FORMAT and payload["observation_space"]["low"] == 0
+    assert set(payload["versions"]) == {"torch", "numpy", "cosim-agents"}
+    obs, _ = env.reset(seed=1)
+    assert agents.load(tmp_path / "img.pt").act(obs, True) == agent.act(obs, True)
+
+
+def test_space_dict_round_trip():
+    box = SPACES["td3"][1]
+    assert space_from_dict(space_to_dict(box)) == box
+    assert space_from_dict(space_to_dict(SPACES["dqn"][1])) == SPACES["dqn"][1]
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(agents.CheckpointError, match="does not exist"):
+        agents.load(tmp_path / "nope.pt")
+
+
+def test_truncated_and_garbage_files(tmp_path):
+    path = tmp_path / "ok.pt"
+    _trained("dqn", steps=10).save(path)
+    data = path.read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(agents.CheckpointError, match="cut.pt.*truncated or corrupt"):
+        agents.load(tmp_path / "cut.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint at all")
+    with pytest.raises(agents.CheckpointError, match="junk.pt"):
+        agents.load(tmp_path / "junk.pt")
+
+
+def test_wrong_format_version_and_algorithm(tmp_path):
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "plain.pt")
+    with pytest.raises(agents.CheckpointError, match="not a cosim agents checkpoint"):
+        agents.load(tmp_path / "plain.pt")
+
+    path = tmp_path / "dqn.pt"
+    _trained("dqn", steps=10).save(path)
+    with pytest.raises(agents.CheckpointError, match="holds a 'dqn' agent, not 'ppo'"):
+        PPO.load(path)
+
+    payload = torch.load(path, weights_only=True)
+    payload["format_version"] = 99
+    torch.save(payload, tmp_path / "future.pt")
+    with pytest.raises(agents.CheckpointError, match="format version 99"):
+        agents.load(tmp_path / "future.pt")
+
+    payload["format_version"], payload["algo"] = 1, "rainbow"
+    torch.save(payload, tmp_path / "unknown.pt")
+    with pytest.raises(agents.CheckpointError, match="unknown algorithm 'rainbow'"):
+        agents.load(tmp_path / "unknown.pt")
+
+    payload["algo"] = "dqn"
+    payload["observation_space"]["shape"] = (7,)
+    torch.save(payload, tmp_path / "mismatch.pt")
+    with pytest.raises(agents.CheckpointError, match="does not match"):
+        agents.load(tmp_path / "mismatch.pt")
