@@ -119,8 +119,8 @@ def save_checkpoint(path, agent) -> None:
         "seed": agent.seed,
         "state": agent.state_dict(),
         "versions": {
-            "torch": torch.__version__,
-            "numpy": np.__version__,
+            "torch": str(torch.__version__),
+            "numpy": str(np.__version__),
             "cosim-agents": _library_version(),
         },
     }

@@ -75,6 +75,10 @@ COLORS = {
 }
 GRASS = (84, 140, 60)  # RGB of the backdrop below the horizon
 SKY_HORIZON, SKY_ZENITH = (205, 225, 245), (110, 160, 225)  # RGB of the sky backdrop
+# Bodies are drawn in creation order and TinyRenderer depth-tests before shading, so
+# occluders go first: pool boxes, objects, raised sidewalks, markings, then the road.
+STATIC_ORDER = ("building", "pole", "guardrail", "sign", "object", "sidewalk", "white", "yellow",
+                "road")
 OBJECT_HEIGHT = {"pole": 5.0, "guardrail": 0.8, "sign": 2.5, "object": 2.0}
 BUILDING_HEIGHTS = (8.0, 11.0, 14.0, 17.0, 20.0)  # picked per building by a hash of its id
 
@@ -84,7 +88,7 @@ Z_ROAD, Z_MARK, Z_SIDEWALK = 0.03, 0.06, 0.15
 MARK_WIDTH = 0.2  # metres; wider than real (0.12-0.15) so a line 10 m ahead still hits a pixel at 84x84
 DASH, GAP = 3.0, 6.0  # metres of a dashed lane line
 ZEBRA = 0.5  # metres of each zebra stripe and of each gap
-MAX_SEGMENT = 25.0  # longest road/marking quad along a lane; see the module docstring
+MAX_SEGMENT = 5.0  # longest road/marking quad along a lane (measured fastest; docs/mirror.md)
 
 CAR_HEIGHT = 1.5
 PEDESTRIAN_SIZE = (0.5, 0.5, 1.75)  # x, y, z metres
@@ -343,8 +347,11 @@ def _opposite(edge: str) -> str | None:
 
 def build_static(roadmap: RoadMap) -> dict[str, _Mesh]:
     """The region's static meshes, one per material (see the module docstring)."""
-    meshes = {name: _Mesh.empty() for name in COLORS}
+    meshes = {name: _Mesh.empty() for name in STATIC_ORDER}
+    junctions = list(roadmap.junctions.values())
     for lane in roadmap.lanes:
+        if lane.is_internal and _covered(lane, junctions):
+            continue  # the junction polygon paints it already; skip the overdraw
         v, t = ribbon(lane.shape, lane.width / 2, -lane.width / 2, Z_ROAD)
         meshes["road"].add(v, t, _up(v))
     for poly in roadmap.junctions.values():
@@ -370,6 +377,33 @@ def build_static(roadmap: RoadMap) -> dict[str, _Mesh]:
         v, t, n = prism(obj.polygon, height)
         meshes[kind].add(v, t, n)
     return meshes
+
+
+def _inside(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Even-odd rule: which of points (k, 2) lie inside a polygon (m, 2)."""
+    x, y = points[:, 0:1], points[:, 1:2]
+    ax, ay = polygon[:, 0], polygon[:, 1]
+    bx, by = np.roll(ax, -1), np.roll(ay, -1)
+    straddle = (ay > y) != (by > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_cross = ax + (y - ay) * (bx - ax) / (by - ay)
+    return np.count_nonzero(straddle & (x < x_cross), axis=1) % 2 == 1
+
+
+def _covered(lane: LaneInfo, polygons: list[np.ndarray]) -> bool:
+    """Whether a lane's surface (80% of its width, the ends left out) lies inside the polygons."""
+    if not polygons:
+        return False
+    length = float(np.linalg.norm(np.diff(lane.shape, axis=0), axis=1).sum())
+    # the lane's ends lie on the junction's border: test its inside only
+    v, _ = ribbon(lane.shape, 0.4 * lane.width, -0.4 * lane.width, 0.0, 0.5, length - 0.5)
+    if len(v) == 0:
+        return True
+    pts = v[:, :2]
+    inside = np.zeros(len(pts), bool)
+    for poly in polygons:
+        inside |= _inside(pts, poly)
+    return bool(inside.all())
 
 
 def _add_markings(meshes: dict[str, _Mesh], lanes: list[LaneInfo]) -> None:
@@ -476,12 +510,12 @@ class Mirror:
         self._client = cid
         try:
             self.renderer = self._select_renderer(renderer)
-            self._static_triangles = self._build_static()
             size = (self.vehicle.length / 2, self.vehicle.width / 2, CAR_HEIGHT / 2)
             self._ac_pool = self._build_pool(MAX_ACS, size, COLORS["ac"])
             self._car_pool = self._build_pool(max_cars, size, COLORS["car"])
             ped = tuple(v / 2 for v in PEDESTRIAN_SIZE)
             self._ped_pool = self._build_pool(max_pedestrians, ped, COLORS["pedestrian"])
+            self._static_triangles = self._build_static()
         except BaseException:
             self.close()
             raise

@@ -1,0 +1,270 @@
+"""cosim_v0: the multi-agent urban driving environment (PettingZoo ParallelEnv).
+
+Agents
+    ``ac_0`` .. ``ac_{N-1}``: learning cars (ACs), N = 1..6 (``num_agents``), fixed
+    at construction. A finished agent leaves ``agents`` and never comes back in
+    the episode; the episode ends when every agent is done.
+Observation (per agent)
+    ``Box(0, 255, (S, S, 3), uint8)``: RGB image of a forward camera at the car's
+    windshield, ~90 degree field of view, S = ``image_size`` (default 84),
+    rendered by the PyBullet mirror of the SUMO world.
+Action (per agent, mixed in one env)
+    ``Discrete(9)``: the paper's (throttle/brake, steer) table (SPEC §2), or
+    ``Box(-1, 1, (2,), float32)``: (throttle(+)/brake(-), steer). No reverse.
+Reward (per agent, per step; weights from the scenario YAML)
+    collision (-50 per step in collision with a car, object or pedestrian)
+    + efficiency (10 * (metres gained towards the goal + speed / speed limit))
+    + lane (-0.5 per step off the road or outside its lanes) + step (-1).
+    Each weighted term is in ``infos[agent]["reward_terms"]``.
+Termination
+    collision (``terminate_on_collision``; on for training, off for testing),
+    goal reached, leaving the region; truncation at ``horizon`` steps.
+Infos
+    every event (collision_vehicle / _pedestrian / _object, off_road, wrong_lane,
+    goal_reached, out_of_region), distance_to_goal, progress, speed, x, y,
+    heading, reward_terms.
+Arguments
+    scenario (name like ``env_3`` or a YAML path), num_agents, action_types
+    ("discrete", "continuous", or one per agent), seed, image_size, background,
+    pedestrians, terminate_on_collision, horizon, renderer ("tiny", "egl",
+    "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci").
+Version history
+    v0: first release.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from cosim.dynamics import action_to_control
+from cosim.errors import ActionError, EnvStateError, ScenarioError
+from cosim.scenario import Scenario, load_scenario
+from cosim.world import World
+
+log = logging.getLogger(__name__)
+
+ACTION_TYPES = ("discrete", "continuous")
+
+
+class CosimParallelEnv(ParallelEnv):
+    """See the module docstring (the spec card)."""
+
+    metadata = {"name": "cosim_v0", "render_modes": ["rgb_array"], "render_fps": 10,
+                "is_parallelizable": True}
+
+    def __init__(
+        self,
+        scenario: str | Scenario = "env_3",
+        num_agents: int | None = None,
+        action_types: str | Sequence[str] | Mapping[str, str] = "discrete",
+        seed: int | None = None,
+        image_size: int = 84,
+        background: bool = True,
+        pedestrians: bool = True,
+        terminate_on_collision: bool | None = None,
+        horizon: int | None = None,
+        renderer: str = "tiny",
+        render_mode: str | None = None,
+        backend: str = "auto",
+    ):
+        sc = load_scenario(scenario) if not isinstance(scenario, Scenario) else scenario
+        if terminate_on_collision is not None:
+            sc = sc.with_overrides(
+                termination=dataclasses.replace(sc.termination, on_collision=terminate_on_collision)
+            )
+        if horizon is not None:
+            sc = sc.with_overrides(horizon=int(horizon))
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if not 8 <= int(image_size) <= 512:
+            raise ValueError(f"image_size must be 8..512 pixels, got {image_size}")
+        self.scenario = sc
+        self.render_mode = render_mode
+        self.image_size = int(image_size)
+        self._renderer = renderer
+        self._background = background
+        self._pedestrians = pedestrians
+        self._world = World(sc, num_agents, background=background, pedestrians=pedestrians,
+                            backend=backend)
+        self.possible_agents = list(self._world.ac_ids)
+        self.agents: list[str] = []
+        self.action_types = _resolve_action_types(action_types, self.possible_agents)
+        self._obs_space = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
+        self._action_spaces = {
+            a: spaces.Discrete(9) if t == "discrete" else spaces.Box(-1.0, 1.0, (2,), np.float32)
+            for a, t in self.action_types.items()
+        }
+        self._rng = np.random.default_rng(seed)
+        self._mirror = None
+        self._closed = False
+        self._needs_reset = True
+        self.timings = {"sumo_world": 0.0, "mirror_sync": 0.0, "render": 0.0, "steps": 0}
+
+    # -- spaces (the same object every call, as PettingZoo requires) ----------
+    def observation_space(self, agent: str) -> spaces.Box:
+        self._check_agent(agent)
+        return self._obs_space
+
+    def action_space(self, agent: str) -> spaces.Space:
+        self._check_agent(agent)
+        return self._action_spaces[agent]
+
+    # -- lifecycle -----------------------------------------------------------
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if self._closed:
+            raise EnvStateError("the environment is closed; create a new one")
+        options = dict(options or {})
+        for key in ("background", "pedestrians"):
+            if key in options:
+                setattr(self._world.bridge, key, bool(options.pop(key)) and (
+                    self.scenario.background.enabled if key == "background" else self.scenario.pedestrians
+                ))
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+            for i, a in enumerate(self.possible_agents):
+                self._action_spaces[a].seed(int(seed) + i)
+        sumo_seed = int(seed) if seed is not None else int(self._rng.integers(0, 2**31 - 1))
+        results = self._world.reset(seed=sumo_seed)
+        if self._mirror is None:
+            self._mirror = self._make_mirror()
+        self.agents = list(self._world.active)
+        self._needs_reset = False
+        obs = self._observe(self.agents)
+        infos = {a: results[a].info() for a in self.agents}
+        return obs, infos
+
+    def step(self, actions: Mapping[str, object]):
+        if self._closed:
+            raise EnvStateError("the environment is closed; create a new one")
+        if self._needs_reset:
+            raise EnvStateError("step() called before reset(); call env.reset(seed=...) first")
+        if not self.agents:
+            raise EnvStateError("every agent is done; call env.reset() to start a new episode")
+        controls = self._controls(actions)
+        t0 = time.perf_counter()
+        results = self._world.step(controls)
+        t1 = time.perf_counter()
+        stepped = list(results)
+        obs = self._observe(stepped)
+        self.agents = list(self._world.active)
+        rewards = {a: r.reward for a, r in results.items()}
+        terminations = {a: r.terminated for a, r in results.items()}
+        truncations = {a: r.truncated for a, r in results.items()}
+        infos = {a: r.info() for a, r in results.items()}
+        self.timings["sumo_world"] += t1 - t0
+        self.timings["steps"] += 1
+        return obs, rewards, terminations, truncations, infos
+
+    def render(self):
+        """An RGB overview of the region (top-down), for ``render_mode="rgb_array"``."""
+        if self.render_mode is None:
+            log.warning("render() called with render_mode=None; pass render_mode='rgb_array'")
+            return None
+        if self._mirror is None:
+            raise EnvStateError("render() called before reset()")
+        return self._mirror.overview()
+
+    def close(self) -> None:
+        """Close SUMO and PyBullet. Safe to call twice."""
+        self._world.close()
+        if self._mirror is not None:
+            self._mirror.close()
+            self._mirror = None
+        self._closed = True
+        self.agents = []
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: modules may already be gone
+            pass
+
+    @property
+    def world(self) -> World:
+        """The SUMO-side world (snapshot, routes, poses): for controllers and evaluation."""
+        return self._world
+
+    @property
+    def mirror(self):
+        return self._mirror
+
+    # -- internals -----------------------------------------------------------
+    def _make_mirror(self):
+        from cosim.mirror import Mirror
+
+        return Mirror(self._world.roadmap, image_size=self.image_size, renderer=self._renderer)
+
+    def _observe(self, agents: list[str]) -> dict[str, np.ndarray]:
+        if not agents:
+            return {}
+        t0 = time.perf_counter()
+        self._mirror.sync(self._world.snapshot)
+        t1 = time.perf_counter()
+        poses = [self._world.ac_state(a)[:3] for a in agents]
+        images = self._mirror.cameras(poses)
+        self.timings["mirror_sync"] += t1 - t0
+        self.timings["render"] += time.perf_counter() - t1
+        return {a: images[i] for i, a in enumerate(agents)}
+
+    def _controls(self, actions: Mapping[str, object]) -> dict[str, tuple[float, float]]:
+        if not isinstance(actions, Mapping):
+            raise ActionError(
+                f"actions must be a dict {{agent: action}} for agents {self.agents}, "
+                f"got {type(actions).__name__}"
+            )
+        unknown = [a for a in actions if a not in self.agents]
+        if unknown:
+            done = [a for a in unknown if a in self.possible_agents]
+            why = f"{done} already finished this episode" if done else "unknown agent id(s)"
+            raise ActionError(
+                f"actions for {unknown}: {why}; the active agents are {self.agents}"
+            )
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise ActionError(f"no action for active agent(s) {missing}; give one for each of {self.agents}")
+        controls = {}
+        for a in self.agents:
+            try:
+                controls[a] = action_to_control(
+                    actions[a], self.action_types[a] == "discrete", a
+                )
+            except ActionError as exc:
+                raise ActionError(f"{exc} (expected space: {self._action_spaces[a]})") from None
+        return controls
+
+    def _check_agent(self, agent: str) -> None:
+        if agent not in self._action_spaces:
+            raise KeyError(f"unknown agent {agent!r}; the agents are {self.possible_agents}")
+
+
+def _resolve_action_types(action_types, agents: list[str]) -> dict[str, str]:
+    if isinstance(action_types, str):
+        types = dict.fromkeys(agents, action_types)
+    elif isinstance(action_types, Mapping):
+        missing = [a for a in agents if a not in action_types]
+        if missing:
+            raise ScenarioError(f"action_types has no entry for {missing}")
+        types = {a: action_types[a] for a in agents}
+    else:
+        action_types = list(action_types)
+        if len(action_types) != len(agents):
+            raise ScenarioError(
+                f"action_types lists {len(action_types)} types for {len(agents)} agents"
+            )
+        types = dict(zip(agents, action_types, strict=True))
+    bad = {a: t for a, t in types.items() if t not in ACTION_TYPES}
+    if bad:
+        raise ScenarioError(f"unknown action type(s) {bad}; valid: {list(ACTION_TYPES)}")
+    return types
+
+
+def parallel_env(scenario: str | Scenario = "env_3", **kwargs) -> CosimParallelEnv:
+    """The multi-agent environment (PettingZoo ParallelEnv); see :mod:`cosim.env`."""
+    return CosimParallelEnv(scenario, **kwargs)

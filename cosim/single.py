@@ -1,0 +1,69 @@
+"""Single-agent Gymnasium view of the driving environment: one AC, same semantics.
+
+``background=False, pedestrians=False`` gives the empty world of the paper's
+single-agent test scenario (SPEC §6, Scenario 2).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+from cosim.env import CosimParallelEnv
+from cosim.scenario import Scenario
+
+GYM_IDS = {
+    "cosim/Straight-v0": "env_1",
+    "cosim/ThreeWay-v0": "env_2",
+    "cosim/FourWay-v0": "env_3",
+    "cosim/Roundabout-v0": "env_4",
+    "cosim/Merge-v0": "env_5",
+}
+
+
+class SingleAgentEnv(gym.Env):
+    """One learning car (``ac_0``) of a :class:`~cosim.env.CosimParallelEnv`."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, scenario: str | Scenario = "env_1", action_type: str = "discrete",
+                 render_mode: str | None = None, **kwargs):
+        self._env = CosimParallelEnv(
+            scenario, num_agents=1, action_types=action_type, render_mode=render_mode, **kwargs
+        )
+        self.agent = self._env.possible_agents[0]
+        self.observation_space = self._env.observation_space(self.agent)
+        self.action_space = self._env.action_space(self.agent)
+        self.render_mode = render_mode
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs, infos = self._env.reset(seed=seed, options=options)
+        return obs[self.agent], infos[self.agent]
+
+    def step(self, action):
+        obs, rew, term, trunc, info = self._env.step({self.agent: action})
+        a = self.agent
+        return obs[a], rew[a], term[a], trunc[a], info[a]
+
+    def render(self):
+        return self._env.render()
+
+    def close(self) -> None:
+        self._env.close()
+
+    @property
+    def parallel(self) -> CosimParallelEnv:
+        return self._env
+
+
+def single_env(scenario: str | Scenario = "env_1", **kwargs) -> SingleAgentEnv:
+    """One AC in a driving environment, as a Gymnasium Env."""
+    return SingleAgentEnv(scenario, **kwargs)
+
+
+def register_envs() -> None:
+    """Register the five environments with Gymnasium (``gym.make("cosim/FourWay-v0")``)."""
+    for env_id, name in GYM_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(env_id, entry_point="cosim.single:SingleAgentEnv",
+                         kwargs={"scenario": name})
