@@ -1,0 +1,247 @@
+"""The `cosim` command line: the only place that wires environments, agents and evaluation.
+
+    cosim scenarios                         list the driving environments
+    cosim drive env_3 --agents 6            run the scripted drivers, print events (no cameras)
+    cosim view env_3 --out view/            camera mosaic PNG + GIFs of what the ACs see
+    cosim nets build | check                rebuild / check the SUMO networks
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections import Counter
+from pathlib import Path
+
+EVENT_KEYS = (
+    "collision_vehicle", "collision_pedestrian", "collision_object",
+    "off_road", "wrong_lane", "goal_reached",
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if not args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not hasattr(args, "func"):
+        parser.print_help()
+        return 2
+    from cosim.errors import CosimError
+
+    try:
+        return int(args.func(args) or 0)
+    except CosimError as exc:
+        print(f"cosim: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("cosim: interrupted", file=sys.stderr)
+        return 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cosim", description=__doc__.split("\n\n")[0])
+    p.add_argument("-v", "--verbose", action="store_true", help="log library messages")
+    sub = p.add_subparsers(metavar="COMMAND")
+
+    s = sub.add_parser("scenarios", help="list the driving environments")
+    s.set_defaults(func=cmd_scenarios)
+
+    d = sub.add_parser("drive", help="drive ACs with the scripted controller and print events")
+    _scenario_args(d, steps=300)
+    d.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=cmd_drive)
+
+    v = sub.add_parser("view", help="write camera mosaics and GIFs of what the ACs see")
+    _scenario_args(v, steps=200)
+    v.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    v.add_argument("--out", type=Path, default=Path("view"), help="output folder")
+    v.add_argument("--image-size", type=int, default=84)
+    v.add_argument("--moments", type=int, default=3, help="mosaics taken along the run")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
+    v.set_defaults(func=cmd_view)
+
+    n = sub.add_parser("nets", help="build or check the SUMO networks")
+    n.add_argument("action", choices=["build", "check"])
+    n.add_argument("--config", type=Path, action="append",
+                   help="a netconvert .netccfg (default: every bundled network)")
+    n.set_defaults(func=cmd_nets)
+
+    for register in _extra_commands():
+        register(sub)
+    return p
+
+
+def _extra_commands():
+    """Commands that live with the packages they drive (training, evaluation)."""
+    out = []
+    try:
+        from cosim import cli_train
+
+        out.append(cli_train.register)
+    except ImportError:  # agents not installed: driving commands still work
+        pass
+    return out
+
+
+def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
+    p.add_argument("scenario", nargs="?", default="env_3", help="env_1..env_5 or a scenario .yaml")
+    p.add_argument("--agents", type=int, default=6, help="learning cars (1-6)")
+    p.add_argument("--steps", type=int, default=steps)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-background", action="store_true", help="no background cars")
+    p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
+
+
+# -- commands -----------------------------------------------------------------
+def cmd_scenarios(args) -> int:
+    from cosim.scenario import available_scenarios, load_scenario
+
+    for name in available_scenarios():
+        sc = load_scenario(name)
+        peds = "pedestrians" if sc.pedestrians else "no pedestrians"
+        print(f"{name:7s} {sc.title:11s} {sc.max_agents} ACs, {peds:14s} {sc.description}")
+    return 0
+
+
+def cmd_drive(args) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from cosim.controller import Autopilot
+    from cosim.world import World
+
+    rng = np.random.default_rng(args.seed)
+    counts: Counter = Counter()
+    with World(args.scenario, args.agents, background=not args.no_background,
+               pedestrians=not args.no_pedestrians) as world:
+        world.reset(seed=args.seed)
+        sc = world.scenario
+        print(f"{sc.name} ({sc.title}): {world.num_acs} ACs, {args.steps} steps of {sc.dt} s, "
+              f"seed {args.seed}, policy {args.policy}")
+        pilots = {a: Autopilot(world, a) for a in world.ac_ids}
+        final = {}
+        bar = tqdm(range(args.steps), disable=args.quiet, unit="step", desc=sc.name)
+        for step in bar:
+            if not world.active:
+                break
+            if args.policy == "autopilot":
+                controls = {a: tuple(pilots[a].act()) for a in world.active}
+            else:
+                controls = {a: tuple(rng.uniform(-1, 1, 2)) for a in world.active}
+            for ac, res in world.step(controls).items():
+                final[ac] = (res, step + 1)
+                for key in EVENT_KEYS:
+                    if getattr(res.events, key):
+                        counts[(ac, key)] += 1
+                        if key != "goal_reached" and counts[(ac, key)] == 1:
+                            bar.write(f"  t={world.bridge.time:6.1f}s {ac}: {key}"
+                                      + (f" ({res.events.hit})" if res.events.hit else ""))
+        bar.close()
+    _print_summary(world.ac_ids, final, counts)
+    return 0
+
+
+def _print_summary(ac_ids, final, counts) -> None:
+    cols = ["vehicle", "pedestrian", "object", "off-road", "wrong lane"]
+    print(f"\n{'AC':6s} {'steps':>5s} " + " ".join(f"{c:>10s}" for c in cols)
+          + f" {'to goal m':>9s}  outcome")
+    for ac in ac_ids:
+        if ac not in final:
+            continue
+        res, steps = final[ac]
+        row = [counts[(ac, k)] for k in EVENT_KEYS[:5]]
+        outcome = ("goal" if res.events.goal_reached else
+                   "ended" if res.terminated else "truncated" if res.truncated else "running")
+        print(f"{ac:6s} {steps:5d} " + " ".join(f"{v:10d}" for v in row)
+              + f" {res.events.distance_to_goal:9.1f}  {outcome}")
+    print("(event columns count the steps with that event)")
+
+
+def cmd_view(args) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from cosim.controller import Autopilot
+    from cosim.env import CosimParallelEnv
+    from cosim.viz import mosaic, save_gif, save_png, side_by_side
+
+    env = CosimParallelEnv(
+        args.scenario, num_agents=args.agents, action_types="continuous", seed=args.seed,
+        image_size=args.image_size, background=not args.no_background,
+        pedestrians=not args.no_pedestrians, terminate_on_collision=False,
+        render_mode="rgb_array",
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    counts: Counter = Counter()
+    final = {}
+    rng = np.random.default_rng(args.seed)
+    try:
+        obs, _ = env.reset(seed=args.seed)
+        world = env.world
+        pilots = {a: Autopilot(world, a) for a in world.ac_ids}
+        moments = set(np.linspace(0, args.steps - 1, args.moments).astype(int).tolist())
+        first = env.possible_agents[0]
+        cam_frames, overview_frames, written = [], [], []
+        last = dict(obs)
+        for step in tqdm(range(args.steps), disable=args.quiet, unit="step", desc="view"):
+            if not env.agents:
+                break
+            if args.policy == "autopilot":
+                actions = {a: pilots[a].act() for a in env.agents}
+            else:
+                actions = {a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents}
+            obs, _, _, _, infos = env.step(actions)
+            last.update(obs)
+            for ac, info in infos.items():
+                final[ac] = (_InfoResult(info), step + 1)
+                for key in EVENT_KEYS:
+                    if info[key]:
+                        counts[(ac, key)] += 1
+            if first in obs:
+                cam_frames.append(obs[first])
+            if step % 2 == 0:
+                overview_frames.append(env.render())
+            if step in moments:
+                cams = mosaic([last[a] for a in env.possible_agents], cols=3, scale=2)
+                written.append(save_png(args.out / f"mosaic_{step:04d}.png",
+                                        side_by_side(cams, env.render())))
+        written.append(save_gif(args.out / f"camera_{first}.gif",
+                                [np.kron(f, np.ones((3, 3, 1), np.uint8)) for f in cam_frames]))
+        written.append(save_gif(args.out / "overview.gif", overview_frames, fps=5))
+    finally:
+        env.close()
+    _print_summary(env.possible_agents, final, counts)
+    print("\nwrote:\n" + "\n".join(f"  {p}" for p in written))
+    return 0
+
+
+class _InfoResult:
+    """Adapts an info dict to what _print_summary reads."""
+
+    def __init__(self, info: dict):
+        from types import SimpleNamespace
+
+        self.events = SimpleNamespace(**{k: info[k] for k in ("goal_reached", "distance_to_goal")})
+        self.terminated = info["goal_reached"] or info["out_of_region"]
+        self.truncated = False
+
+
+def cmd_nets(args) -> int:
+    from cosim import nets
+
+    configs = args.config or nets.default_configs()
+    if args.action == "build":
+        for cfg in configs:
+            out = nets.build(cfg)
+            print(f"built {out}")
+        return 0
+    nets.check(configs)
+    print(f"up to date: {', '.join(str(c) for c in configs)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
