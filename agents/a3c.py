@@ -360,7 +360,9 @@ def train_a3c(
     shared_models = {aid: agent.model.share_memory() for aid, agent in agents.items()}
     optimizers = {aid: agent.optimizer.share_memory() for aid, agent in agents.items()}
 
-    context = get_context(start_method, preload=[__name__])
+    # torch.optim imports torch._dynamo on first use (~2 s); with a fork server
+    # it is imported once there instead of once per worker.
+    context = get_context(start_method, preload=[__name__, "torch._dynamo"])
     global_steps = context.Value("q", 0)
     worker_args = [
         (env_fn, agent_ids, config, shared_models, optimizers, global_steps, total_steps, worker_seed(seed, i))
