@@ -117,7 +117,8 @@ class ReplayBuffer:
 
     Transitions must be added in the order they happened (what one agent in
     ``run_loop`` does): while an episode continues, ``obs`` of a transition is
-    the ``next_obs`` of the one before it.
+    the ``next_obs`` of the one before it. Once full, ``capacity - 1`` transitions
+    are sampled: the oldest slot already holds the newest ``next_obs``.
 
     Args:
         capacity: Maximum number of transitions kept.

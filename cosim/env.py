@@ -22,7 +22,8 @@ Termination
 Infos
     every event (collision_vehicle / _pedestrian / _object, off_road, wrong_lane,
     goal_reached, out_of_region), distance_to_goal, progress, speed, x, y,
-    heading, reward_terms.
+    heading, reward_terms, n_vehicles and n_pedestrians (others in the region),
+    spawn_x/y, goal_x/y, time (simulated seconds).
 Arguments
     scenario (name like ``env_3`` or a YAML path), num_agents, action_types
     ("discrete", "continuous", or one per agent), seed, image_size, background,
@@ -137,7 +138,7 @@ class CosimParallelEnv(ParallelEnv):
         self.agents = list(self._world.active)
         self._needs_reset = False
         obs = self._observe(self.agents)
-        infos = {a: results[a].info() for a in self.agents}
+        infos = {a: self._info(a, results[a]) for a in self.agents}
         return obs, infos
 
     def step(self, actions: Mapping[str, object]):
@@ -157,7 +158,7 @@ class CosimParallelEnv(ParallelEnv):
         rewards = {a: r.reward for a, r in results.items()}
         terminations = {a: r.terminated for a, r in results.items()}
         truncations = {a: r.truncated for a, r in results.items()}
-        infos = {a: r.info() for a, r in results.items()}
+        infos = {a: self._info(a, r) for a, r in results.items()}
         self.timings["sumo_world"] += t1 - t0
         self.timings["steps"] += 1
         return obs, rewards, terminations, truncations, infos
@@ -238,6 +239,18 @@ class CosimParallelEnv(ParallelEnv):
             except ActionError as exc:
                 raise ActionError(f"{exc} (expected space: {self._action_spaces[a]})") from None
         return controls
+
+    def _info(self, agent: str, result) -> dict:
+        """The world's per-AC info plus what metrics need: who else is around, spawn, goal."""
+        info = result.info()
+        snap = self._world.snapshot
+        route = self._world.route(agent)
+        info["n_vehicles"] = len(snap.vehicle_ids) - 1  # every other car, ACs included
+        info["n_pedestrians"] = len(snap.person_ids)
+        info["spawn_x"], info["spawn_y"] = (float(v) for v in route.spawn_xy)
+        info["goal_x"], info["goal_y"] = route.goal_point
+        info["time"] = float(snap.time)
+        return info
 
     def _check_agent(self, agent: str) -> None:
         if agent not in self._action_spaces:

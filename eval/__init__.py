@@ -1,1 +1,1 @@
-"""eval package."""
+"""Evaluation: test protocol, per-step records, metrics, tables, plots."""

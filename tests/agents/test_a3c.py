@@ -40,16 +40,6 @@ class _Explodes(gymnasium.Wrapper):
         return super().step(action)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    # Workers run one thread each; a multi-threaded parent on a small machine
-    # oversubscribes the cores (10x slower here on 2 cores).
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def _weights(agent) -> torch.Tensor:
     return torch.cat([p.detach().flatten().clone() for p in agent.model.parameters()])
 

@@ -236,8 +236,8 @@ spaces = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spa
 @pytest.mark.parametrize(
     "module, train, start_method, signum",
     [
-        ("a3c", "train_a3c", "spawn", signal.SIGINT),  # Ctrl-C
-        ("impala", "train_impala", "forkserver", signal.SIGTERM),  # kill <pid>, a scheduler's stop
+        ("a3c", "train_a3c", "forkserver", signal.SIGINT),  # Ctrl-C
+        ("impala", "train_impala", "spawn", signal.SIGTERM),  # kill <pid>, a scheduler's stop
     ],
 )
 def test_signal_to_the_training_process_leaves_no_worker(tmp_path, module, train, start_method, signum):

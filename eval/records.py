@@ -1,0 +1,55 @@
+"""Per-step records: one row per AC per step, the raw material of every metric.
+
+Columns: episode, seed, step, time, agent, algorithm, x, y, heading, speed (m/s),
+distance_to_goal, progress, every event flag, every weighted reward term
+(``r_<term>``), reward, n_vehicles, n_pedestrians, spawn/goal coordinates,
+terminated, truncated. Stored as Parquet so any other metric can be computed later.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+EVENT_COLUMNS = (
+    "collision_vehicle", "collision_pedestrian", "collision_object", "collision",
+    "off_road", "wrong_lane", "lane_violation", "goal_reached", "out_of_region",
+)
+INFO_COLUMNS = (
+    "x", "y", "heading", "speed", "distance_to_goal", "progress", "n_vehicles",
+    "n_pedestrians", "spawn_x", "spawn_y", "goal_x", "goal_y", "time",
+)
+
+
+def record_row(*, episode: int, seed: int, step: int, agent: str, algorithm: str,
+               info: dict, reward: float, terminated: bool, truncated: bool, **extra) -> dict:
+    """One record from an env info dict (see :mod:`cosim.env`)."""
+    row = {"episode": episode, "seed": seed, "step": step, "agent": agent, "algorithm": algorithm}
+    for key in INFO_COLUMNS:
+        row[key] = float(info[key])
+    for key in EVENT_COLUMNS:
+        row[key] = bool(info[key])
+    for term, value in info["reward_terms"].items():
+        row[f"r_{term}"] = float(value)
+    row.update(reward=float(reward), terminated=bool(terminated), truncated=bool(truncated))
+    row.update(extra)
+    return row
+
+
+def to_frame(rows: list[dict]) -> pd.DataFrame:
+    df = pd.DataFrame(rows)
+    if not df.empty:
+        df = df.sort_values(["episode", "agent", "step"], kind="stable").reset_index(drop=True)
+    return df
+
+
+def save(df: pd.DataFrame, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    df.to_parquet(path, index=False)
+    return path
+
+
+def load(path: Path) -> pd.DataFrame:
+    return pd.read_parquet(path)
