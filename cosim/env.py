@@ -23,7 +23,9 @@ Infos
     every event (collision_vehicle / _pedestrian / _object, off_road, wrong_lane,
     goal_reached, out_of_region), distance_to_goal, progress, speed, x, y,
     heading, reward_terms, n_vehicles and n_pedestrians (others in the region),
-    spawn_x/y, goal_x/y, time (simulated seconds).
+    spawn_x/y, goal_x/y, time (simulated seconds); on an agent's last step also
+    ``episode``: its return, length, sum of each reward term (r_*), count of steps
+    with each event (n_*), mean speed, DISTANCE and whether it reached the goal.
 Arguments
     scenario (name like ``env_3`` or a YAML path), num_agents, action_types
     ("discrete", "continuous", or one per agent), seed, image_size, background,
@@ -52,6 +54,10 @@ from cosim.world import World
 log = logging.getLogger(__name__)
 
 ACTION_TYPES = ("discrete", "continuous")
+EPISODE_EVENTS = (
+    "collision_vehicle", "collision_pedestrian", "collision_object", "off_road", "wrong_lane",
+    "lane_violation",
+)
 
 
 class CosimParallelEnv(ParallelEnv):
@@ -106,6 +112,7 @@ class CosimParallelEnv(ParallelEnv):
         self._mirror = None
         self._closed = False
         self._needs_reset = True
+        self._episode: dict[str, dict] = {}
         self.timings = {"sumo_world": 0.0, "mirror_sync": 0.0, "render": 0.0, "steps": 0}
 
     # -- spaces (the same object every call, as PettingZoo requires) ----------
@@ -136,6 +143,7 @@ class CosimParallelEnv(ParallelEnv):
         if self._mirror is None:
             self._mirror = self._make_mirror()
         self.agents = list(self._world.active)
+        self._episode: dict[str, dict] = {}
         self._needs_reset = False
         obs = self._observe(self.agents)
         infos = {a: self._info(a, results[a]) for a in self.agents}
@@ -159,6 +167,8 @@ class CosimParallelEnv(ParallelEnv):
         terminations = {a: r.terminated for a, r in results.items()}
         truncations = {a: r.truncated for a, r in results.items()}
         infos = {a: self._info(a, r) for a, r in results.items()}
+        for a, r in results.items():
+            self._accumulate(a, r, infos[a])
         self.timings["sumo_world"] += t1 - t0
         self.timings["steps"] += 1
         return obs, rewards, terminations, truncations, infos
@@ -251,6 +261,25 @@ class CosimParallelEnv(ParallelEnv):
         info["goal_x"], info["goal_y"] = route.goal_point
         info["time"] = float(snap.time)
         return info
+
+    def _accumulate(self, agent: str, result, info: dict) -> None:
+        """Per-episode sums; the agent's last info gets them as ``info["episode"]``."""
+        ep = self._episode.setdefault(agent, {"return": 0.0, "length": 0, "speed_sum": 0.0})
+        ep["return"] += result.reward
+        ep["length"] += 1
+        ep["speed_sum"] += info["speed"]
+        for term, value in result.reward_terms.items():
+            ep[f"r_{term}"] = ep.get(f"r_{term}", 0.0) + value
+        for key in EPISODE_EVENTS:
+            ep[f"n_{key}"] = ep.get(f"n_{key}", 0) + int(bool(info[key]))
+        if result.terminated or result.truncated:
+            ep = self._episode.pop(agent)
+            ep["mean_speed_kmh"] = 3.6 * ep.pop("speed_sum") / ep["length"]
+            ep["goal_reached"] = bool(info["goal_reached"])
+            ep["distance_to_goal"] = info["distance_to_goal"]
+            gx, gy, sx, sy = info["goal_x"], info["goal_y"], info["spawn_x"], info["spawn_y"]
+            ep["DISTANCE"] = float(np.hypot(gx - sx, gy - sy) - np.hypot(gx - info["x"], gy - info["y"]))
+            info["episode"] = ep
 
     def _check_agent(self, agent: str) -> None:
         if agent not in self._action_spaces:
