@@ -291,9 +291,9 @@ def _a3c_worker(
             rollouts, episodes, env_steps = runner.collect(policies, config.n_steps)  # 2. act
             with global_steps.get_lock():
                 global_steps.value += env_steps
-            metrics: dict[str, float] = {}
+            metrics: dict[str, dict[str, float]] = {}
             for aid, rollout in rollouts.items():  # 3. local gradients -> shared step
-                metrics = compute_gradients(local_models[aid], rollout, config)
+                metrics[aid] = compute_gradients(local_models[aid], rollout, config)
                 for local_p, shared_p in zip(
                     local_models[aid].parameters(), shared_models[aid].parameters(), strict=True
                 ):
@@ -372,12 +372,17 @@ def train_a3c(
     recent_returns: deque[float] = deque(maxlen=100)
     with WorkerPool(_a3c_worker, worker_args, context=context) as pool:
         logger.info("A3C: %d workers (pids %s), %d steps", num_workers, pool.pids, total_steps)
-        # Workers stop themselves once the shared step counter reaches total_steps.
-        while not pool.all_exited():
+        # Workers stop themselves once the shared step counter reaches total_steps;
+        # reports still in the queue after they exit are read before leaving.
+        while True:
             report = pool.get(timeout=0.5)
             if report is None:
+                if pool.all_exited():
+                    break
                 continue
             _, episodes, metrics = report
+            for aid in metrics:  # the parent's agents count the shared updates
+                agents[aid].num_updates += 1
             for episode in episodes:
                 recent_returns.extend(episode.returns.values())
             if episodes:

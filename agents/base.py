@@ -195,8 +195,8 @@ class Agent(abc.ABC):
         """Plain values (ints, floats, tensors) besides weights needed to resume."""
         return {}
 
-    def _load_extra_state(self, state: Mapping[str, Any]) -> None:
-        """Restore what ``_extra_state`` returned."""
+    def _load_extra_state(self, state: Mapping[str, Any]) -> None:  # noqa: B027 - optional hook
+        """Restore what ``_extra_state`` returned (nothing by default)."""
 
     # ---- shared plumbing ------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -372,7 +372,6 @@ def train_impala(
     start = time.monotonic()
     env_steps, lags = 0, deque(maxlen=100)
     pending: dict[str, list[Rollout]] = {aid: [] for aid in agent_ids}
-    metrics: dict[str, float] = {}
     with WorkerPool(_impala_actor, actor_args, context=context, queue_size=config.queue_size) as pool:
         logger.info("IMPALA: %d actors (pids %s), %d steps", num_actors, pool.pids, total_steps)
         while env_steps < total_steps:
@@ -382,13 +381,15 @@ def train_impala(
             rollouts, episodes, steps, actor_version = message
             env_steps += steps
             lags.append(policy_version.value - actor_version)
+            metrics: dict[str, dict[str, float]] = {}
             for aid, rollout in rollouts.items():
                 pending[aid].append(rollout)
                 if len(pending[aid]) >= config.batch_size:
-                    metrics = agents[aid].learn(pending[aid])
+                    metrics[aid] = agents[aid].learn(pending[aid])
+                    # Weight publications the actors were behind, averaged over recent unrolls.
+                    metrics[aid]["charts/policy_lag"] = float(np.mean(lags))
                     pending[aid] = []
                     _publish({aid: agents[aid]}, {aid: published[aid]}, policy_version)
-            metrics["charts/policy_lag"] = float(np.mean(lags))
             progress = TrainProgress(env_steps, episodes, agents, pool.pids, time.monotonic() - start, metrics)
             if callback is not None and callback(progress):
                 logger.info("IMPALA: callback stopped training at %d steps", env_steps)

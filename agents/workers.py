@@ -626,7 +626,9 @@ class TrainProgress:
         agents: The agents being trained (their weights are live).
         worker_pids: Pids of the worker processes.
         elapsed: Seconds since training started.
-        metrics: Latest namespaced learning metrics.
+        metrics: Agent id -> namespaced learning metrics of the updates this
+            report covers (empty for agents that did not learn), as in
+            :func:`agents.loop.run_loop`'s callback.
     """
 
     env_steps: int
@@ -634,4 +636,4 @@ class TrainProgress:
     agents: dict[str, Any]
     worker_pids: list[int]
     elapsed: float
-    metrics: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, dict[str, float]] = field(default_factory=dict)

@@ -54,7 +54,9 @@ def main() -> None:
         world.step({a: tuple(pilots[a].act()) for a in world.active})
     snapshot = world.snapshot
     poses = [world.ac_state(a)[:3] for a in world.ac_ids]
+    t0 = time.perf_counter()
     mirror = Mirror(world.roadmap, image_size=args.size)
+    build_s = time.perf_counter() - t0
     try:
         mirror.sync(snapshot)
         sync_wall, sync_cpu = timed(lambda: mirror.sync(snapshot), args.calls, args.repeats)
@@ -69,6 +71,10 @@ def main() -> None:
             "scenario": args.scenario, "image_size": args.size,
             "triangles_total": mirror.triangle_count,
             "triangles_static": mirror._static_triangles,
+            # road, sidewalk and marking meshes are hidden from TinyRenderer (GroundRaster)
+            "triangles_static_tiny": mirror._static_triangles - mirror._ground_triangles,
+            "ground_raster_mb": mirror._ground.nbytes / 1e6 if mirror._ground else 0.0,
+            "build_s": build_s,
             "cars_in_view": int(len(snapshot.vehicle_ids)),
             "pedestrians": int(len(snapshot.person_ids)),
             "sync_ms_wall": 1e3 * sync_wall, "sync_ms_cpu": 1e3 * sync_cpu,
@@ -82,8 +88,10 @@ def main() -> None:
         print(json.dumps(result, indent=1))
         return
     print(f"{args.scenario} {args.size}x{args.size}: {result['triangles_total']} triangles "
-          f"({result['triangles_static']} static), {result['cars_in_view']} cars, "
-          f"{result['pedestrians']} pedestrians; sync {result['sync_ms_cpu']:.3f} ms CPU")
+          f"({result['triangles_static']} static, of which TinyRenderer draws "
+          f"{result['triangles_static_tiny']}; ground raster {result['ground_raster_mb']:.1f} MB), "
+          f"{result['cars_in_view']} cars, {result['pedestrians']} pedestrians; "
+          f"sync {result['sync_ms_cpu']:.3f} ms CPU; built in {result['build_s']:.2f} s")
     print("| ACs | ms per cameras() call (CPU) | ms per frame (CPU) | frames/s (CPU) | "
           "ms per call (wall) |")
     print("|---|---|---|---|---|")

@@ -69,21 +69,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a netconvert .netccfg (default: every bundled network)")
     n.set_defaults(func=cmd_nets)
 
-    for register in _extra_commands():
-        register(sub)
+    t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
+    t.add_argument("--algo", default="ppo",
+                   help="ppo, a3c, impala, dqn, ddpg, td3, or all (the six, in parallel where CPUs allow)")
+    t.add_argument("--env", default="env_1", help="env_1..env_5 or a scenario .yaml")
+    t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
+    t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--preset", default="quick", help="smoke, quick or paper")
+    t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
+                   help="must match the algorithm (discrete: ppo a3c impala dqn)")
+    t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
+    t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
+    t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
+                   help="continue an interrupted run from its last checkpoint")
+    t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
+    t.set_defaults(func=cmd_train)
     return p
-
-
-def _extra_commands():
-    """Commands that live with the packages they drive (training, evaluation)."""
-    out = []
-    try:
-        from cosim import cli_train
-
-        out.append(cli_train.register)
-    except ImportError:  # agents not installed: driving commands still work
-        pass
-    return out
 
 
 def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
@@ -227,6 +229,69 @@ class _InfoResult:
         self.events = SimpleNamespace(**{k: info[k] for k in ("goal_reached", "distance_to_goal")})
         self.terminated = info["goal_reached"] or info["out_of_region"]
         self.truncated = False
+
+
+def cmd_train(args) -> int:
+    import os
+    import subprocess
+
+    from eval.train import ALGORITHMS, TrainError, make_config, train
+
+    try:
+        if args.resume is not None:
+            run = train(None, resume=args.resume, quiet=args.quiet)
+            print(f"run folder: {run}")
+            return 0
+        algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
+        configs = [
+            make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
+                        seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset)
+            for a in algos
+        ]
+    except TrainError as exc:
+        print(f"cosim train: error: {exc}", file=sys.stderr)
+        return 2
+    if len(configs) == 1:
+        try:
+            run = train(configs[0], args.out, quiet=args.quiet)
+        except TrainError as exc:
+            print(f"cosim train: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"run folder: {run}")
+        return 0
+    # --algo all: one process per algorithm, as many at once as there are CPUs
+    parallel = max(1, os.cpu_count() or 1)
+    print(f"training {len(configs)} algorithms, {parallel} at a time")
+    pending = list(algos)
+    running: dict[str, subprocess.Popen] = {}
+    failed = []
+    base = [sys.executable, "-m", "cosim.cli", "train", "--env", args.env, "--preset", args.preset,
+            "--seed", str(args.seed), "--out", str(args.out), "--quiet"]
+    if args.agents is not None:
+        base += ["--agents", str(args.agents)]
+    if args.steps is not None:
+        base += ["--steps", str(args.steps)]
+    if args.agent_preset is not None:
+        base += ["--agent-preset", args.agent_preset]
+    try:
+        while pending or running:
+            while pending and len(running) < parallel:
+                algo = pending.pop(0)
+                running[algo] = subprocess.Popen(base + ["--algo", algo])
+            for algo, proc in list(running.items()):
+                try:
+                    proc.wait(timeout=0.5)
+                except subprocess.TimeoutExpired:
+                    continue
+                del running[algo]
+                ok = proc.returncode == 0
+                print(f"{algo}: {'done' if ok else f'FAILED (exit {proc.returncode})'}", flush=True)
+                if not ok:
+                    failed.append(algo)
+    finally:
+        for proc in running.values():
+            proc.terminate()
+    return 1 if failed else 0
 
 
 def cmd_nets(args) -> int:

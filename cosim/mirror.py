@@ -5,35 +5,40 @@ SUMO simulates the traffic; the mirror only draws it. One :class:`Mirror` owns o
 ``pybullet.DIRECT`` client (never the global default client) and builds, once:
 
 - the static world from the :class:`~cosim.roadmap.RoadMap`: road surface (lanes +
-  junction polygons), lane markings (white dashes between lanes of
-  one direction, white edge lines, yellow centre lines next to the opposite
-  direction), raised sidewalks, zebra crossings and the road objects as extruded
-  prisms; one visual-only body per material, so the whole region is ~10 bodies;
+  junction polygons), lane markings (white dashes between lanes of one direction,
+  a yellow centre line between opposite directions), raised sidewalks, zebra
+  crossings and the road objects as extruded prisms; one visual-only body per
+  material (no collision shapes), ~10 bodies and 1-2k triangles per scenario;
 - a fixed pool of boxes: red ACs, blue background cars, orange pedestrians. Each
   :meth:`Mirror.sync` re-poses them; unused ones are parked far below the ground
   and made transparent, which TinyRenderer skips at no cost. Bodies are never
   created or destroyed after construction;
 - no grass or sky geometry: wherever nothing was drawn (depth buffer at its clear
-  value) the image takes a fixed backdrop, grass below the horizon and sky above.
-  The world is flat and the camera height and pitch fixed, so the horizon is the
-  same image row for every camera.
+  value) the image takes a backdrop, grass below the horizon and sky above.
 
 Cameras sit 1.4 m high just ahead of the AC's front bumper (so its own box is
-behind the eye), look along its heading with a 90 degree field of view and render
-with TinyRenderer on the CPU, or with the EGL plugin on a GPU.
+behind the eye), look along its heading, 5 degrees down, with a 90 degree field of
+view. With the EGL plugin (GPU) every mesh is drawn. With TinyRenderer (CPU) the
+flat layers (road, sidewalks, markings, crossings) are hidden and taken instead
+from a :class:`GroundRaster`: the same triangles painted top-down into a 0.15 m
+colour raster with mip levels. The ground is flat and the camera's height and
+pitch are fixed, so every pixel below the horizon meets the ground at a fixed
+offset in the car's heading frame: one rotation and one gather per camera.
 
-Measured facts this design rests on (pybullet 3.2.7, see docs/mirror.md):
+Measured facts this design rests on (pybullet 3.2.7 TinyRenderer; docs/mirror.md):
 
-- TinyRenderer's cost is ~0.18 ms per image, plus ~0.17 us per triangle in the
-  scene (in view or not), plus ~0.15 us per covered pixel per layer. Two large
-  quads for grass and sky cost ~2 ms of fill per 84x84 image, more than the whole
-  road network, hence the backdrop. 100 parked boxes cost 0.28 ms; transparent
-  (alpha 0) ones cost nothing.
-- TinyRenderer in 3.2.7 clips triangles against the near plane: a 200 m road quad
-  renders the same as one cut into 0.5 m pieces (tested in tests/cosim/test_mirror.py).
-  The advice of bullet3 issue 1004 (cut quads to ~2 m) is for older builds;
-  here lanes keep SUMO's own vertices plus cuts every ``MAX_SEGMENT`` metres.
-- It back-face culls (only counter-clockwise faces, seen from the viewer, are
+- An 84x84 image costs ~0.18 ms empty, plus ~0.17 us per triangle anywhere in the
+  scene, plus ~24 ns for every pixel of each triangle's screen bounding box and
+  ~0.1 us per shaded pixel. Long thin triangles (lane markings, sidewalk strips,
+  road quads near the eye) have huge bounding boxes: the flat layers as meshes
+  cost ~1.2 ms per frame, as a raster ~0.06 ms. Big grass and sky quads would cost
+  ~1 ms each, hence the backdrop.
+- 100 parked opaque boxes cost 0.28 ms per frame; transparent (alpha 0) ones nothing.
+- Bodies are drawn in creation order and the depth test comes before shading, so
+  occluders are created first.
+- It clips triangles against the near plane: a 400 m road quad passing under the
+  camera renders like one cut into 2 m pieces (bullet3 issue 1004 was about older
+  builds; guarded by a test). It back-face culls (counter-clockwise faces are
   drawn) and clips at the far plane.
 - An orthographic projection renders nothing (TinyRenderer reads near/far from a
   perspective matrix), so the overview is a narrow perspective from high above.
@@ -86,9 +91,14 @@ BUILDING_HEIGHTS = (8.0, 11.0, 14.0, 17.0, 20.0)  # picked per building by a has
 # never confuses them at 100 m, low enough to look flat from 1.4 m.
 Z_ROAD, Z_MARK, Z_SIDEWALK = 0.03, 0.06, 0.15
 MARK_WIDTH = 0.2  # metres; wider than real (0.12-0.15) so a line 10 m ahead still hits a pixel at 84x84
+CENTRE_WIDTH = 0.3  # metres of the yellow centre line (one line, read as a double one at 84 px)
 DASH, GAP = 3.0, 6.0  # metres of a dashed lane line
+# Edge lines add two long strips per edge; the asphalt/sidewalk contrast already marks
+# the edge. (As meshes they cost ~0.1 ms per TinyRenderer frame, see the docstring.)
+EDGE_LINES = False
+EDGE_INSET = 0.15  # metres between an edge line and the edge of the asphalt
 ZEBRA = 0.5  # metres of each zebra stripe and of each gap
-MAX_SEGMENT = 5.0  # longest road/marking quad along a lane (measured fastest; docs/mirror.md)
+MAX_SEGMENT = 8.0  # longest road/marking quad along a lane (fastest as meshes: 5-10 m)
 
 CAR_HEIGHT = 1.5
 PEDESTRIAN_SIZE = (0.5, 0.5, 1.75)  # x, y, z metres
@@ -96,6 +106,11 @@ CAMERA_HEIGHT = 1.4
 CAMERA_AHEAD = 0.15  # metres in front of the front bumper, so the AC's own box is behind the eye
 CAMERA_PITCH = math.radians(-5.0)  # slightly down: more road, less sky
 NEAR, FAR = 0.2, 100.0
+# Layers TinyRenderer gets from the GroundRaster instead of meshes (EGL draws the meshes).
+GROUND_LAYERS = ("road", "sidewalk", "white", "yellow")
+GROUND_RES = 0.15  # metres per texel of the ground raster
+GROUND_MARGIN = 20.0  # metres of ground painted beyond the region (cameras stay inside it)
+MIP_LEVELS = 5
 PARK = (0.0, 0.0, -1000.0)
 _DEPTH_CLEAR = 0.9999999  # depth-buffer value where nothing was drawn (both renderers clear to 1)
 BOX_TRIANGLES = 12
@@ -407,7 +422,8 @@ def _covered(lane: LaneInfo, polygons: list[np.ndarray]) -> bool:
 
 
 def _add_markings(meshes: dict[str, _Mesh], lanes: list[LaneInfo]) -> None:
-    """White dashes between lanes of an edge, white edge lines, yellow next to the opposite way."""
+    """White dashes between lanes of one direction; one yellow centre line per two-way road;
+    white edge lines only if EDGE_LINES (the asphalt/sidewalk contrast marks the edge)."""
     by_edge: dict[str, list[LaneInfo]] = {}
     for lane in lanes:
         if not lane.is_internal:  # junction interiors carry no markings
@@ -416,19 +432,166 @@ def _add_markings(meshes: dict[str, _Mesh], lanes: list[LaneInfo]) -> None:
     for edge, group in by_edge.items():
         group.sort(key=lambda ln: ln.index)  # SUMO: index 0 = rightmost
         right, left = group[0], group[-1]
-        inset = 0.15  # keep lines inside the lane so they sit on the asphalt
-        off = -right.width / 2 + inset + hw
-        v, t = ribbon(right.shape, off + hw, off - hw, Z_MARK)
-        meshes["white"].add(v, t, _up(v))
         for lane in group[1:]:
             # the boundary between a lane and the one to its right, as seen from the left lane
             off = -lane.width / 2
             v, t = dashes(lane.shape, off + hw, off - hw, Z_MARK, DASH, GAP)
             meshes["white"].add(v, t, _up(v))
-        two_way = _opposite(edge) in by_edge
-        off = left.width / 2 - inset - hw
-        v, t = ribbon(left.shape, off + hw, off - hw, Z_MARK)
-        meshes["yellow" if two_way else "white"].add(v, t, _up(v))
+        opposite = _opposite(edge)
+        if opposite in by_edge:
+            if edge < opposite:  # draw the shared centre line once, from one side
+                off = left.width / 2
+                half = CENTRE_WIDTH / 2
+                v, t = ribbon(left.shape, off + half, off - half, Z_MARK)
+                meshes["yellow"].add(v, t, _up(v))
+        elif EDGE_LINES:
+            off = left.width / 2 - EDGE_INSET - hw
+            v, t = ribbon(left.shape, off + hw, off - hw, Z_MARK)
+            meshes["white"].add(v, t, _up(v))
+        if EDGE_LINES:
+            off = -right.width / 2 + EDGE_INSET + hw
+            v, t = ribbon(right.shape, off + hw, off - hw, Z_MARK)
+            meshes["white"].add(v, t, _up(v))
+
+
+# -- the ground as a raster (TinyRenderer path) ----------------------------------------------
+
+
+def _shade_up() -> float:
+    """TinyRenderer's light factor on an upward face: ambient + diffuse * cos(sun angle)."""
+    lx, ly, lz = LIGHT["lightDirection"]
+    return LIGHT["lightAmbientCoeff"] + LIGHT["lightDiffuseCoeff"] * lz / math.sqrt(
+        lx * lx + ly * ly + lz * lz)
+
+
+def _paint_triangle(tex: np.ndarray, tri: np.ndarray, value) -> None:
+    """Set the texels of `tex` (rows = y, cols = x, texel centres at integers) inside a
+    triangle given in texel coordinates (3, 2)."""
+    lo = np.maximum(np.floor(tri.min(axis=0)).astype(int), 0)
+    hi = np.minimum(np.ceil(tri.max(axis=0)).astype(int) + 1, (tex.shape[1], tex.shape[0]))
+    if lo[0] >= hi[0] or lo[1] >= hi[1]:
+        return
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0]), np.arange(lo[1], hi[1]))
+    (x0, y0), (x1, y1), (x2, y2) = tri
+    area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+    if abs(area) < 1e-12:
+        return
+    sign = 1.0 if area > 0 else -1.0
+    e0 = ((x1 - x0) * (gy - y0) - (y1 - y0) * (gx - x0)) * sign
+    e1 = ((x2 - x1) * (gy - y1) - (y2 - y1) * (gx - x1)) * sign
+    e2 = ((x0 - x2) * (gy - y2) - (y0 - y2) * (gx - x2)) * sign
+    inside = (e0 >= 0) & (e1 >= 0) & (e2 >= 0)
+    tex[lo[1]:hi[1], lo[0]:hi[0]][inside] = value
+
+
+class GroundRaster:
+    """The flat layers (road, sidewalks, markings, crossings) painted top-down into a colour
+    raster with mip levels, and a lookup of the ground colour each camera pixel sees.
+
+    TinyRenderer spends most of an 84x84 frame on these layers (long, thin triangles
+    whose screen bounding boxes it scans pixel by pixel); seen from a fixed height and
+    pitch over flat ground, every pixel below the horizon hits the ground at a fixed
+    offset in the car's heading frame, so the ground costs one rotation and one gather
+    per camera instead. Colours are lit like TinyRenderer lights an upward face.
+    """
+
+    def __init__(self, meshes: dict[str, _Mesh], bounds, layers=GROUND_LAYERS,
+                 res: float = GROUND_RES, margin: float = GROUND_MARGIN):
+        verts = [v for name in layers for v in meshes[name].vertices]
+        lo, hi = np.array(bounds[:2], float) - margin, np.array(bounds[2:], float) + margin
+        if verts:  # no wider than the layers themselves
+            allv = np.concatenate(verts)[:, :2]
+            lo, hi = np.maximum(lo, allv.min(axis=0) - 1.0), np.minimum(hi, allv.max(axis=0) + 1.0)
+        hi = np.maximum(hi, lo + res)
+        self.origin, self.res = lo, res
+        shape = (int(math.ceil((hi[1] - lo[1]) / res)), int(math.ceil((hi[0] - lo[0]) / res)))
+        tex = np.empty(shape + (3,), np.uint8)
+        tex[:] = GRASS
+        shade = _shade_up()
+        for name in layers:
+            value = np.clip(np.array(COLORS[name][:3]) * 255 * shade, 0, 255).astype(np.uint8)
+            offset = 0  # _Mesh indices count from the mesh's first vertex
+            for v, t in zip(meshes[name].vertices, meshes[name].indices, strict=True):
+                texel = (v[:, :2] - lo) / res - 0.5
+                for tri in t - offset:
+                    _paint_triangle(tex, texel[tri], value)
+                offset += len(v)
+        levels = [tex]
+        img = tex.astype(np.float32)
+        for _ in range(1, MIP_LEVELS):
+            h, w = img.shape[0] // 2 * 2, img.shape[1] // 2 * 2
+            if h < 4 or w < 4:
+                break
+            img = img[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).mean(axis=(1, 3))
+            levels.append(np.round(img).astype(np.uint8))
+        for level in levels:  # a grass frame: lookups clamped to the edge land on grass
+            level[[0, -1]] = GRASS
+            level[:, [0, -1]] = GRASS
+        # all levels in one flat array of packed RGBA, so one gather serves every pixel
+        self.shapes = [level.shape[:2] for level in levels]
+        self.offsets = np.cumsum([0] + [h * w for h, w in self.shapes])[:-1]
+        self.flat = np.concatenate([_rgba32(level).ravel() for level in levels])
+
+    @property
+    def nbytes(self) -> int:
+        return self.flat.nbytes
+
+    def view(self, forward: np.ndarray, left: np.ndarray, level: np.ndarray) -> _GroundView:
+        """Precompute, for ground points given in a car's heading frame (metres ahead and
+        to the left of the eye) and their mip levels, what a per-camera lookup needs."""
+        level = np.minimum(level, len(self.shapes) - 1)
+        inv = 1.0 / (self.res * (2.0 ** level))
+        h = np.array([s[0] for s in self.shapes])[level]
+        w = np.array([s[1] for s in self.shapes])[level]
+        return _GroundView(inv, forward * inv, left * inv, (w - 1).astype(float),
+                           (h - 1).astype(float), self.offsets[level], w)
+
+    def lookup(self, gv: _GroundView, x: float, y: float, heading: float) -> np.ndarray:
+        """Packed RGBA of the ground each point of `gv` hits, seen from (x, y, heading)."""
+        c, s = math.cos(heading), math.sin(heading)
+        col = (x - self.origin[0]) * gv.inv + gv.forward * c - gv.left * s
+        row = (y - self.origin[1]) * gv.inv + gv.forward * s + gv.left * c
+        np.clip(col, 0.0, gv.col_max, out=col)
+        np.clip(row, 0.0, gv.row_max, out=row)
+        index = gv.offset + row.astype(np.int64) * gv.width + col.astype(np.int64)
+        return self.flat.take(index)
+
+
+@dataclass(frozen=True)
+class _GroundView:
+    """Per-pixel constants of a camera's ground lookup (see GroundRaster.view)."""
+
+    inv: np.ndarray  # texels per metre at the pixel's mip level
+    forward: np.ndarray  # texels ahead of the eye
+    left: np.ndarray  # texels to the left of the eye
+    col_max: np.ndarray
+    row_max: np.ndarray
+    offset: np.ndarray  # start of the level in GroundRaster.flat
+    width: np.ndarray
+
+
+def ground_rays(size: int, fov_deg: float, res: float):
+    """Where each below-horizon pixel of a camera meets the ground, in the car's heading frame.
+
+    Returns (pixels, forward, left, level): flat pixel indices, metres ahead of and to
+    the left of the eye, and the mip level whose texel matches the pixel's footprint.
+    """
+    f = (size / 2) / math.tan(math.radians(fov_deg) / 2)
+    v, u = np.mgrid[0:size, 0:size] + 0.5
+    du, dv = (u - size / 2) / f, (size / 2 - v) / f  # right, up in the image plane
+    cp, sp = math.cos(CAMERA_PITCH), math.sin(CAMERA_PITCH)
+    # ray = forward_axis + du * right_axis + dv * up_axis, with the axes pitched by CAMERA_PITCH
+    ahead = cp - dv * sp
+    left = -du
+    rise = sp + dv * cp  # vertical component of the ray
+    hits = rise < -1e-6
+    t = np.where(hits, CAMERA_HEIGHT / np.where(hits, -rise, 1.0), 0.0)
+    forward_m, left_m = (t * ahead)[hits], (t * left)[hits]
+    dist = np.sqrt(forward_m**2 + left_m**2 + CAMERA_HEIGHT**2)
+    lateral = dist / f  # metres one pixel spans across the view
+    footprint = lateral / np.sqrt(CAMERA_HEIGHT / dist)  # geometric mean with the along-view span
+    level = np.clip(np.floor(np.log2(np.maximum(footprint / res, 1.0))), 0, MIP_LEVELS - 1)
+    return np.flatnonzero(hits), forward_m, left_m, level.astype(int)
 
 
 # -- camera maths ---------------------------------------------------------------------------
@@ -523,7 +686,18 @@ class Mirror:
             self._car_pool = self._build_pool(max_cars, size, COLORS["car"])
             ped = tuple(v / 2 for v in PEDESTRIAN_SIZE)
             self._ped_pool = self._build_pool(max_pedestrians, ped, COLORS["pedestrian"])
-            self._static_triangles = self._build_static()
+            self._ground_bodies: dict[int, tuple] = {}
+            self._ground_triangles = 0
+            meshes = build_static(roadmap)
+            self._static_triangles = self._build_static(meshes)
+            self._ground = None
+            if self.renderer == "tiny":
+                # TinyRenderer takes the flat layers from a raster (see GroundRaster)
+                self._show_ground_meshes(False)
+                self._ground = GroundRaster(meshes, roadmap.bounds)
+                pix, fwd, left, level = ground_rays(self.image_size, self.fov_deg, GROUND_RES)
+                self._ground_pixels = pix
+                self._ground_view = self._ground.view(fwd, left, level)
         except BaseException:
             self.close()
             raise
@@ -568,9 +742,10 @@ class Mirror:
         p, cid, size = self._p, self._require_open(), self.image_size
         rgba = np.empty((len(poses), size, size, 4), np.uint8)
         for i, (x, y, heading) in enumerate(poses):
-            eye, forward = camera_eye(float(x), float(y), float(heading), self.vehicle.length)
+            heading = float(heading)
+            eye, forward = camera_eye(float(x), float(y), heading, self.vehicle.length)
             view = p.computeViewMatrix(eye, eye + forward, (0.0, 0.0, 1.0), physicsClientId=cid)
-            self._render_into(rgba[i], view, self._projection, self._backdrop)
+            self._render_into(rgba[i], view, self._projection, self._camera_backdrop(eye, heading))
         return rgba[..., :3].copy()
 
     def overview(self, size: tuple[int, int] = (320, 320), center=None, extent=None) -> np.ndarray:
@@ -598,7 +773,13 @@ class Mirror:
         view = p.computeViewMatrix((cx, cy, height), (cx, cy, 0.0), (0.0, 1.0, 0.0),
                                    physicsClientId=cid)
         rgba = np.empty((h, w, 4), np.uint8)
-        self._render_into(rgba, view, proj, _rgba32(GRASS))
+        if self._ground is not None:  # the overview is rare: draw the flat layers as meshes
+            self._show_ground_meshes(True)
+        try:
+            self._render_into(rgba, view, proj, _rgba32(GRASS))
+        finally:
+            if self._ground is not None:
+                self._show_ground_meshes(False)
         return rgba[..., :3].copy()
 
     def close(self) -> None:
@@ -659,19 +840,28 @@ class Mirror:
             self._p.unloadPlugin(plugin, physicsClientId=self._client)
         return ok, why
 
-    def _build_static(self) -> int:
+    def _build_static(self, meshes: dict[str, _Mesh]) -> int:
+        """One visual-only body per material (and per MAX_MESH_VERTICES); returns triangles."""
         p, cid = self._p, self._client
         triangles = 0
-        for name, mesh in build_static(self.roadmap).items():
+        for name, mesh in meshes.items():
             for verts, tris, normals in mesh.chunks():
                 shape = p.createVisualShape(
                     p.GEOM_MESH, vertices=verts.tolist(), indices=tris.ravel().tolist(),
                     normals=normals.tolist(), rgbaColor=COLORS[name], physicsClientId=cid,
                 )
-                p.createMultiBody(0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=shape,
-                                  physicsClientId=cid)
+                body = p.createMultiBody(0, baseCollisionShapeIndex=-1,
+                                         baseVisualShapeIndex=shape, physicsClientId=cid)
+                if name in GROUND_LAYERS:
+                    self._ground_bodies[body] = COLORS[name]
+                    self._ground_triangles += len(tris)
                 triangles += len(tris)
         return triangles
+
+    def _show_ground_meshes(self, show: bool) -> None:
+        for body, rgba in self._ground_bodies.items():
+            self._p.changeVisualShape(body, -1, rgbaColor=rgba if show else (*rgba[:3], 0.0),
+                                      physicsClientId=self._client)
 
     def _build_pool(self, n: int, half_extents, rgba) -> list[int]:
         if n == 0:
@@ -706,6 +896,15 @@ class Mirror:
         for body in pool[len(xy):]:
             if not self._parked[body]:
                 self._park(body)
+
+    def _camera_backdrop(self, eye: np.ndarray, heading: float) -> np.ndarray:
+        """Sky, and below the horizon the ground raster as this camera sees it (packed RGBA)."""
+        if self._ground is None:
+            return self._backdrop
+        backdrop = self._backdrop.copy()
+        backdrop.reshape(-1)[self._ground_pixels] = self._ground.lookup(
+            self._ground_view, eye[0], eye[1], heading)
+        return backdrop
 
     def _park(self, body: int) -> None:
         """Out of sight, and transparent: TinyRenderer skips alpha-0 shapes entirely."""

@@ -18,7 +18,7 @@ BOX = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
 # Configs that learn within a few hundred steps, so every code path runs in a smoke test.
 FAST = {
     "ppo": PPOConfig(rollout_steps=64, batch_size=16, epochs=2),
-    "dqn": DQNConfig(learning_starts=32, batch_size=16, train_freq=1, target_update_interval=50,
+    "dqn": DQNConfig(learning_starts=32, batch_size=16, train_freq=1, target_update_interval=50, hidden=(64, 64),
                      exploration_steps=100, buffer_size=1000),
     "ddpg": DDPGConfig(learning_starts=32, batch_size=16, buffer_size=1000),
     "td3": TD3Config(learning_starts=32, batch_size=16, buffer_size=1000),

@@ -146,6 +146,7 @@ def test_async_training_updates_the_shared_model():
     assert 3000 <= reports[-1].env_steps <= 3000 + 2 * 10  # both workers counted, none overshoots a rollout
     assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both workers played
     assert live_pids(reports[-1].worker_pids) == []
+    assert agent.num_updates == sum(1 for _ in reports)  # one shared step per worker rollout
     assert isinstance(agent.act(np.zeros(4, np.float32)), int)
 
 

@@ -39,17 +39,38 @@ class Recorder(Agent):
         return {"charts/n": 1.0}
 
 
+class CounterEnv(gym.Env):
+    """obs = 100 * episode + t; episodes are truncated after 3 steps."""
+
+    observation_space = gym.spaces.Box(0, 1e6, (1,), np.float32)
+    action_space = gym.spaces.Discrete(2)
+
+    def __init__(self):
+        self.episode, self.t = -1, 0
+
+    def reset(self, seed=None, options=None):
+        self.episode, self.t = self.episode + 1, 0
+        return np.array([100.0 * self.episode], np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        obs = np.array([100.0 * self.episode + self.t], np.float32)
+        return obs, 1.0, False, self.t == 3, {}
+
+
 def test_loop_passes_final_observation_not_reset_observation():
-    env = ColourBar(size=36, episode_length=3)
+    env = CounterEnv()
     agent = Recorder(env.observation_space, env.action_space)
-    # action 1 = stay: the bar stays at its start; reset obs of the next episode differs only by chance
     stats = run_loop({"agent_0": agent}, SingleAgentParallel(env), 6)
-    observes = [c for c in agent.calls if c[0] == "observe"]
-    assert len(observes) == 6 and stats.episodes == 2
-    assert [c[3] for c in observes] == [False, False, True] * 2
+    observes = [c[1:] for c in agent.calls if c[0] == "observe"]
+    # (obs, next_obs, truncated): the truncated step carries the final obs 3 / 103,
+    # and the next episode starts from its reset obs 100.
+    assert observes == [(0, 1, False), (1, 2, False), (2, 3, True),
+                        (100, 101, False), (101, 102, False), (102, 103, True)]
     kinds = [c[0] for c in agent.calls]
-    assert kinds[:3] == ["act", "observe", "update"]  # update follows every observe
-    assert stats.episode_lengths["agent_0"] == [3, 3]
+    assert kinds[:6] == ["act", "observe", "update"] * 2  # update follows every observe
+    assert stats.episodes == 2 and stats.episode_lengths["agent_0"] == [3, 3]
+    assert stats.episode_returns["agent_0"] == [3.0, 3.0]
     assert stats.updates == 6 and stats.env_time_s > 0 and stats.learn_time_s > 0
 
 

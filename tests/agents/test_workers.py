@@ -209,6 +209,17 @@ def test_interrupt_terminates_even_a_stuck_worker():
     _assert_no_workers_left(pids)
 
 
+def test_sigterm_to_the_parent_interrupts_and_cleans_up():
+    with pytest.raises(KeyboardInterrupt, match="signal 15"):
+        with WorkerPool(_report_then_wait, [("x",), ("y",)], context=FORKSERVER) as pool:
+            pids = pool.pids
+            for _ in range(2):
+                assert pool.get(timeout=30) is not None
+            os.kill(os.getpid(), signal.SIGTERM)  # what `kill <parent pid>` does
+            time.sleep(5)  # the handler interrupts this
+    _assert_no_workers_left(pids)
+
+
 def test_pool_restores_the_sigterm_handler():
     before = signal.getsignal(signal.SIGTERM)
     with WorkerPool(_report_then_wait, [("x",)], context=FORKSERVER) as pool:
@@ -237,7 +248,8 @@ spaces = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spa
     "module, train, start_method, signum",
     [
         ("a3c", "train_a3c", "forkserver", signal.SIGINT),  # Ctrl-C
-        ("impala", "train_impala", "spawn", signal.SIGTERM),  # kill <pid>, a scheduler's stop
+        # kill <pid>; spawn start: ~10-20 s on 2 busy cores, so not in the default run.
+        pytest.param("impala", "train_impala", "spawn", signal.SIGTERM, marks=pytest.mark.slow),
     ],
 )
 def test_signal_to_the_training_process_leaves_no_worker(tmp_path, module, train, start_method, signum):

@@ -224,6 +224,26 @@ def test_overview_shows_road_and_grass(env1_mirror):
     assert len(rows) > 0 and 25 <= rows.mean() <= 55
 
 
+def test_ground_raster_matches_the_ground_meshes(env1_mirror):
+    """TinyRenderer cameras take road, sidewalks and markings from the GroundRaster; the
+    same scene drawn from the meshes (as EGL and the overview draw it) must agree."""
+    m = env1_mirror
+    m.sync(snapshot(cars=[(POSE[0] + 15.0, POSE[1], 0.0)]))
+    poses = [POSE, (-100.0, 151.6, math.pi), (-60.0, 148.4, 0.3), (-200.0, 146.0, -0.8)]
+    raster = m.cameras(poses).astype(int)
+    ground, m._ground = m._ground, None  # draw the flat layers as meshes instead
+    m._show_ground_meshes(True)
+    try:
+        meshes = m.cameras(poses).astype(int)
+    finally:
+        m._ground = ground
+        m._show_ground_meshes(False)
+    differ = np.abs(raster - meshes).sum(-1) > 60
+    # what differs: raised sidewalk edges, and far markings blended (raster) vs aliased
+    assert differ.mean(axis=(1, 2)).max() < 0.1
+    assert road_mask(raster[:, 42:]).mean() > 0.3
+
+
 def test_long_triangles_render_like_short_ones():
     """Guards the choice of MAX_SEGMENT: pybullet's TinyRenderer clips at the near plane.
 
@@ -310,12 +330,14 @@ def test_close_is_idempotent_and_disconnects():
         m.cameras([POSE])
 
 
-def test_triangle_budget_of_every_scenario():
+def test_triangle_budget_of_every_scenario(env1_mirror):
     for name in ("env_1", "env_2", "env_3", "env_4", "env_5"):
-        with Mirror(road_map(load_scenario(name))) as m:
-            static = m.triangle_count - mirror_mod.BOX_TRIANGLES * (
-                mirror_mod.MAX_ACS + 40 + 40)
-            assert 300 < static < 5000, (name, static)
+        meshes = mirror_mod.build_static(road_map(load_scenario(name)))
+        static = sum(mesh.triangles for mesh in meshes.values())
+        assert 300 < static < 5000, (name, static)
+        assert meshes["road"].triangles > 50 and meshes["sidewalk"].triangles > 10, name
+    pool = mirror_mod.BOX_TRIANGLES * (mirror_mod.MAX_ACS + 40 + 40)
+    assert env1_mirror.triangle_count == env1_mirror._static_triangles + pool
 
 
 def test_bad_arguments_name_the_fix():

@@ -176,7 +176,7 @@ def _trajectory(seed: int, steps: int = 150):
             snap = w.snapshot
             background.append(sorted(
                 (vid, round(float(x), 3), round(float(y), 3))
-                for vid, (x, y), ac in zip(snap.vehicle_ids, snap.vehicle_xy, snap.vehicle_is_ac)
+                for vid, (x, y), ac in zip(snap.vehicle_ids, snap.vehicle_xy, snap.vehicle_is_ac, strict=True)
                 if not ac
             ))
     return poses, background

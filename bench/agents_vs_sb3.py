@@ -1,0 +1,167 @@
+"""Throughput of our PPO, DQN and TD3 against stable-baselines3 on the same image task.
+
+Both libraries train on :class:`agents.envs.ColourBar` (84x84x3 uint8) for the
+same env-step budget with the same schedule, minibatch size and network sizes
+(Nature CNN; PPO: shared CNN + linear heads; DQN: CNN + linear Q head (ours
+adds the one-unit dueling value stream); TD3: actor CNN + linear head, critic
+CNN shared by two [256, 256] Q heads), on one CPU thread. Reported: env steps
+per second over the whole run (acting + learning) and gradient updates per
+second inside the learning phase. stable-baselines3 is a bench-only extra
+(``pip install stable-baselines3``), never a runtime dependency.
+
+Usage::
+
+    python bench/agents_vs_sb3.py --algos ppo dqn td3 --repeats 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from agents.dqn import DQN, DQNConfig
+from agents.envs import ColourBar, SingleAgentParallel
+from agents.loop import run_loop
+from agents.ppo import PPO, PPOConfig
+from agents.td3 import TD3, TD3Config
+
+BUDGET = {"ppo": 2048, "dqn": 3000, "td3": 2000}
+LEARNING_STARTS = 1000
+BATCH = {"ppo": 64, "dqn": 32, "td3": 32}
+
+
+@dataclass
+class Throughput:
+    """One library's measurement on one algorithm."""
+
+    library: str
+    algo: str
+    env_steps: int
+    gradient_updates: int
+    wall_time_s: float
+    learn_time_s: float
+
+    @property
+    def env_steps_per_s(self) -> float:
+        return self.env_steps / self.wall_time_s
+
+    @property
+    def updates_per_s(self) -> float:
+        return self.gradient_updates / self.learn_time_s
+
+
+class _Timer:
+    """Wraps a bound method, counting calls and the time spent inside it."""
+
+    def __init__(self, owner, name: str):
+        self.calls, self.seconds = 0, 0.0
+        self._inner = getattr(owner, name)
+        setattr(owner, name, self)
+
+    def __call__(self, *args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return self._inner(*args, **kwargs)
+        finally:
+            self.seconds += time.perf_counter() - start
+            self.calls += 1
+
+
+def ours(algo: str, seed: int = 0) -> Throughput:
+    """Train our agent for the budget; time the whole run and the gradient steps."""
+    continuous = algo == "td3"
+    env = ColourBar(continuous=continuous)
+    if algo == "ppo":
+        agent = PPO.from_spaces(env.observation_space, env.action_space,
+                                PPOConfig(rollout_steps=512, batch_size=BATCH[algo], epochs=4), seed=seed)
+        timer = _Timer(agent, "_minibatch_step")
+    elif algo == "dqn":
+        agent = DQN.from_spaces(env.observation_space, env.action_space, DQNConfig(
+            batch_size=BATCH[algo], buffer_size=10_000, learning_starts=LEARNING_STARTS, train_freq=4,
+            gradient_steps=1, target_update_interval=500, learning_rate=1e-4,
+            # SB3's schedule: epsilon 1 -> 0.05 over the first 10% of the run (random actions skip the network)
+            exploration_steps=BUDGET[algo] // 10, exploration_final_eps=0.05), seed=seed)
+        timer = _Timer(agent, "_gradient_step")
+    else:
+        agent = TD3.from_spaces(env.observation_space, env.action_space, TD3Config(
+            batch_size=BATCH[algo], buffer_size=10_000, learning_starts=LEARNING_STARTS, train_freq=1),
+            seed=seed)
+        timer = _Timer(agent, "_gradient_step")
+    start = time.perf_counter()
+    run_loop({"agent_0": agent}, SingleAgentParallel(env), BUDGET[algo], seed=seed)
+    wall = time.perf_counter() - start
+    return Throughput("cosim agents", algo, BUDGET[algo], timer.calls, wall, timer.seconds)
+
+
+def sb3(algo: str, seed: int = 0) -> Throughput:
+    """Train stable-baselines3's agent for the same budget and schedule."""
+    from stable_baselines3 import DQN as SB3DQN
+    from stable_baselines3 import PPO as SB3PPO
+    from stable_baselines3 import TD3 as SB3TD3
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    continuous = algo == "td3"
+    env = ColourBar(continuous=continuous)
+    if algo == "ppo":
+        model = SB3PPO("CnnPolicy", env, n_steps=512, batch_size=BATCH[algo], n_epochs=4, seed=seed,
+                       device="cpu", verbose=0)
+        per_train = 4 * 512 // BATCH[algo]
+    elif algo == "dqn":
+        model = SB3DQN("CnnPolicy", env, batch_size=BATCH[algo], buffer_size=10_000,
+                       learning_starts=LEARNING_STARTS, train_freq=4, target_update_interval=500,
+                       exploration_fraction=0.1, exploration_final_eps=0.05, policy_kwargs={"net_arch": []}, seed=seed, device="cpu", verbose=0)
+        per_train = 1
+    else:
+        model = SB3TD3("CnnPolicy", env, batch_size=BATCH[algo], buffer_size=10_000,
+                       learning_starts=LEARNING_STARTS, train_freq=1,
+                       action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),
+                       policy_kwargs={"net_arch": {"pi": [], "qf": [256, 256]}}, seed=seed, device="cpu",
+                       verbose=0)
+        per_train = 1
+    timer = _Timer(model, "train")
+    start = time.perf_counter()
+    model.learn(total_timesteps=BUDGET[algo])
+    wall = time.perf_counter() - start
+    return Throughput("stable-baselines3", algo, BUDGET[algo], timer.calls * per_train, wall, timer.seconds)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--algos", nargs="+", default=["ppo", "dqn", "td3"], choices=["ppo", "dqn", "td3"])
+    parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    rows = []
+    print("| algo | library | env steps | gradient updates | env steps/s | updates/s |")
+    print("|---|---|---|---|---|---|")
+    for algo in args.algos:
+        for _ in range(args.repeats):
+            for run in (ours, sb3):
+                result = run(algo)
+                rows.append(result)
+                print(f"| {algo} | {result.library} | {result.env_steps} | {result.gradient_updates} "
+                      f"| {result.env_steps_per_s:.1f} | {result.updates_per_s:.1f} |", flush=True)
+    print()
+    print("| algo | env steps/s ratio (ours / SB3) | updates/s ratio (ours / SB3) |")
+    print("|---|---|---|")
+    for algo in args.algos:
+        mine = [r for r in rows if r.algo == algo and r.library == "cosim agents"]
+        theirs = [r for r in rows if r.algo == algo and r.library == "stable-baselines3"]
+        steps = np.mean([r.env_steps_per_s for r in mine]) / np.mean([r.env_steps_per_s for r in theirs])
+        updates = np.mean([r.updates_per_s for r in mine]) / np.mean([r.updates_per_s for r in theirs])
+        print(f"| {algo} | {steps:.2f} | {updates:.2f} |")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump([asdict(r) | {"env_steps_per_s": r.env_steps_per_s, "updates_per_s": r.updates_per_s}
+                       for r in rows], fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()

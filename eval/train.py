@@ -1,0 +1,598 @@
+"""Training runs (SPEC §6, "Scenario 1, train"): N ACs of ONE algorithm, each with its
+own network, learning together in a driving environment among background cars.
+
+A run lives in ``runs/<env>__<algo>__<seed>__<timestamp>/``:
+
+    config.yaml        the resolved configuration (what `--resume` reads back)
+    manifest.json      package versions, git commit, seeds, hashes of the SUMO/scenario files
+    episodes.csv       one row per AC per finished episode: return, length, reward-term sums,
+                       event counts, mean speed, DISTANCE, goal
+    tb/                TensorBoard scalars: charts/, losses/, driving/, time/
+    checkpoints/<ac>/latest.pt, best.pt    self-describing agent checkpoints
+    state.json         progress at the last checkpoint (steps, episodes, CSV rows)
+    convergence.png    mean episodic reward against env steps, per AC and mean
+
+Resuming (``cosim train --resume DIR``) reloads the latest checkpoints, cuts the CSV
+back to the rows written before that checkpoint and purges later TensorBoard
+events, so an interrupted run (even by kill -9) continues without gaps or
+duplicates, losing at most one checkpoint interval. Replay buffers are not
+checkpointed (they would be gigabytes of images): an off-policy agent refills its
+buffer after a resume.
+
+PPO, DQN, DDPG and TD3 step one environment in this process through
+:func:`agents.loop.run_loop`. A3C and IMPALA run worker/actor processes, each
+with its own environment (libsumo allows one simulation per process).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import datetime as dt
+import functools
+import hashlib
+import json
+import logging
+import os
+import platform
+import subprocess
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+log = logging.getLogger(__name__)
+
+ALGORITHMS = ("ppo", "a3c", "impala", "dqn", "ddpg", "td3")
+DISCRETE_ALGOS = ("ppo", "a3c", "impala", "dqn")
+CONTINUOUS_ALGOS = ("ddpg", "td3")
+ASYNC_ALGOS = ("a3c", "impala")
+
+
+class TrainError(ValueError):
+    """A training request that cannot run; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class TrainPreset:
+    """Budgets and sizes of a family of runs."""
+
+    steps: dict[str, int]
+    """Environment steps per algorithm."""
+    agents: int
+    """Learning cars trained together."""
+    horizon: int
+    """Steps per episode before truncation."""
+    checkpoint_every: int
+    """Environment steps between checkpoints."""
+    agent_preset: str
+    """The agents' hyperparameter preset ("default" or "paper")."""
+    workers: int
+    """Worker/actor processes for A3C and IMPALA."""
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per-algorithm hyperparameter changes on top of agent_preset."""
+
+
+PRESETS: dict[str, TrainPreset] = {
+    # CI: the whole six-algorithm run in about three minutes on two cores.
+    "smoke": TrainPreset(
+        steps=dict.fromkeys(ALGORITHMS, 120), agents=2, horizon=60, checkpoint_every=40,
+        agent_preset="default", workers=1,
+        overrides={
+            "ppo": {"rollout_steps": 32, "batch_size": 16, "epochs": 1},
+            "dqn": {"learning_starts": 32, "batch_size": 16, "buffer_size": 1000,
+                    "exploration_steps": 100, "train_freq": 4},
+            "ddpg": {"learning_starts": 32, "batch_size": 16, "buffer_size": 1000, "train_freq": 4},
+            "td3": {"learning_starts": 32, "batch_size": 16, "buffer_size": 1000, "train_freq": 4},
+            "a3c": {"n_steps": 10},
+            "impala": {"unroll_length": 10, "batch_size": 1},
+        },
+    ),
+    # Each algorithm about 5-10 minutes on two cores.
+    "quick": TrainPreset(
+        steps={"ppo": 12_000, "a3c": 12_000, "impala": 12_000, "dqn": 10_000,
+               "ddpg": 6_000, "td3": 6_000},
+        agents=3, horizon=300, checkpoint_every=2_000, agent_preset="default", workers=2,
+        overrides={
+            "ppo": {"rollout_steps": 512, "batch_size": 64, "epochs": 4, "ent_coef": 0.01},
+            "dqn": {"learning_starts": 500, "buffer_size": 20_000, "exploration_steps": 5_000,
+                    "target_update_interval": 500},
+            "ddpg": {"learning_starts": 500, "buffer_size": 20_000, "batch_size": 64,
+                     "train_freq": 4, "exploration_noise": 0.2},
+            "td3": {"learning_starts": 500, "buffer_size": 20_000, "batch_size": 64,
+                    "train_freq": 4, "exploration_noise": 0.2},
+        },
+    ),
+    # SPEC §5 budgets: 600-800 episodes, ~1.2 M steps per algorithm, Table 3 hyperparameters.
+    "paper": TrainPreset(
+        steps=dict.fromkeys(ALGORITHMS, 1_200_000), agents=3, horizon=2_000,
+        checkpoint_every=20_000, agent_preset="paper", workers=2,
+    ),
+}
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (written to config.yaml)."""
+
+    algo: str
+    env: str = "env_1"
+    agents: int = 3
+    steps: int = 10_000
+    seed: int = 0
+    preset: str = "quick"
+    horizon: int = 300
+    checkpoint_every: int = 2_000
+    workers: int = 2
+    image_size: int = 84
+    agent_config: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def action_type(self) -> str:
+        return "discrete" if self.algo in DISCRETE_ALGOS else "continuous"
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents: int | None = None,
+                steps: int | None = None, seed: int = 0, action_type: str | None = None,
+                image_size: int = 84, agent_preset: str | None = None) -> TrainConfig:
+    """Resolve a training request into a TrainConfig, refusing what cannot work.
+
+    Raises:
+        TrainError: unknown algorithm or preset (listing the valid ones), an action
+            type the algorithm cannot use (with the reason), bad numbers.
+        cosim.errors.ScenarioError: unknown environment (listing the valid ones).
+    """
+    from agents.registry import get_agent_class
+    from cosim.scenario import load_scenario
+
+    if algo not in ALGORITHMS:
+        raise TrainError(f"unknown algorithm {algo!r}; choose one of {', '.join(ALGORITHMS)} (or 'all')")
+    if preset not in PRESETS:
+        raise TrainError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    natural = "discrete" if algo in DISCRETE_ALGOS else "continuous"
+    if action_type is not None and action_type != natural:
+        why = ("it picks among a finite set of actions (Discrete(9))" if natural == "discrete"
+               else "its actor outputs continuous values (Box(-1, 1, (2,)))")
+        raise TrainError(
+            f"{algo} cannot train with {action_type} actions: {why}; use --action-type {natural} "
+            f"or a {'continuous' if natural == 'discrete' else 'discrete'} algorithm "
+            f"({', '.join(CONTINUOUS_ALGOS if natural == 'discrete' else DISCRETE_ALGOS)})"
+        )
+    scenario = load_scenario(env)
+    p = PRESETS[preset]
+    n = p.agents if agents is None else int(agents)
+    if not 1 <= n <= scenario.max_agents:
+        raise TrainError(f"--agents must be 1..{scenario.max_agents} for {env}, got {n}")
+    total = p.steps[algo] if steps is None else int(steps)
+    if total < 1:
+        raise TrainError(f"--steps must be >= 1, got {total}")
+    config_cls = get_agent_class(algo).config_class
+    chosen = agent_preset or p.agent_preset
+    try:
+        agent_config = config_cls.preset(chosen, **p.overrides.get(algo, {})).to_dict()
+    except ValueError as exc:
+        raise TrainError(f"{algo} hyperparameters: {exc}") from exc
+    return TrainConfig(
+        algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
+        horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
+        image_size=int(image_size), agent_config=agent_config,
+    )
+
+
+# -- run folder -------------------------------------------------------------------
+def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
+    """Create ``out/<env>__<algo>__<seed>__<timestamp>/``; fail early if unwritable."""
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test-{os.getpid()}"
+        probe.write_text("ok")
+        probe.unlink()
+    except OSError as exc:
+        raise TrainError(f"cannot write to output folder {out}: {exc.strerror or exc}; "
+                         "choose another --out") from exc
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    run = out / f"{cfg.env}__{cfg.algo}__{cfg.seed}__{stamp}"
+    suffix = 1
+    while run.exists():
+        run = out / f"{cfg.env}__{cfg.algo}__{cfg.seed}__{stamp}-{suffix}"
+        suffix += 1
+    (run / "checkpoints").mkdir(parents=True)
+    _atomic_write(run / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    _atomic_write(run / "manifest.json", json.dumps(manifest(cfg), indent=2))
+    return run
+
+
+def load_run_config(run: Path) -> TrainConfig:
+    path = Path(run) / "config.yaml"
+    if not path.exists():
+        raise TrainError(f"{run} is not a training run folder (no config.yaml); pass runs/<dir>")
+    data = yaml.safe_load(path.read_text())
+    return TrainConfig(**data)
+
+
+def manifest(cfg: TrainConfig) -> dict[str, Any]:
+    """Reproducibility record: versions, git commit, seeds, hashes of the inputs."""
+    from importlib import metadata
+
+    from cosim.scenario import load_scenario
+
+    sc = load_scenario(cfg.env)
+    files = [sc.source, sc.net, *sc.demand, *sc.pedestrian_demand, *sc.additional]
+    versions = {}
+    for pkg in ("cosim", "torch", "numpy", "eclipse-sumo", "libsumo", "pybullet", "gymnasium",
+                "pettingzoo", "pandas"):
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return {
+        "created": dt.datetime.now(dt.UTC).isoformat(),
+        "command": " ".join(sys.argv),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "versions": versions,
+        "git": _git_commit(),
+        "seeds": {"run": cfg.seed, "agents": {f"ac_{k}": cfg.seed + k for k in range(cfg.agents)}},
+        "files_sha256": {str(p.name): hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in files},
+    }
+
+
+def _git_commit() -> dict[str, Any] | None:
+    root = Path(__file__).resolve().parent.parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                                text=True, check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True,
+                               text=True, check=True, timeout=10).stdout.strip() != ""
+        return {"commit": commit, "dirty": dirty}
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+EPISODE_FIELDS = [
+    "agent", "episode", "env_step", "return", "length", "r_collision", "r_efficiency", "r_lane",
+    "r_step", "n_collision_vehicle", "n_collision_pedestrian", "n_collision_object", "n_off_road",
+    "n_wrong_lane", "n_lane_violation", "mean_speed_kmh", "DISTANCE", "distance_to_goal",
+    "goal_reached", "wall_time_s",
+]
+
+
+class RunLog:
+    """The run's CSV, TensorBoard writer and checkpoint bookkeeping."""
+
+    def __init__(self, run: Path, cfg: TrainConfig, resume_state: dict | None):
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.run, self.cfg = Path(run), cfg
+        self.csv_path = self.run / "episodes.csv"
+        state = resume_state or {}
+        self.env_steps = int(state.get("env_steps", 0))
+        self.episodes = dict(state.get("episodes", {}))
+        self.best = dict(state.get("best", {}))
+        self.rows = int(state.get("csv_rows", 0))
+        self.elapsed0 = float(state.get("elapsed_s", 0.0))
+        self.start = time.monotonic()
+        self.recent: dict[str, deque] = {f"ac_{k}": deque(maxlen=20) for k in range(cfg.agents)}
+        self._truncate_csv(self.rows)
+        self._file = open(self.csv_path, "a", newline="")  # noqa: SIM115 - closed in close()
+        self._csv = csv.DictWriter(self._file, fieldnames=EPISODE_FIELDS, extrasaction="ignore")
+        if self.rows == 0:
+            self._csv.writeheader()
+            self._file.flush()
+        for row in self._read_rows():
+            self.recent[row["agent"]].append(float(row["return"]))
+        self.tb = SummaryWriter(str(self.run / "tb"), purge_step=self.env_steps or None)
+
+    def _read_rows(self) -> list[dict]:
+        with open(self.csv_path, newline="") as f:
+            return list(csv.DictReader(f))
+
+    def _truncate_csv(self, rows: int) -> None:
+        """Keep the header and the first `rows` rows (those covered by the checkpoint)."""
+        if not self.csv_path.exists():
+            return
+        with open(self.csv_path, newline="") as f:
+            lines = f.readlines()
+        kept = lines[: 1 + rows] if lines else []
+        if len(kept) != len(lines):
+            log.info("resume: dropping %d episode rows written after the last checkpoint",
+                     len(lines) - len(kept))
+        _atomic_write(self.csv_path, "".join(kept))
+
+    @property
+    def elapsed(self) -> float:
+        return self.elapsed0 + time.monotonic() - self.start
+
+    def episode(self, agent: str, stats: dict, env_step: int) -> None:
+        k = self.episodes.get(agent, 0)
+        self.episodes[agent] = k + 1
+        row = {**stats, "agent": agent, "episode": k, "env_step": env_step,
+               "wall_time_s": round(self.elapsed, 2)}
+        self._csv.writerow(row)
+        self._file.flush()
+        self.rows += 1
+        self.recent[agent].append(float(stats["return"]))
+        tb = self.tb
+        tb.add_scalar(f"charts/episodic_return/{agent}", stats["return"], env_step)
+        tb.add_scalar(f"charts/episodic_length/{agent}", stats["length"], env_step)
+        tb.add_scalar("charts/mean_recent_return", self.mean_recent(), env_step)
+        length = max(stats["length"], 1)
+        tb.add_scalar(f"driving/collision_fraction/{agent}",
+                      (stats["n_collision_vehicle"] + stats["n_collision_pedestrian"]
+                       + stats["n_collision_object"]) / length, env_step)
+        tb.add_scalar(f"driving/lane_violation_fraction/{agent}", stats["n_lane_violation"] / length, env_step)
+        tb.add_scalar(f"driving/DISTANCE/{agent}", stats["DISTANCE"], env_step)
+        tb.add_scalar(f"driving/mean_speed_kmh/{agent}", stats["mean_speed_kmh"], env_step)
+
+    def metrics(self, agent: str, metrics: dict[str, float], env_step: int) -> None:
+        for name, value in metrics.items():
+            head, _, rest = name.partition("/")
+            tag = f"{head}/{rest}/{agent}" if rest else f"{head}/{agent}"
+            self.tb.add_scalar(tag, value, env_step)
+
+    def mean_recent(self) -> float:
+        values = [v for d in self.recent.values() for v in d]
+        return float(np.mean(values)) if values else float("nan")
+
+    def checkpoint(self, agents: dict, env_step: int, extra_time: dict[str, float] | None = None) -> None:
+        """Save latest (and best) per AC, then the state that makes them resumable."""
+        for agent_id, agent in agents.items():
+            folder = self.run / "checkpoints" / agent_id
+            folder.mkdir(parents=True, exist_ok=True)
+            _atomic_save(agent, folder / "latest.pt")
+            recent = self.recent[agent_id]
+            if len(recent) >= 3:
+                score = float(np.mean(recent))
+                if score > self.best.get(agent_id, -np.inf):
+                    self.best[agent_id] = score
+                    _atomic_save(agent, folder / "best.pt")
+            elif not (folder / "best.pt").exists():
+                _atomic_save(agent, folder / "best.pt")
+        self.env_steps = env_step
+        state = {"env_steps": env_step, "episodes": self.episodes, "best": self.best,
+                 "csv_rows": self.rows, "elapsed_s": self.elapsed}
+        _atomic_write(self.run / "state.json", json.dumps(state, indent=2))
+        for name, value in (extra_time or {}).items():
+            self.tb.add_scalar(name, value, env_step)
+        self.tb.flush()
+
+    def close(self) -> None:
+        self._file.close()
+        self.tb.close()
+
+
+def _atomic_save(agent, path: Path) -> None:
+    tmp = path.with_name(path.stem + ".tmp.pt")
+    agent.save(tmp)
+    os.replace(tmp, path)
+
+
+# -- environments ---------------------------------------------------------------------
+def make_env(cfg_dict: dict, worker_seed: int | None = None):
+    """Build the training env of a config (top-level, so worker processes can pickle it)."""
+    from cosim.env import CosimParallelEnv
+
+    cfg = TrainConfig(**cfg_dict)
+    return CosimParallelEnv(
+        cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
+        seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
+        horizon=cfg.horizon, terminate_on_collision=True,
+    )
+
+
+class _EpisodeTap:
+    """Forwards a ParallelEnv and hands each agent's final ``info["episode"]`` to a callback."""
+
+    def __init__(self, env, on_episode: Callable[[str, dict], None]):
+        self.env, self.on_episode = env, on_episode
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    def reset(self, seed=None, options=None):
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, actions):
+        out = self.env.step(actions)
+        for agent, info in out[4].items():
+            if "episode" in info:
+                self.on_episode(agent, info["episode"])
+        return out
+
+
+# -- training -------------------------------------------------------------------------
+def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = None,
+          quiet: bool = False, progress: bool = True) -> Path:
+    """Run (or resume) one training run; return its folder."""
+    if resume is not None:
+        run = Path(resume)
+        cfg = load_run_config(run)
+        state_path = run / "state.json"
+        state = json.loads(state_path.read_text()) if state_path.exists() else None
+    else:
+        run = new_run_dir(out, cfg)
+        state = None
+    runlog = RunLog(run, cfg, state)
+    log.info("training %s on %s with %d ACs for %d steps -> %s", cfg.algo, cfg.env, cfg.agents,
+             cfg.steps, run)
+    try:
+        if runlog.env_steps >= cfg.steps:
+            log.info("run %s is already complete (%d steps)", run, runlog.env_steps)
+        elif cfg.algo in ASYNC_ALGOS:
+            _train_async(cfg, runlog, state is not None, quiet, progress)
+        else:
+            _train_sync(cfg, runlog, state is not None, quiet, progress)
+    finally:
+        runlog.close()
+        plot_convergence(run)
+    return run
+
+
+def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space) -> dict:
+    import agents as agents_pkg
+    from agents.registry import get_agent_class
+
+    cls = get_agent_class(cfg.algo)
+    config = cls.config_class.from_dict(cfg.agent_config)
+    out = {}
+    for k in range(cfg.agents):
+        aid = f"ac_{k}"
+        latest = run / "checkpoints" / aid / "latest.pt"
+        if resumed and latest.exists():
+            out[aid] = agents_pkg.load(latest)
+        else:
+            out[aid] = cls.from_spaces(obs_space, act_space, config, seed=cfg.seed + k)
+    return out
+
+
+def _bar(cfg: TrainConfig, runlog: RunLog, quiet: bool, progress: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=cfg.steps, initial=runlog.env_steps, unit="step", dynamic_ncols=True,
+                desc=f"{cfg.env} {cfg.algo}", disable=quiet or not progress, smoothing=0.05)
+
+
+def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_log: list) -> None:
+    mean = runlog.mean_recent()
+    bar.set_postfix_str(f"return {mean:8.1f}", refresh=False)
+    if quiet and time.monotonic() - last_log[0] > 30:
+        last_log[0] = time.monotonic()
+        rate = (step - last_log[1]) / 30.0 if last_log[1] else float("nan")
+        last_log[1] = step
+        print(f"[{cfg.algo} {cfg.env}] step {step}/{cfg.steps} recent mean return {mean:.1f} "
+              f"({rate:.0f} steps/s)", flush=True)
+
+
+def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    from agents.loop import run_loop
+
+    start_step = runlog.env_steps
+    env = _EpisodeTap(make_env(cfg.to_dict()), lambda a, s: runlog.episode(a, s, step_now[0]))
+    step_now = [start_step]
+    bar = _bar(cfg, runlog, quiet, progress)
+    last_log = [time.monotonic(), 0]
+    try:
+        agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
+                                   env.action_space("ac_0"))
+
+        def callback(step: int, stats, metrics) -> bool:
+            now = start_step + step
+            step_now[0] = now + 1
+            for aid, m in metrics.items():
+                runlog.metrics(aid, m, now)
+            bar.update(1)
+            if now % cfg.checkpoint_every == 0 or now >= cfg.steps:
+                runlog.checkpoint(agent_map, now, stats.summary())
+            _report(bar, runlog, cfg, now, quiet, last_log)
+            return now >= cfg.steps
+
+        # episodes after a resume get fresh seeds: seed + 100003 * (episodes so far)
+        first_seed = cfg.seed + 100_003 * sum(runlog.episodes.values())
+        step_now[0] = start_step + 1
+        run_loop(agent_map, env, total_steps=cfg.steps - start_step, callback=callback,
+                 seed=first_seed)
+    finally:
+        bar.close()
+        env.close()
+
+
+def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    from agents.registry import get_agent_class
+
+    if cfg.algo == "a3c":
+        from agents.a3c import train_a3c as trainer
+    else:
+        from agents.impala import train_impala as trainer
+    probe = make_env(cfg.to_dict())
+    obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
+    probe.close()
+    start_step = runlog.env_steps
+    initial = _load_or_build(cfg, runlog.run, resumed, obs_space, act_space) if resumed else None
+    config = get_agent_class(cfg.algo).config_class.from_dict(cfg.agent_config)
+    bar = _bar(cfg, runlog, quiet, progress)
+    last = {"step": start_step, "ckpt": start_step}
+    last_log = [time.monotonic(), 0]
+
+    def callback(p) -> bool:
+        now = start_step + int(p.env_steps)
+        for ep in p.episodes:
+            for aid, stats in getattr(ep, "extras", {}).items():
+                runlog.episode(aid, stats, now)
+        for aid in p.agents:
+            if p.metrics:
+                runlog.metrics(aid, p.metrics, now)
+        bar.update(max(now - last["step"], 0))
+        last["step"] = now
+        if now - last["ckpt"] >= cfg.checkpoint_every or now >= cfg.steps:
+            runlog.checkpoint(p.agents, now)
+            last["ckpt"] = now
+        _report(bar, runlog, cfg, now, quiet, last_log)
+        return now >= cfg.steps
+
+    kwargs = {"num_workers": cfg.workers} if cfg.algo == "a3c" else {"num_actors": cfg.workers}
+    if initial is not None:
+        kwargs["agents"] = initial
+    try:
+        trained = trainer(
+            functools.partial(make_env, cfg.to_dict()), obs_space, act_space,
+            agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=config,
+            total_steps=cfg.steps - start_step, seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
+            callback=callback, **kwargs,
+        )
+        runlog.checkpoint(trained, max(last["step"], runlog.env_steps))
+    finally:
+        bar.close()
+
+
+# -- plots --------------------------------------------------------------------------------
+def plot_convergence(run: Path, window: int = 10) -> Path | None:
+    """Mean episodic reward against env steps, per AC and their mean (the paper's Figure)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+
+    csv_path = Path(run) / "episodes.csv"
+    if not csv_path.exists():
+        return None
+    df = pd.read_csv(csv_path)
+    if df.empty:
+        return None
+    fig, ax = plt.subplots(figsize=(7, 4))
+    curves = []
+    for agent, g in df.groupby("agent"):
+        g = g.sort_values("env_step")
+        smooth = g["return"].rolling(window, min_periods=1).mean()
+        ax.plot(g["env_step"], smooth, lw=1, alpha=0.6, label=agent)
+        curves.append(pd.Series(smooth.to_numpy(), index=g["env_step"].to_numpy()))
+    grid = np.linspace(df["env_step"].min(), df["env_step"].max(), 100)
+    mean = np.nanmean([np.interp(grid, c.index, c.to_numpy()) for c in curves], axis=0)
+    ax.plot(grid, mean, color="k", lw=2.5, label="mean")
+    cfg = yaml.safe_load((Path(run) / "config.yaml").read_text())
+    ax.set_title(f"{cfg['algo'].upper()} on {cfg['env']}: convergence ({window}-episode mean)")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("episodic reward")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out = Path(run) / "convergence.png"
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
