@@ -48,8 +48,13 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import re
+import sys
+import tempfile
 import zlib
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -119,6 +124,40 @@ BOX_TRIANGLES = 12
 LIGHT = dict(lightDirection=(-0.4, -0.3, 1.0), lightAmbientCoeff=0.65,
              lightDiffuseCoeff=0.4, lightSpecularCoeff=0.0)
 MAX_MESH_VERTICES = 30000  # per visual shape; pybullet refuses very large meshes
+
+
+SOFTWARE_GL = r"llvmpipe|softpipe|swrast|swiftshader"  # GL_RENDERER names of CPU rasterisers
+
+
+class _CapturedStdout:
+    """Redirect the process-level stdout (fd 1, where C code prints) to a temporary file."""
+
+    def __enter__(self) -> _CapturedStdout:
+        sys.stdout.flush()
+        self._file = tempfile.TemporaryFile(mode="w+b")
+        self._saved = os.dup(1)
+        os.dup2(self._file.fileno(), 1)
+        self.text = ""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            sys.stdout.flush()
+        finally:
+            os.dup2(self._saved, 1)
+            os.close(self._saved)
+        self._file.seek(0)
+        self.text = self._file.read().decode(errors="replace")
+        self._file.close()
+
+
+def write_obj(path: Path, vertices: np.ndarray, triangles: np.ndarray,
+              normals: np.ndarray) -> None:
+    """A Wavefront OBJ of one mesh (vertex normals, 1-based faces)."""
+    lines = [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in vertices]
+    lines += [f"vn {x:.4f} {y:.4f} {z:.4f}" for x, y, z in normals]
+    lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in np.asarray(triangles) + 1]
+    Path(path).write_text("\n".join(lines) + "\n")
 
 
 def _pybullet():
@@ -671,6 +710,8 @@ class Mirror:
         self.vehicle = VehicleParams()
         self._p = _pybullet()
         self._client: int | None = None
+        self._tmpdir: tempfile.TemporaryDirectory | None = None
+        self._egl_plugin = -1
         self._warned_overflow = False
         cid = self._p.connect(self._p.DIRECT)
         if cid < 0:
@@ -791,6 +832,9 @@ class Mirror:
             self._p.disconnect(physicsClientId=cid)
         except self._p.error as exc:  # already gone (e.g. the server died): nothing to free
             log.debug("pybullet client %d was already disconnected: %s", cid, exc)
+        if self._tmpdir is not None:
+            self._tmpdir.cleanup()
+            self._tmpdir = None
 
     def __enter__(self) -> Mirror:
         return self
@@ -802,10 +846,18 @@ class Mirror:
     def _select_renderer(self, renderer: str) -> str:
         if renderer == "tiny":
             return "tiny"
-        ok, why = self._load_egl()
+        ok, why, gl = self._load_egl()
+        software = bool(re.search(SOFTWARE_GL, gl, re.IGNORECASE))
+        if ok and software and renderer == "auto":
+            # Mesa's CPU rasteriser behind EGL is far slower than TinyRenderer
+            self._p.unloadPlugin(self._egl_plugin, physicsClientId=self._client)
+            log.info("mirror renders with TinyRenderer (CPU): EGL is software (%s)", gl)
+            return "tiny"
         if ok:
-            if renderer == "auto":
-                log.info("mirror renders with EGL (GPU)")
+            if software:
+                log.warning("EGL renders in software (%s): slower than renderer='tiny'", gl)
+            else:
+                log.info("mirror renders with EGL (%s)", gl or "GPU")
             return "egl"
         if renderer == "egl":
             raise SimulatorUnavailable(
@@ -816,40 +868,54 @@ class Mirror:
         log.info("mirror renders with TinyRenderer (CPU): EGL unavailable (%s)", why)
         return "tiny"
 
-    def _load_egl(self) -> tuple[bool, str]:
+    def _load_egl(self) -> tuple[bool, str, str]:
         """Load the EGL plugin before any visual shape exists (shapes made earlier are not
-        uploaded to it)."""
+        uploaded to it). Returns (ok, why not, GL_RENDERER as the plugin printed it)."""
         import importlib.util
 
         spec = importlib.util.find_spec("eglRenderer")
         if spec is None or not spec.origin:
-            return False, "module eglRenderer not found"
-        plugin = self._p.loadPlugin(spec.origin, "_eglRendererPlugin",
-                                    physicsClientId=self._client)
-        if plugin < 0:
-            return False, "loadPlugin failed"
-        try:  # a plugin that loads on a machine without a usable EGL device renders nothing
-            img = self._p.getCameraImage(8, 8, renderer=self._p.ER_BULLET_HARDWARE_OPENGL,
-                                         physicsClientId=self._client)
-            ok = img is not None and len(img) >= 3
-        except self._p.error as exc:
-            ok, why = False, f"test render failed: {exc}"
-        else:
-            why = "" if ok else "test render returned nothing"
-        if not ok:
-            self._p.unloadPlugin(plugin, physicsClientId=self._client)
-        return ok, why
+            return False, "module eglRenderer not found", ""
+        # the plugin prints its GL vendor/renderer on the C stdout: read it, and keep it
+        # out of the user's console
+        with _CapturedStdout() as out:
+            plugin = self._p.loadPlugin(spec.origin, "_eglRendererPlugin",
+                                        physicsClientId=self._client)
+            ok, why = plugin >= 0, "" if plugin >= 0 else "loadPlugin failed"
+            if ok:
+                try:  # a plugin that loads without a usable EGL device fails to render
+                    img = self._p.getCameraImage(8, 8, renderer=self._p.ER_BULLET_HARDWARE_OPENGL,
+                                                 physicsClientId=self._client)
+                    ok = img is not None and len(img) >= 3
+                    why = "" if ok else "test render returned nothing"
+                except self._p.error as exc:
+                    ok, why = False, f"test render failed: {exc}"
+                if not ok:
+                    self._p.unloadPlugin(plugin, physicsClientId=self._client)
+        self._egl_plugin = plugin
+        match = re.search(r"GL_RENDERER=(.*)", out.text)
+        return ok, why, match.group(1).strip() if match else ""
 
     def _build_static(self, meshes: dict[str, _Mesh]) -> int:
         """One visual-only body per material (and per MAX_MESH_VERTICES); returns triangles."""
         p, cid = self._p, self._client
         triangles = 0
         for name, mesh in meshes.items():
-            for verts, tris, normals in mesh.chunks():
-                shape = p.createVisualShape(
-                    p.GEOM_MESH, vertices=verts.tolist(), indices=tris.ravel().tolist(),
-                    normals=normals.tolist(), rgbaColor=COLORS[name], physicsClientId=cid,
-                )
+            for k, (verts, tris, normals) in enumerate(mesh.chunks()):
+                if self.renderer == "egl":
+                    # the EGL plugin only draws meshes read from files (in-memory vertices
+                    # give "issue extracting mesh" and nothing on screen)
+                    if self._tmpdir is None:
+                        self._tmpdir = tempfile.TemporaryDirectory(prefix="cosim_mirror_")
+                    path = Path(self._tmpdir.name) / f"{name}_{k}.obj"
+                    write_obj(path, verts, tris, normals)
+                    shape = p.createVisualShape(p.GEOM_MESH, fileName=str(path),
+                                                rgbaColor=COLORS[name], physicsClientId=cid)
+                else:
+                    shape = p.createVisualShape(
+                        p.GEOM_MESH, vertices=verts.tolist(), indices=tris.ravel().tolist(),
+                        normals=normals.tolist(), rgbaColor=COLORS[name], physicsClientId=cid,
+                    )
                 body = p.createMultiBody(0, baseCollisionShapeIndex=-1,
                                          baseVisualShapeIndex=shape, physicsClientId=cid)
                 if name in GROUND_LAYERS:

@@ -366,7 +366,7 @@ class RunLog:
                 _atomic_save(agent, folder / "best.pt")
         self.env_steps = env_step
         state = {"env_steps": env_step, "episodes": self.episodes, "best": self.best,
-                 "csv_rows": self.rows, "elapsed_s": self.elapsed}
+                 "csv_rows": self.rows, "elapsed_s": self.elapsed, "timing": extra_time or {}}
         _atomic_write(self.run / "state.json", json.dumps(state, indent=2))
         for name, value in (extra_time or {}).items():
             self.tb.add_scalar(name, value, env_step)

@@ -350,13 +350,38 @@ def test_bad_arguments_name_the_fix():
 
 def test_egl_unavailable_raises_and_auto_falls_back(monkeypatch, caplog):
     rm = road_map(load_scenario("env_1"))
-    monkeypatch.setattr(Mirror, "_load_egl", lambda self: (False, "no EGL device"))
+    monkeypatch.setattr(Mirror, "_load_egl", lambda self: (False, "no EGL device", ""))
     with pytest.raises(SimulatorUnavailable, match="renderer='tiny'"):
         Mirror(rm, renderer="egl")
     with caplog.at_level(logging.INFO, logger="cosim.mirror"):
         with Mirror(rm, renderer="auto", max_cars=1, max_pedestrians=1) as m:
             assert m.renderer == "tiny"
     assert any("TinyRenderer" in r.getMessage() for r in caplog.records)
+
+
+def test_egl_draws_the_meshes_like_tinyrenderer():
+    """Where the EGL plugin loads (a GPU, or Mesa's llvmpipe on a CPU box) it draws the
+    static meshes, read from OBJ files, in the colours TinyRenderer uses."""
+    rm = road_map(load_scenario("env_1"))
+    try:
+        m = Mirror(rm, renderer="egl", max_cars=2, max_pedestrians=2)
+    except SimulatorUnavailable as exc:
+        pytest.skip(f"no EGL here: {exc}")
+    with m:
+        m.sync(snapshot(cars=[(POSE[0] + 10.0, POSE[1], 0.0)]))
+        img = m.cameras([POSE])[0]
+        assert img.shape == (84, 84, 3)
+        assert road_mask(img[50:, 20:64]).mean() > 0.7
+        assert blue_mask(img[30:55, 30:54]).sum() > 80
+        assert road_mask(img[:30]).sum() == 0
+
+
+def test_auto_never_picks_software_egl(monkeypatch):
+    rm = road_map(load_scenario("env_1"))
+    monkeypatch.setattr(Mirror, "_load_egl", lambda self: (True, "", "llvmpipe (LLVM 15)"))
+    monkeypatch.setattr(pybullet, "unloadPlugin", lambda *a, **k: None)
+    with Mirror(rm, renderer="auto", max_cars=1, max_pedestrians=1) as m:
+        assert m.renderer == "tiny"
 
 
 def test_missing_pybullet_is_reported_at_construction(monkeypatch):
