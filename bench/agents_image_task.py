@@ -40,16 +40,10 @@ CONFIGS = {
         "default", batch_size=32, buffer_size=20_000, learning_starts=1_000, train_freq=4,
         gradient_steps=1, target_update_interval=500, exploration_steps=5_000,
     ),
-    "ddpg": DDPGConfig.preset(
-        "default", batch_size=32, buffer_size=20_000, learning_starts=1_000, train_freq=4,
-        actor_learning_rate=3e-4, critic_learning_rate=3e-4,
-    ),
-    "td3": TD3Config.preset(
-        "default", batch_size=32, buffer_size=20_000, learning_starts=1_000, train_freq=4,
-        actor_learning_rate=3e-4, critic_learning_rate=3e-4,
-    ),
+    "ddpg": DDPGConfig.preset("default", batch_size=32, buffer_size=20_000, learning_starts=1_000, train_freq=2),
+    "td3": TD3Config.preset("default", batch_size=32, buffer_size=20_000, learning_starts=1_000, train_freq=2),
 }
-BUDGETS = {"ppo": 40_000, "dqn": 20_000, "ddpg": 20_000, "td3": 20_000}
+BUDGETS = {"ppo": 20_000, "dqn": 10_000, "ddpg": 10_000, "td3": 10_000}
 
 
 def grid_score(agent, continuous: bool) -> float:

@@ -5,7 +5,7 @@ times ``Mirror.cameras`` for 1, 3 and 6 ACs and ``Mirror.sync``. Each figure is 
 median over repeated batches; CPU time of this process is reported next to wall
 time because the wall clock on a shared machine includes other people's work.
 
-    python bench/mirror_render.py [--scenario env_3] [--size 84] [--steps 150]
+    python bench/mirror_render.py [--scenario env_3] [--size 84] [--steps 150] [--ground-meshes]
 """
 
 from __future__ import annotations
@@ -43,6 +43,9 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    ap.add_argument("--ground-meshes", action="store_true",
+                    help="for comparison: TinyRenderer draws road/sidewalk/marking meshes "
+                         "instead of the GroundRaster")
     args = ap.parse_args()
 
     world = World(args.scenario)
@@ -58,6 +61,9 @@ def main() -> None:
     mirror = Mirror(world.roadmap, image_size=args.size)
     build_s = time.perf_counter() - t0
     try:
+        if args.ground_meshes:
+            mirror._ground = None  # private switch, for this comparison only
+            mirror._show_ground_meshes(True)
         mirror.sync(snapshot)
         sync_wall, sync_cpu = timed(lambda: mirror.sync(snapshot), args.calls, args.repeats)
         rows = []
