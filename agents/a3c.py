@@ -24,7 +24,6 @@ norm clipped before the shared step.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import logging
 import time
@@ -50,6 +49,7 @@ from agents.workers import (
     categorical_policy,
     get_context,
     make_parallel_env,
+    private_copy,
     worker_seed,
 )
 
@@ -282,7 +282,7 @@ def _a3c_worker(
     env = make_parallel_env(env_fn)
     try:
         runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index)
-        local_models = {aid: _clone(shared_models[aid]) for aid in agent_ids}
+        local_models = {aid: private_copy(shared_models[aid]) for aid in agent_ids}
         generator = torch.Generator().manual_seed(seed)
         policies = {aid: categorical_policy(local_models[aid], generator) for aid in agent_ids}
         while not link.should_stop() and global_steps.value < total_steps:
@@ -303,14 +303,6 @@ def _a3c_worker(
     finally:
         if hasattr(env, "close"):
             env.close()
-
-
-def _clone(shared: nn.Module) -> nn.Module:
-    """A private (not shared-memory) copy of ``shared`` for one worker."""
-    local = copy.deepcopy(shared)
-    for p in local.parameters():
-        p.data = p.data.clone()  # deepcopy of shared storage stays shared; detach it
-    return local
 
 
 def train_a3c(

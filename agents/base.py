@@ -29,6 +29,8 @@ import gymnasium
 import numpy as np
 import torch
 
+from agents.networks import obs_to_tensor
+
 __all__ = ["Agent", "AgentConfig", "check_range", "seeded_init"]
 
 logger = logging.getLogger(__name__)
@@ -256,8 +258,6 @@ class Agent(abc.ABC):
                 f"{self.algo} agent expected an observation of shape {self.observation_space.shape}, "
                 f"got {array.shape}; pass one observation at a time"
             )
-        from agents.networks import obs_to_tensor
-
         return obs_to_tensor(array[None], self.device)
 
     def __repr__(self) -> str:

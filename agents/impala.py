@@ -24,7 +24,6 @@ Loss per batch (means over steps; RLlib 0.8, which the paper used, sums):
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import logging
 import time
@@ -50,6 +49,7 @@ from agents.workers import (
     categorical_policy,
     get_context,
     make_parallel_env,
+    private_copy,
     worker_seed,
 )
 
@@ -280,7 +280,7 @@ def _impala_actor(
     env = make_parallel_env(env_fn)
     try:
         runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index)
-        local_models = {aid: _private_copy(published[aid]) for aid in agent_ids}
+        local_models = {aid: private_copy(published[aid]) for aid in agent_ids}
         generator = torch.Generator().manual_seed(seed)
         policies = {aid: categorical_policy(local_models[aid], generator) for aid in agent_ids}
         local_version, unrolls = -1, 0
@@ -298,14 +298,6 @@ def _impala_actor(
     finally:
         if hasattr(env, "close"):
             env.close()
-
-
-def _private_copy(shared: nn.Module) -> nn.Module:
-    """A private (not shared-memory) copy of ``shared`` for one actor."""
-    local = copy.deepcopy(shared)
-    for p in local.parameters():
-        p.data = p.data.clone()
-    return local
 
 
 def _publish(agents: dict[str, IMPALA], published: dict[str, nn.Module], policy_version) -> None:
@@ -361,7 +353,7 @@ def train_impala(
         for k, aid in enumerate(agent_ids)
     }
     # The actors read these copies, never the learner's own weights mid-update.
-    published = {aid: _private_copy(agent.model).share_memory() for aid, agent in agents.items()}
+    published = {aid: private_copy(agent.model).share_memory() for aid, agent in agents.items()}
 
     context = get_context(start_method, preload=[__name__])
     policy_version = context.Value("q", 0)

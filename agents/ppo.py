@@ -139,7 +139,7 @@ class PPO(Agent):
             with torch.no_grad():
                 logits, value = self.net(self.obs_batch(obs))
             log_prob = torch.log_softmax(logits, -1)[0, action].item()
-            self._cache = (action, log_prob, value.item(), logits[0].numpy())
+            self._cache = (action, log_prob, value.item(), logits[0].cpu().numpy())
         _, log_prob, value, logits = self._cache
         self._cache = None
         t = self.buffer.add(obs, action, log_prob, value, reward, terminated, truncated, logits)

@@ -166,8 +166,8 @@ class TD3(Agent):
             # Target policy smoothing: clipped noise on the target action (0 for DDPG).
             noise = torch.randn(data.actions.shape, generator=self.generator, device=self.device)
             noise = (noise * cfg.target_policy_noise).clamp(-cfg.target_noise_clip, cfg.target_noise_clip)
-            next_actions = self.actor_target(data.next_obs) + noise * scale
-            next_actions = torch.max(torch.min(next_actions, self.actor.action_bias + scale), self.actor.action_bias - scale)
+            low, high = self.actor.action_bias - scale, self.actor.action_bias + scale
+            next_actions = (self.actor_target(data.next_obs) + noise * scale).clamp(low, high)
             qf_next_target = self.critic_target(data.next_obs, next_actions).min(dim=0).values
             next_q_value = data.rewards + cfg.gamma * (1.0 - data.terminateds) * qf_next_target
 

@@ -29,6 +29,7 @@ their own when their parent dies.
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import queue
@@ -57,6 +58,7 @@ __all__ = [
     "get_context",
     "live_pids",
     "make_parallel_env",
+    "private_copy",
     "worker_seed",
 ]
 
@@ -600,6 +602,18 @@ def make_parallel_env(env_fn: Callable[[], Any]):
         f"env_fn returned {type(env).__name__}, which is neither a ParallelEnv (no "
         "possible_agents) nor a gymnasium.Env; return one of those from env_fn"
     )
+
+
+def private_copy(module: torch.nn.Module) -> torch.nn.Module:
+    """A copy of ``module`` with its own (not shared-memory) parameter storage.
+
+    A worker acts with such a copy and refreshes it from the shared module with
+    ``load_state_dict``, so the shared weights never change under its forward pass.
+    """
+    local = copy.deepcopy(module)
+    for param in local.parameters():
+        param.data = param.data.clone()  # never alias the shared storage, whatever deepcopy did
+    return local
 
 
 def categorical_policy(model: torch.nn.Module, generator: torch.Generator) -> Policy:

@@ -79,23 +79,28 @@ def ours(algo: str, seed: int = 0) -> Throughput:
     if algo == "ppo":
         agent = PPO.from_spaces(env.observation_space, env.action_space,
                                 PPOConfig(rollout_steps=512, batch_size=BATCH[algo], epochs=4), seed=seed)
-        timer = _Timer(agent, "_minibatch_step")
     elif algo == "dqn":
         agent = DQN.from_spaces(env.observation_space, env.action_space, DQNConfig(
             batch_size=BATCH[algo], buffer_size=10_000, learning_starts=LEARNING_STARTS, train_freq=4,
             gradient_steps=1, target_update_interval=500, learning_rate=1e-4,
             # SB3's schedule: epsilon 1 -> 0.05 over the first 10% of the run (random actions skip the network)
             exploration_steps=BUDGET[algo] // 10, exploration_final_eps=0.05), seed=seed)
-        timer = _Timer(agent, "_gradient_step")
     else:
         agent = TD3.from_spaces(env.observation_space, env.action_space, TD3Config(
             batch_size=BATCH[algo], buffer_size=10_000, learning_starts=LEARNING_STARTS, train_freq=1),
             seed=seed)
-        timer = _Timer(agent, "_gradient_step")
+    # Time the whole learning phase (update(): GAE / replay sampling + gradient steps), as
+    # SB3's train() is timed below; update() calls that do not learn return at once.
+    timer = _Timer(agent, "update")
     start = time.perf_counter()
     run_loop({"agent_0": agent}, SingleAgentParallel(env), BUDGET[algo], seed=seed)
     wall = time.perf_counter() - start
-    return Throughput("cosim agents", algo, BUDGET[algo], timer.calls, wall, timer.seconds)
+    if algo == "ppo":
+        cfg = agent.config
+        updates = agent.iterations * cfg.epochs * (cfg.rollout_steps // cfg.batch_size)
+    else:
+        updates = agent.gradient_updates
+    return Throughput("cosim agents", algo, BUDGET[algo], updates, wall, timer.seconds)
 
 
 def sb3(algo: str, seed: int = 0) -> Throughput:

@@ -78,7 +78,8 @@ def main() -> None:
             "triangles_total": mirror.triangle_count,
             "triangles_static": mirror._static_triangles,
             # road, sidewalk and marking meshes are hidden from TinyRenderer (GroundRaster)
-            "triangles_static_tiny": mirror._static_triangles - mirror._ground_triangles,
+            "triangles_static_tiny": mirror._static_triangles - (
+                0 if args.ground_meshes else mirror._ground_triangles),
             "ground_raster_mb": mirror._ground.nbytes / 1e6 if mirror._ground else 0.0,
             "build_s": build_s,
             "cars_in_view": int(len(snapshot.vehicle_ids)),

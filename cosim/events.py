@@ -9,6 +9,7 @@ its own). Both are rasterised once per scenario (:mod:`cosim.roadmap`).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -60,16 +61,20 @@ class Events:
         return d
 
 
-def _batch_corners(xy: np.ndarray, heading: np.ndarray, length, width) -> np.ndarray:
-    """Corners (n, 4, 2) of n oriented rectangles (counter-clockwise, like rect_corners)."""
-    c, s = np.cos(heading), np.sin(heading)
-    hl = np.broadcast_to(np.asarray(length, dtype=float) / 2, c.shape)
-    hw = np.broadcast_to(np.asarray(width, dtype=float) / 2, c.shape)
-    lx = np.stack([hl, hl, -hl, -hl], axis=1)
-    ly = np.stack([-hw, hw, hw, -hw], axis=1)
-    x = xy[:, 0:1] + lx * c[:, None] - ly * s[:, None]
-    y = xy[:, 1:2] + lx * s[:, None] + ly * c[:, None]
-    return np.stack([x, y], axis=2)
+@functools.lru_cache(maxsize=16)
+def _local_corners(length: float, width: float) -> tuple[np.ndarray, np.ndarray]:
+    hl, hw = length / 2, width / 2
+    return np.array([hl, hl, -hl, -hl]), np.array([-hw, hw, hw, -hw])
+
+
+def _batch_corners(xy: np.ndarray, heading: np.ndarray, length: float, width: float) -> np.ndarray:
+    """Corners (n, 4, 2) of n equal oriented rectangles (counter-clockwise, like rect_corners)."""
+    lx, ly = _local_corners(float(length), float(width))
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    out = np.empty((len(xy), 4, 2))
+    out[:, :, 0] = xy[:, 0:1] + c * lx - s * ly
+    out[:, :, 1] = xy[:, 1:2] + s * lx + c * ly
+    return out
 
 
 def detect_all(

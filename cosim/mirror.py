@@ -8,7 +8,7 @@ SUMO simulates the traffic; the mirror only draws it. One :class:`Mirror` owns o
   junction polygons), lane markings (white dashes between lanes of one direction,
   a yellow centre line between opposite directions), raised sidewalks, zebra
   crossings and the road objects as extruded prisms; one visual-only body per
-  material (no collision shapes), ~10 bodies and 1-2k triangles per scenario;
+  material (no collision shapes), ~10 bodies and 0.8-1.6k triangles per scenario;
 - a fixed pool of boxes: red ACs, blue background cars, orange pedestrians. Each
   :meth:`Mirror.sync` re-poses them; unused ones are parked far below the ground
   and made transparent, which TinyRenderer skips at no cost. Bodies are never
@@ -805,7 +805,7 @@ class Mirror:
             extent = 1.04 * max(xmax - xmin, (ymax - ymin) * w / h)
         half_w, half_h = extent / 2, extent / 2 * h / w
         # TinyRenderer needs a perspective matrix: a narrow one from far above is nearly
-        # orthographic (buildings lean < 1 degree).
+        # orthographic (the region edge is seen 1.4 degrees off vertical).
         height = 40.0 * max(half_w, half_h)
         near = height - 60.0
         k = near / height
