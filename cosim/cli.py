@@ -52,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_args(d, steps=300)
     d.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.add_argument("--gui", action="store_true", help="watch it in sumo-gui (needs a display)")
     d.set_defaults(func=cmd_drive)
 
     v = sub.add_parser("view", help="write camera mosaics and GIFs of what the ACs see")
@@ -118,7 +119,8 @@ def cmd_drive(args) -> int:
     rng = np.random.default_rng(args.seed)
     counts: Counter = Counter()
     with World(args.scenario, args.agents, background=not args.no_background,
-               pedestrians=not args.no_pedestrians) as world:
+               pedestrians=not args.no_pedestrians,
+               backend="gui" if args.gui else "auto") as world:
         world.reset(seed=args.seed)
         sc = world.scenario
         print(f"{sc.name} ({sc.title}): {world.num_acs} ACs, {args.steps} steps of {sc.dt} s, "

@@ -124,8 +124,10 @@ class SumoBridge:
 
     def __init__(self, scenario: Scenario, *, background: bool = True, pedestrians: bool = True,
                  backend: str = "auto"):
-        if backend not in ("auto", "libsumo", "traci"):
-            raise ValueError(f"backend must be 'auto', 'libsumo' or 'traci', got {backend!r}")
+        if backend not in ("auto", "libsumo", "traci", "gui"):
+            raise ValueError(
+                f"backend must be 'auto', 'libsumo', 'traci' or 'gui' (sumo-gui viewer), got {backend!r}"
+            )
         self.scenario = scenario
         self.backend = backend
         self._errors: tuple[type[BaseException], ...] = (RuntimeError,)
@@ -190,7 +192,7 @@ class SumoBridge:
                 "process still has one open; close() it first, use backend='traci', or run "
                 "environments in worker processes (one simulation per process)"
             )
-        use_traci = self.backend == "traci" or libsumo_busy
+        use_traci = self.backend in ("traci", "gui") or libsumo_busy
         try:
             if use_traci:
                 self._start_traci(seed)
@@ -220,11 +222,13 @@ class SumoBridge:
                 "a second SUMO simulation in this process runs through TraCI (slower than "
                 "libsumo); use one environment per process for speed"
             )
-        binary = str(Path(sumo.__file__).parent / "bin" / "sumo")
+        gui = self.backend == "gui"
+        binary = str(Path(sumo.__file__).parent / "bin" / ("sumo-gui" if gui else "sumo"))
         label = f"cosim-{id(self)}-{next(_labels)}"
         self._errors = (TraCIException, FatalTraCIError)
         self._running = True
-        traci.start([binary] + self.command(seed)[1:], label=label)
+        extra = ["--start", "--quit-on-end", "--delay", "50"] if gui else []
+        traci.start([binary] + self.command(seed)[1:] + extra, label=label)
         self._ls = traci.getConnection(label)
 
     def _subscribe(self) -> None:
