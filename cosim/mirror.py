@@ -244,7 +244,8 @@ def _cut(shape: np.ndarray, s0: float, s1: float, max_len: float | None = None) 
 
 
 def _left_normals(points: np.ndarray) -> np.ndarray:
-    """Unit left normals at each point of a polyline, mitred at the joints."""
+    """Left normals at each point of a polyline, mitred at the joints (longer than 1 in a
+    bend, so a ribbon keeps its width)."""
     d = np.diff(points, axis=0)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     seg_n = np.column_stack([-d[:, 1], d[:, 0]])
