@@ -289,12 +289,19 @@ class QEnsemble(nn.Module):
         self.register_buffer("action_scale", (high - low) / 2.0)
         self.register_buffer("action_bias", (high + low) / 2.0)
 
+    def encode(self, obs: torch.Tensor) -> torch.Tensor:
+        """Observation features shared by the heads (the CNN output for images)."""
+        return self.encoder(obs if isinstance(self.encoder, NatureCNN) else obs.float())
+
+    def q_from_features(self, features: torch.Tensor, action: torch.Tensor, head: int) -> torch.Tensor:
+        """``Q_head`` ``(B,)`` from precomputed :meth:`encode` features."""
+        normalised = (action.float() - self.action_bias) / self.action_scale
+        return self.heads[head](torch.cat([features, normalised], dim=-1)).squeeze(-1)
+
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Return ``Q_i(obs, action)`` stacked to shape ``(n_critics, B)``."""
-        features = self.encoder(obs if isinstance(self.encoder, NatureCNN) else obs.float())
-        normalised = (action.float() - self.action_bias) / self.action_scale
-        x = torch.cat([features, normalised], dim=-1)
-        return torch.stack([head(x).squeeze(-1) for head in self.heads])
+        features = self.encode(obs)
+        return torch.stack([self.q_from_features(features, action, i) for i in range(len(self.heads))])
 
 
 def _mlp(in_dim: int, hidden: tuple[int, ...], out_dim: int) -> nn.Sequential:

@@ -181,7 +181,11 @@ class TD3(Agent):
         metrics = {"losses/qf_loss": qf_loss.item(), "losses/qf_values": qf_values.mean().item()}
 
         if self.gradient_updates % cfg.policy_delay == 0:
-            actor_loss = -self.critic(data.obs, self.actor(data.obs))[0].mean()
+            # The actor's gradient reaches it through the action only: the critic's
+            # observation features need no graph (saves a CNN backward pass on images).
+            with torch.no_grad():
+                features = self.critic.encode(data.obs)
+            actor_loss = -self.critic.q_from_features(features, self.actor(data.obs), head=0).mean()
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
             self.actor_optimizer.step()

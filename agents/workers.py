@@ -23,8 +23,8 @@ Shutdown order (why it is safe): the parent sets the stop event, drains the
 queues while it joins (a child blocked on a full pipe could never exit
 otherwise), then ``terminate()`` (SIGTERM) the stragglers, then ``kill()``
 (SIGKILL). Workers ignore SIGINT, so a Ctrl-C in a terminal (delivered to the
-whole process group) is handled once, by the parent, and workers also stop on
-their own when their parent dies.
+whole process group) is handled once, by the parent. Workers also stop on
+their own when their parent dies, even by SIGKILL (Linux ``PR_SET_PDEATHSIG``).
 """
 
 from __future__ import annotations
@@ -180,12 +180,30 @@ class WorkerLink:
         return False
 
 
+def _die_with_parent() -> None:
+    """Ask Linux to SIGKILL this process when its parent dies (best effort).
+
+    Covers what the stop event cannot: a parent killed with SIGKILL while this
+    worker is stuck inside its simulator. Elsewhere (no prctl) workers still
+    notice a dead parent through :meth:`WorkerLink.should_stop`.
+    """
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
 def _worker_entry(target: Callable, link: WorkerLink, args: tuple, errors) -> None:
     """Body of every worker process: set up, run ``target``, report any exception."""
     # One intra-op thread per worker: N workers with N threads each oversubscribe the CPU.
     torch.set_num_threads(1)
     # The parent owns Ctrl-C; it tells us to stop through the event.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
     link.parent_pid = os.getppid()
     try:
         target(link, *args)

@@ -31,7 +31,9 @@ from agents.ppo import PPO, PPOConfig
 from agents.td3 import TD3, TD3Config
 
 BUDGET = {"ppo": 2048, "dqn": 3000, "td3": 2000}
-LEARNING_STARTS = 1000
+# Small, so both libraries act with their networks for most of the run (SB3 acts
+# uniformly at random before learning_starts; ours follows its epsilon schedule).
+LEARNING_STARTS = 200
 BATCH = {"ppo": 64, "dqn": 32, "td3": 32}
 
 
@@ -82,7 +84,7 @@ def ours(algo: str, seed: int = 0) -> Throughput:
     elif algo == "dqn":
         agent = DQN.from_spaces(env.observation_space, env.action_space, DQNConfig(
             batch_size=BATCH[algo], buffer_size=10_000, learning_starts=LEARNING_STARTS, train_freq=4,
-            gradient_steps=1, target_update_interval=500, learning_rate=1e-4,
+            gradient_steps=1, target_update_interval=500, learning_rate=1e-4, double_q=False,
             # SB3's schedule: epsilon 1 -> 0.05 over the first 10% of the run (random actions skip the network)
             exploration_steps=BUDGET[algo] // 10, exploration_final_eps=0.05), seed=seed)
     else:
@@ -132,7 +134,8 @@ def sb3(algo: str, seed: int = 0) -> Throughput:
     start = time.perf_counter()
     model.learn(total_timesteps=BUDGET[algo])
     wall = time.perf_counter() - start
-    return Throughput("stable-baselines3", algo, BUDGET[algo], timer.calls * per_train, wall, timer.seconds)
+    # SB3 finishes the rollout it is in, so count the steps it really took.
+    return Throughput("stable-baselines3", algo, model.num_timesteps, timer.calls * per_train, wall, timer.seconds)
 
 
 def main() -> None:

@@ -4,6 +4,8 @@
     cosim drive env_3 --agents 6            run the scripted drivers, print events (no cameras)
     cosim view env_3 --out view/            camera mosaic PNG + GIFs of what the ACs see
     cosim nets build | check                rebuild / check the SUMO networks
+    cosim train --algo ppo --env env_1      train N ACs of one algorithm together
+    cosim test --agents 6                   the test protocol (Scenario 1 and 2) and its report
 """
 
 from __future__ import annotations
@@ -86,6 +88,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue an interrupted run from its last checkpoint")
     t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
     t.set_defaults(func=cmd_train)
+    e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
+    e.add_argument("--agents", type=int, default=6,
+                   help="ACs in Scenario 1, one per algorithm in the order ppo a3c impala dqn ddpg td3")
+    e.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
+    e.add_argument("--scenario", choices=["1", "2", "both"], default="both")
+    e.add_argument("--episodes", type=int, default=3, help="episodes per environment and scenario")
+    e.add_argument("--steps", type=int, default=500, help="steps per episode")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
+                   help="trained checkpoints from --runs, or a reference driver")
+    e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")
+    e.add_argument("--out", type=Path, default=Path("reports"), help="report folder")
+    e.add_argument("--quiet", action="store_true")
+    e.set_defaults(func=cmd_test)
     return p
 
 
@@ -294,6 +310,47 @@ def cmd_train(args) -> int:
         for proc in running.values():
             proc.terminate()
     return 1 if failed else 0
+
+
+def cmd_test(args) -> int:
+    import datetime as dt
+
+    from tqdm import tqdm
+
+    from eval.protocol import (
+        ALGO_ORDER,
+        ProtocolError,
+        ProtocolPlan,
+        find_checkpoints,
+        policy_factory,
+        run_protocol,
+        write_report,
+    )
+
+    if not 1 <= args.agents <= 6:
+        print("cosim test: error: --agents must be 1..6 (one AC per algorithm)", file=sys.stderr)
+        return 2
+    scenarios = (1, 2) if args.scenario == "both" else (int(args.scenario),)
+    plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes,
+                    steps=args.steps, seed=args.seed, agents=args.agents)
+    algos = list(ALGO_ORDER[: args.agents])
+    try:
+        ckpts = find_checkpoints(args.runs, algos) if args.policy == "trained" else None
+        factory = policy_factory(args.policy, ckpts)
+    except ProtocolError as exc:
+        print(f"cosim test: error: {exc}", file=sys.stderr)
+        return 2
+    for algo, path in (ckpts or {}).items():
+        print(f"{algo:7s} {path}")
+    units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
+    bar = tqdm(total=units, disable=args.quiet, unit="run", desc="test")
+    records = run_protocol(plan, factory, algos, progress=lambda name: bar.update(1))
+    bar.close()
+    out = args.out / dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    written = write_report(records, out)
+    print((out / "report.md").read_text())
+    print("wrote:\n" + "\n".join(f"  {p}" for p in written))
+    return 0
 
 
 def cmd_nets(args) -> int:

@@ -71,9 +71,11 @@ RENDERERS = ("tiny", "egl", "auto")
 # Colours (RGBA). Lit surfaces come out at 0.6-1.0 of these (ambient + diffuse light).
 COLORS = {
     "road": (0.27, 0.27, 0.29, 1.0),
+    "junction": (0.27, 0.27, 0.29, 1.0),
     "white": (0.95, 0.95, 0.95, 1.0),
     "yellow": (0.95, 0.78, 0.10, 1.0),
     "sidewalk": (0.70, 0.70, 0.66, 1.0),
+    "walkingarea": (0.70, 0.70, 0.66, 1.0),
     "pole": (0.40, 0.43, 0.36, 1.0),  # olive grey: never mistaken for asphalt
     "guardrail": (0.80, 0.82, 0.86, 1.0),
     "building": (0.72, 0.52, 0.40, 1.0),
@@ -86,15 +88,19 @@ COLORS = {
 GRASS = (84, 140, 60)  # RGB of the backdrop below the horizon
 SKY_HORIZON, SKY_ZENITH = (205, 225, 245), (110, 160, 225)  # RGB of the sky backdrop
 # Bodies are drawn in creation order and TinyRenderer depth-tests before shading, so
-# occluders go first: pool boxes, objects, raised sidewalks, markings, then the road.
+# occluders go first: pool boxes, objects, raised sidewalks, markings, then the layers
+# under them.
 STATIC_ORDER = ("building", "pole", "guardrail", "sign", "object", "sidewalk", "white", "yellow",
-                "road")
+                "road", "walkingarea", "junction")
 OBJECT_HEIGHT = {"pole": 5.0, "guardrail": 0.8, "sign": 2.5, "object": 2.0}
 BUILDING_HEIGHTS = (8.0, 11.0, 14.0, 17.0, 20.0)  # picked per building by a hash of its id
 
 # Heights above the ground (z = 0): far enough apart that TinyRenderer's depth test
 # never confuses them at 100 m, low enough to look flat from 1.4 m.
-Z_ROAD, Z_MARK, Z_SIDEWALK = 0.03, 0.06, 0.15
+# Junction polygons, then walking areas, then lanes: SUMO's walking areas cover a
+# junction's corners but can also span the carriageway where a sidewalk meets a
+# junction without a crossing (env_4's roundabout entries); the lanes win there.
+Z_JUNCTION, Z_WALKINGAREA, Z_ROAD, Z_MARK, Z_SIDEWALK = 0.01, 0.02, 0.03, 0.06, 0.15
 MARK_WIDTH = 0.2  # metres; wider than real (0.12-0.15) so a line 10 m ahead still hits a pixel at 84x84
 CENTRE_WIDTH = 0.3  # metres of the yellow centre line (one line, read as a double one at 84 px)
 DASH, GAP = 3.0, 6.0  # metres of a dashed lane line
@@ -112,7 +118,7 @@ CAMERA_AHEAD = 0.15  # metres in front of the front bumper, so the AC's own box 
 CAMERA_PITCH = math.radians(-5.0)  # slightly down: more road, less sky
 NEAR, FAR = 0.2, 100.0
 # Layers TinyRenderer gets from the GroundRaster instead of meshes (EGL draws the meshes).
-GROUND_LAYERS = ("road", "sidewalk", "white", "yellow")
+GROUND_LAYERS = ("junction", "walkingarea", "road", "sidewalk", "white", "yellow")  # paint order
 GROUND_RES = 0.15  # metres per texel of the ground raster
 GROUND_MARGIN = 20.0  # metres of ground painted beyond the region (cameras stay inside it)
 MIP_LEVELS = 5
@@ -133,17 +139,22 @@ class _CapturedStdout:
     """Redirect the process-level stdout (fd 1, where C code prints) to a temporary file."""
 
     def __enter__(self) -> _CapturedStdout:
-        sys.stdout.flush()
-        self._file = tempfile.TemporaryFile(mode="w+b")
-        self._saved = os.dup(1)
-        os.dup2(self._file.fileno(), 1)
         self.text = ""
+        self._file = tempfile.TemporaryFile(mode="w+b")
+        try:
+            sys.stdout.flush()
+            self._saved = os.dup(1)
+            os.dup2(self._file.fileno(), 1)
+        except (OSError, ValueError):  # no usable fd 1 (closed, or a daemon): capture nothing
+            self._saved = None
         return self
 
     def __exit__(self, *exc) -> None:
-        try:
-            sys.stdout.flush()
-        finally:
+        if self._saved is not None:
+            try:
+                sys.stdout.flush()
+            except (OSError, ValueError):
+                pass
             os.dup2(self._saved, 1)
             os.close(self._saved)
         self._file.seek(0)
@@ -403,22 +414,20 @@ def _opposite(edge: str) -> str | None:
 def build_static(roadmap: RoadMap) -> dict[str, _Mesh]:
     """The region's static meshes, one per material (see the module docstring)."""
     meshes = {name: _Mesh.empty() for name in STATIC_ORDER}
-    junctions = list(roadmap.junctions.values())
     for lane in roadmap.lanes:
-        if lane.is_internal and _covered(lane, junctions):
-            continue  # the junction polygon paints it already; skip the overdraw
         v, t = ribbon(lane.shape, lane.width / 2, -lane.width / 2, Z_ROAD)
         meshes["road"].add(v, t, _up(v))
     for poly in roadmap.junctions.values():
-        v, t = flat_polygon(poly, Z_ROAD)
-        meshes["road"].add(v, t, _up(v))
+        v, t = flat_polygon(poly, Z_JUNCTION)
+        meshes["junction"].add(v, t, _up(v))
     _add_markings(meshes, roadmap.lanes)
     for walk in roadmap.sidewalks:
         if walk.is_internal:  # a walking area: its shape is the outline
-            v, t = flat_polygon(walk.shape, Z_SIDEWALK)
+            v, t = flat_polygon(walk.shape, Z_WALKINGAREA)
+            meshes["walkingarea"].add(v, t, _up(v))
         else:
             v, t = ribbon(walk.shape, walk.width / 2, -walk.width / 2, Z_SIDEWALK)
-        meshes["sidewalk"].add(v, t, _up(v))
+            meshes["sidewalk"].add(v, t, _up(v))
     for crossing in roadmap.crossings:
         half = crossing.width / 2 - 0.2
         v, t = dashes(crossing.shape, half, -half, Z_MARK, ZEBRA, ZEBRA)
@@ -432,33 +441,6 @@ def build_static(roadmap: RoadMap) -> dict[str, _Mesh]:
         v, t, n = prism(obj.polygon, height)
         meshes[kind].add(v, t, n)
     return meshes
-
-
-def _inside(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """Even-odd rule: which of points (k, 2) lie inside a polygon (m, 2)."""
-    x, y = points[:, 0:1], points[:, 1:2]
-    ax, ay = polygon[:, 0], polygon[:, 1]
-    bx, by = np.roll(ax, -1), np.roll(ay, -1)
-    straddle = (ay > y) != (by > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_cross = ax + (y - ay) * (bx - ax) / (by - ay)
-    return np.count_nonzero(straddle & (x < x_cross), axis=1) % 2 == 1
-
-
-def _covered(lane: LaneInfo, polygons: list[np.ndarray]) -> bool:
-    """Whether a lane's surface (80% of its width, the ends left out) lies inside the polygons."""
-    if not polygons:
-        return False
-    length = float(np.linalg.norm(np.diff(lane.shape, axis=0), axis=1).sum())
-    # the lane's ends lie on the junction's border: test its inside only
-    v, _ = ribbon(lane.shape, 0.4 * lane.width, -0.4 * lane.width, 0.0, 0.5, length - 0.5)
-    if len(v) == 0:
-        return True
-    pts = v[:, :2]
-    inside = np.zeros(len(pts), bool)
-    for poly in polygons:
-        inside |= _inside(pts, poly)
-    return bool(inside.all())
 
 
 def _add_markings(meshes: dict[str, _Mesh], lanes: list[LaneInfo]) -> None:

@@ -22,15 +22,15 @@ import numpy as np
 import pandas as pd
 
 METRICS = ("CV", "CO", "CP", "OS", "TTFC", "SPEED", "DISTANCE")
-KEYS = ["episode", "agent"]
+KEYS = ["episode", "agent", "algorithm"]
 
 
 def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
     """One row per (episode, agent) with the SPEC §4 metrics, return and length."""
     if records.empty:
-        return pd.DataFrame(columns=[*KEYS, "algorithm", *METRICS, "return", "steps"])
+        return pd.DataFrame(columns=[*KEYS, *METRICS, "return", "steps"])
     rows = []
-    for (episode, agent), g in records.groupby(KEYS, sort=True):
+    for (episode, agent, algorithm), g in records.groupby(KEYS, sort=True):
         g = g.sort_values("step")
         n = len(g)
         others = bool((g["n_vehicles"] > 0).any())
@@ -42,7 +42,7 @@ def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
         rows.append({
             "episode": episode,
             "agent": agent,
-            "algorithm": last.algorithm,
+            "algorithm": algorithm,
             "CV": g["collision_vehicle"].mean() if others else np.nan,
             "CO": g["collision_object"].mean(),
             "CP": g["collision_pedestrian"].mean() if peds else np.nan,

@@ -1,0 +1,257 @@
+"""The test protocol (SPEC §6) and its report (SPEC §7).
+
+Scenario 1 (multi-agent): the trained ACs, one per algorithm, drive together in
+each environment among background cars (and pedestrians in env_2/env_3);
+discrete and continuous agents share one environment.
+Scenario 2 (single-agent): each AC alone, no other vehicles, no pedestrians.
+
+Collisions do not end an episode in testing (the metrics count steps in
+collision). Every step of every AC is recorded (:mod:`eval.records`); metrics,
+tables and plots are computed from those records.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from eval.metrics import METRICS, episode_metrics, speed_curve, success_rates, summarize
+from eval.records import save
+from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
+
+log = logging.getLogger(__name__)
+
+ALGO_ORDER = ("ppo", "a3c", "impala", "dqn", "ddpg", "td3")
+CONTINUOUS = ("ddpg", "td3")
+ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
+
+
+class ProtocolError(ValueError):
+    """The test cannot run as asked; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class ProtocolPlan:
+    envs: tuple[str, ...] = ENVS
+    scenarios: tuple[int, ...] = (1, 2)
+    episodes: int = 3
+    steps: int = 500
+    seed: int = 0
+    agents: int = 6
+
+
+def find_checkpoints(runs: Path, algos: Sequence[str]) -> dict[str, Path]:
+    """The newest run of each algorithm under `runs`; its ac_0 best (else latest) checkpoint."""
+    found: dict[str, Path] = {}
+    runs = Path(runs)
+    folders = sorted(runs.glob("*__*__*__*"), key=lambda p: p.stat().st_mtime, reverse=True) if runs.exists() else []
+    for algo in algos:
+        for run in folders:
+            if run.name.split("__")[1] != algo:
+                continue
+            for name in ("best.pt", "latest.pt"):
+                ckpt = run / "checkpoints" / "ac_0" / name
+                if ckpt.exists():
+                    found[algo] = ckpt
+                    break
+            if algo in found:
+                break
+    missing = [a for a in algos if a not in found]
+    if missing:
+        raise ProtocolError(
+            f"no trained checkpoint under {runs} for {', '.join(missing)}; train them with "
+            f"`cosim train --algo {missing[0]}` (or --algo all), or test a reference with "
+            "--policy autopilot / --policy random"
+        )
+    return found
+
+
+PolicyFactory = Callable[[object, str, str], object]  # (env, agent id, algorithm) -> policy
+
+
+def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None) -> PolicyFactory:
+    """How each AC gets its policy: trained checkpoints, the autopilot, or random."""
+    if kind == "trained":
+        import agents
+
+        loaded = {algo: agents.load(path) for algo, path in (checkpoints or {}).items()}
+        return lambda env, agent, algo: loaded[algo]
+    if kind == "autopilot":
+        return lambda env, agent, algo: AutopilotPolicy(env, agent)
+    if kind == "random":
+        return lambda env, agent, algo: RandomPolicy(env.action_space(agent), seed=hash(agent) % 1000)
+    raise ProtocolError(f"unknown policy kind {kind!r}; valid: trained, autopilot, random")
+
+
+def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence[str] = ALGO_ORDER,
+                 progress: Callable[[str], None] | None = None) -> pd.DataFrame:
+    """Run Scenario 1 and/or 2 in every environment of the plan; return all records."""
+    from cosim.env import CosimParallelEnv
+
+    algos = list(algos)[: plan.agents] if 1 in plan.scenarios else list(algos)
+    frames = []
+    seeds = [plan.seed + e for e in range(plan.episodes)]
+    for env_name in plan.envs:
+        if 1 in plan.scenarios:
+            types = ["continuous" if a in CONTINUOUS else "discrete" for a in algos]
+            env = CosimParallelEnv(env_name, num_agents=len(algos), action_types=types,
+                                   terminate_on_collision=False, horizon=plan.steps)
+            try:
+                agent_algo = dict(zip(env.possible_agents, algos, strict=True))
+                policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
+                rec = run_episodes(env, policies, seeds, algorithms=agent_algo)
+            finally:
+                env.close()
+            frames.append(rec.assign(env=env_name, scenario=1))
+            if progress:
+                progress(f"{env_name} scenario 1")
+        if 2 in plan.scenarios:
+            for algo in algos:
+                env = CosimParallelEnv(
+                    env_name, num_agents=1,
+                    action_types="continuous" if algo in CONTINUOUS else "discrete",
+                    terminate_on_collision=False, horizon=plan.steps,
+                    background=False, pedestrians=False,
+                )
+                try:
+                    policies = {"ac_0": make_policy(env, "ac_0", algo)}
+                    rec = run_episodes(env, policies, seeds, algorithms={"ac_0": algo})
+                finally:
+                    env.close()
+                frames.append(rec.assign(env=env_name, scenario=2))
+                if progress:
+                    progress(f"{env_name} scenario 2 {algo}")
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def metrics_table(records: pd.DataFrame, dt: float = 0.1) -> pd.DataFrame:
+    """Per (scenario, env, algorithm): mean over episodes of every SPEC §4 metric."""
+    parts = []
+    for (scenario, env), g in records.groupby(["scenario", "env"], sort=True):
+        per = episode_metrics(g, dt)
+        s = summarize(per, by=["algorithm"])
+        parts.append(s.assign(scenario=scenario, env=env))
+    out = pd.concat(parts, ignore_index=True)
+    return success_rates(out)
+
+
+# -- tables ---------------------------------------------------------------------
+def _fmt(value: float, metric: str) -> str:
+    if value is None or (isinstance(value, float) and np.isnan(value)):
+        return "--" if metric == "TTFC" else "-"
+    return f"{value:.2f}" if metric in ("TTFC", "SPEED", "DISTANCE") else f"{value:.3f}"
+
+
+def rq1_table(table: pd.DataFrame, scenario: int, metrics: Sequence[str] = ("CV", "CO", "CP", "OS", "TTFC")):
+    """Rows: (environment, metric); columns: algorithms. The paper's Table RQ1."""
+    sub = table[table["scenario"] == scenario]
+    algos = [a for a in ALGO_ORDER if a in set(sub["algorithm"])] + sorted(
+        set(sub["algorithm"]) - set(ALGO_ORDER))
+    rows = []
+    for env in sorted(set(sub["env"])):
+        e = sub[sub["env"] == env].set_index("algorithm")
+        for m in metrics:
+            rows.append([env, m] + [_fmt(e.loc[a, m] if a in e.index else np.nan, m) for a in algos])
+    return ["environment", "metric", *algos], rows
+
+
+def to_markdown(header, rows) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def to_latex(header, rows, caption: str) -> str:
+    esc = [h.replace("_", r"\_") for h in header]
+    lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{caption}}}",
+             r"\begin{tabular}{ll" + "r" * (len(header) - 2) + "}", r"\toprule",
+             " & ".join(esc) + r" \\", r"\midrule"]
+    lines += [" & ".join(str(c).replace("_", r"\_") for c in r) + r" \\" for r in rows]
+    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return "\n".join(lines) + "\n"
+
+
+def to_csv(header, rows, path: Path) -> None:
+    pd.DataFrame(rows, columns=header).to_csv(path, index=False)
+
+
+# -- report ---------------------------------------------------------------------
+def write_report(records: pd.DataFrame, out: Path, dt: float = 0.1) -> list[Path]:
+    """Records (Parquet), metric tables (Markdown, CSV, LaTeX) and figures in one folder."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [save(records, out / "records.parquet")]
+    table = metrics_table(records, dt)
+    table.to_csv(out / "metrics.csv", index=False)
+    written.append(out / "metrics.csv")
+    md = ["# cosim test report\n"]
+    for scenario in sorted(set(table["scenario"])):
+        header, rows = rq1_table(table, scenario)
+        name = f"rq1_scenario{scenario}"
+        to_csv(header, rows, out / f"{name}.csv")
+        (out / f"{name}.tex").write_text(to_latex(
+            header, rows, f"Driving errors, Scenario {scenario} "
+            f"({'multi-agent' if scenario == 1 else 'single-agent'})"))
+        md.append(f"## Scenario {scenario} ({'multi-agent' if scenario == 1 else 'single-agent'})\n")
+        md.append(to_markdown(header, rows))
+        written += [out / f"{name}.csv", out / f"{name}.tex"]
+        eff_header, eff_rows = rq1_table(table, scenario, metrics=("SPEED", "DISTANCE"))
+        md.append("\nEfficiency (SPEED km/h, DISTANCE m):\n\n" + to_markdown(eff_header, eff_rows))
+    (out / "report.md").write_text("\n".join(md))
+    written.append(out / "report.md")
+    written += _plots(records, table, out)
+    return written
+
+
+def _plots(records: pd.DataFrame, table: pd.DataFrame, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    for scenario in sorted(set(records["scenario"])):
+        rec = records[records["scenario"] == scenario]
+        envs = sorted(set(rec["env"]))
+        fig, axes = plt.subplots(1, len(envs), figsize=(4 * len(envs), 3.2), squeeze=False)
+        for ax, env in zip(axes[0], envs, strict=True):
+            curve = speed_curve(rec[rec["env"] == env])
+            for algo, g in curve.groupby("algorithm"):
+                ax.plot(g["step"] * 0.1, g["speed_kmh"], label=algo, lw=1)
+            ax.set_title(env)
+            ax.set_xlabel("time (s)")
+        axes[0][0].set_ylabel("speed (km/h)")
+        axes[0][-1].legend(fontsize=7)
+        fig.suptitle(f"SPEED per timestep, scenario {scenario}")
+        fig.tight_layout()
+        path = out / f"speed_scenario{scenario}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+
+        sub = table[table["scenario"] == scenario]
+        fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
+        for ax, (col, title) in zip(axes, [("safety", "Safety (1 - mean CV, CO, CP)"),
+                                           ("lane_keeping", "Lane keeping (1 - OS)"),
+                                           ("DISTANCE", "DISTANCE (m)")], strict=True):
+            pivot = sub.pivot(index="env", columns="algorithm", values=col)
+            pivot.plot.bar(ax=ax, rot=0, legend=False, width=0.8)
+            ax.set_title(title)
+            ax.set_xlabel("")
+        axes[-1].legend(fontsize=7, loc="best")
+        fig.suptitle(f"Scenario {scenario}")
+        fig.tight_layout()
+        path = out / f"success_scenario{scenario}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+__all__ = ["METRICS", "ProtocolPlan", "find_checkpoints", "metrics_table", "policy_factory",
+           "rq1_table", "run_protocol", "write_report"]

@@ -1,0 +1,53 @@
+"""The test protocol: Scenario 1 and 2 on the real simulator, the report, checkpoint lookup."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from gymnasium import spaces
+
+from agents.registry import get_agent_class
+from cosim.cli import main
+from eval.protocol import (ProtocolError, ProtocolPlan, find_checkpoints, policy_factory, rq1_table,
+                           run_protocol, write_report)
+
+
+def test_both_scenarios_and_the_report(tmp_path):
+    plan = ProtocolPlan(envs=("env_3",), scenarios=(1, 2), episodes=1, steps=40, agents=3)
+    records = run_protocol(plan, policy_factory("autopilot"), ["ppo", "a3c", "ddpg"])
+    s1 = records[records.scenario == 1]
+    s2 = records[records.scenario == 2]
+    assert sorted(s1.agent.unique()) == ["ac_0", "ac_1", "ac_2"]
+    assert sorted(s1.algorithm.unique()) == ["a3c", "ddpg", "ppo"]
+    assert (s1.n_vehicles > 0).all()
+    # alone: no other vehicle and no pedestrian, so CV and CP do not apply
+    assert (s2.n_vehicles == 0).all() and (s2.n_pedestrians == 0).all()
+    written = write_report(records, tmp_path)
+    names = {p.name for p in written}
+    assert {"records.parquet", "metrics.csv", "rq1_scenario1.tex", "rq1_scenario2.csv",
+            "report.md", "speed_scenario1.png", "success_scenario2.png"} <= names
+    table = pd.read_csv(tmp_path / "metrics.csv")
+    header, rows = rq1_table(table, 2)
+    assert header == ["environment", "metric", "ppo", "a3c", "ddpg"]
+    cv = next(r for r in rows if r[1] == "CV")
+    assert cv[2:] == ["-", "-", "-"]
+    assert "\\begin{tabular}" in (tmp_path / "rq1_scenario1.tex").read_text()
+    assert len(pd.read_parquet(tmp_path / "records.parquet")) == len(records)
+
+
+def test_trained_checkpoints_are_found_and_act(tmp_path):
+    obs = spaces.Box(0, 255, (84, 84, 3), np.uint8)
+    for algo, act in (("ppo", spaces.Discrete(9)), ("td3", spaces.Box(-1, 1, (2,), np.float32))):
+        run = tmp_path / f"env_1__{algo}__0__20260101-000000" / "checkpoints" / "ac_0"
+        run.mkdir(parents=True)
+        get_agent_class(algo).from_spaces(obs, act).save(run / "latest.pt")
+    found = find_checkpoints(tmp_path, ["ppo", "td3"])
+    assert found["ppo"].name == "latest.pt"
+    make = policy_factory("trained", found)
+    assert make(None, "ac_0", "td3").algo == "td3"
+    with pytest.raises(ProtocolError, match="no trained checkpoint .* for dqn.*cosim train --algo dqn"):
+        find_checkpoints(tmp_path, ["ppo", "dqn"])
+
+
+def test_cli_test_without_runs_says_how_to_get_them(tmp_path, capsys):
+    assert main(["test", "--runs", str(tmp_path / "none"), "--quiet"]) == 2
+    assert "--policy autopilot" in capsys.readouterr().err
