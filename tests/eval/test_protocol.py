@@ -7,8 +7,15 @@ from gymnasium import spaces
 
 from agents.registry import get_agent_class
 from cosim.cli import main
-from eval.protocol import (ProtocolError, ProtocolPlan, find_checkpoints, policy_factory, rq1_table,
-                           run_protocol, write_report)
+from eval.protocol import (
+    ProtocolError,
+    ProtocolPlan,
+    find_checkpoints,
+    policy_factory,
+    rq1_table,
+    run_protocol,
+    write_report,
+)
 
 
 def test_both_scenarios_and_the_report(tmp_path):
