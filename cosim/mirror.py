@@ -31,7 +31,7 @@ Measured facts this design rests on (pybullet 3.2.7 TinyRenderer; docs/mirror.md
   scene, plus ~24 ns for every pixel of each triangle's screen bounding box and
   ~0.1 us per shaded pixel. Long thin triangles (lane markings, sidewalk strips,
   road quads near the eye) have huge bounding boxes: the flat layers as meshes
-  cost ~1.2 ms per frame, as a raster ~0.06 ms. Big grass and sky quads would cost
+  cost ~1.6 ms per frame, as a raster ~0.06 ms. Big grass and sky quads would cost
   ~1 ms each, hence the backdrop.
 - 100 parked opaque boxes cost 0.28 ms per frame; transparent (alpha 0) ones nothing.
 - Bodies are drawn in creation order and the depth test comes before shading, so

@@ -282,3 +282,44 @@ def test_signal_to_the_training_process_leaves_no_worker(tmp_path, module, train
     else:
         assert "KeyboardInterrupt" in stderr  # the trainer went through its cleanup path
     assert live_pids(pids) == []
+
+
+_STUCK_POOL_SCRIPT = """
+import json, sys, time
+sys.path.insert(0, sys.argv[2])
+from agents.workers import WorkerPool, get_context
+from test_workers import _ignore_stop
+with WorkerPool(_ignore_stop, [()], context=get_context("forkserver")) as pool:
+    pool.get(timeout=60)
+    with open(sys.argv[1], "w") as f:
+        json.dump(pool.pids, f)
+    time.sleep(600)
+"""
+
+
+def test_a_stuck_worker_dies_with_a_sigkilled_parent(tmp_path):
+    # No cleanup code runs on SIGKILL and the worker never checks the stop event:
+    # only the kernel's parent-death signal can stop it.
+    pid_file = tmp_path / "pids.json"
+    python_path = os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))
+    child = subprocess.Popen(
+        [sys.executable, "-c", _STUCK_POOL_SCRIPT, str(pid_file), str(Path(__file__).parent)],
+        env={**os.environ, "PYTHONPATH": python_path},
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while not pid_file.exists() and time.monotonic() < deadline and child.poll() is None:
+            time.sleep(0.1)
+        assert pid_file.exists(), f"the pool never started (exit code {child.poll()})"
+        pids = json.loads(pid_file.read_text())
+        assert live_pids(pids) == pids
+        child.kill()
+        child.wait(timeout=30)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    deadline = time.monotonic() + 10
+    while live_pids(pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert live_pids(pids) == []
