@@ -241,7 +241,8 @@ class A3C(Agent):
         logits, _ = self.model(self.obs_batch(obs))
         if deterministic:
             return int(logits[0].argmax())
-        probs = torch.softmax(logits[0], dim=-1).cpu()
+        # Sampled on the model's device with the agent's own generator (same device).
+        probs = torch.softmax(logits[0], dim=-1)
         return int(torch.multinomial(probs, 1, generator=self.generator))
 
     def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
@@ -316,6 +317,7 @@ def train_a3c(
     seed: int = 0,
     callback: Callable[[TrainProgress], bool | None] | None = None,
     start_method: str = "spawn",
+    agents: dict[str, A3C] | None = None,
 ) -> dict[str, A3C]:
     """Train one A3C agent per agent id with asynchronous worker processes.
 
@@ -333,6 +335,8 @@ def train_a3c(
             :class:`TrainProgress`; return True to stop early
             (as in :func:`agents.loop.run_loop`).
         start_method: ``"spawn"`` or ``"forkserver"``.
+        agents: Agents to continue training (e.g. loaded from checkpoints to resume);
+            default: fresh agents built from ``config`` and ``seed``.
 
     Returns:
         Agent id -> trained :class:`A3C` agent, ready to act or save.
@@ -345,10 +349,13 @@ def train_a3c(
     agent_ids = list(agent_ids)
     if num_workers < 1 or total_steps < 1:
         raise ValueError(f"need num_workers >= 1 and total_steps >= 1, got {num_workers}, {total_steps}")
-    agents = {
-        aid: A3C.from_spaces(observation_space, action_space, config, seed=seed + k)
-        for k, aid in enumerate(agent_ids)
-    }
+    if agents is None:
+        agents = {
+            aid: A3C.from_spaces(observation_space, action_space, config, seed=seed + k)
+            for k, aid in enumerate(agent_ids)
+        }
+    elif sorted(agents) != sorted(agent_ids):
+        raise ValueError(f"agents covers {sorted(agents)} but agent_ids is {sorted(agent_ids)}")
     shared_models = {aid: agent.model.share_memory() for aid, agent in agents.items()}
     optimizers = {aid: agent.optimizer.share_memory() for aid, agent in agents.items()}
 

@@ -216,7 +216,7 @@ class IMPALA(Agent):
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool = False) -> int:
         logits, _ = self.model(self.obs_batch(obs))
-        log_probs = torch.log_softmax(logits[0], dim=-1).cpu()
+        log_probs = torch.log_softmax(logits[0], dim=-1)
         if deterministic:
             action = int(log_probs.argmax())
         else:
@@ -319,6 +319,7 @@ def train_impala(
     seed: int = 0,
     callback: Callable[[TrainProgress], bool | None] | None = None,
     start_method: str = "spawn",
+    agents: dict[str, IMPALA] | None = None,
 ) -> dict[str, IMPALA]:
     """Train one IMPALA agent per agent id: actor processes, one learner here.
 
@@ -336,6 +337,8 @@ def train_impala(
             :class:`TrainProgress`; return True to stop early
             (as in :func:`agents.loop.run_loop`).
         start_method: ``"spawn"`` or ``"forkserver"``.
+        agents: Agents to continue training (e.g. loaded from checkpoints to resume);
+            default: fresh agents built from ``config`` and ``seed``.
 
     Returns:
         Agent id -> trained :class:`IMPALA` agent, ready to act or save.
@@ -348,10 +351,13 @@ def train_impala(
     agent_ids = list(agent_ids)
     if num_actors < 1 or total_steps < 1:
         raise ValueError(f"need num_actors >= 1 and total_steps >= 1, got {num_actors}, {total_steps}")
-    agents = {
-        aid: IMPALA.from_spaces(observation_space, action_space, config, seed=seed + k)
-        for k, aid in enumerate(agent_ids)
-    }
+    if agents is None:
+        agents = {
+            aid: IMPALA.from_spaces(observation_space, action_space, config, seed=seed + k)
+            for k, aid in enumerate(agent_ids)
+        }
+    elif sorted(agents) != sorted(agent_ids):
+        raise ValueError(f"agents covers {sorted(agents)} but agent_ids is {sorted(agent_ids)}")
     # The actors read these copies, never the learner's own weights mid-update.
     published = {aid: private_copy(agent.model).share_memory() for aid, agent in agents.items()}
 

@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from torch import nn
 
+NATURE_CNN_FEATURES = 512
+
 __all__ = [
     "ActorCritic",
     "DeterministicActor",
@@ -29,6 +31,7 @@ __all__ = [
     "QCritic",
     "QEnsemble",
     "dueling_aggregate",
+    "encoder_features_dim",
     "layer_init",
     "make_encoder",
     "obs_to_tensor",
@@ -64,7 +67,7 @@ class NatureCNN(nn.Module):
         features_dim: Size of the output feature vector.
     """
 
-    def __init__(self, obs_shape: tuple[int, int, int], features_dim: int = 512):
+    def __init__(self, obs_shape: tuple[int, int, int], features_dim: int = NATURE_CNN_FEATURES):
         super().__init__()
         if len(obs_shape) != 3:
             raise ValueError(f"NatureCNN needs an (H, W, C) observation shape, got {obs_shape}")
@@ -153,6 +156,13 @@ def make_encoder(
     if _is_image_space(observation_space):
         return NatureCNN(tuple(observation_space.shape))
     return MLPEncoder(int(np.prod(observation_space.shape)), hidden, activation)
+
+
+def encoder_features_dim(observation_space: gymnasium.spaces.Box) -> int:
+    """Width of what :class:`QEnsemble` ``.encode`` returns: 512 for images, the flat size otherwise."""
+    if _is_image_space(observation_space):
+        return NATURE_CNN_FEATURES
+    return int(np.prod(observation_space.shape))
 
 
 def obs_to_tensor(obs: np.ndarray, device) -> torch.Tensor:

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 
 from agents.base import Agent, AgentConfig, check_range
 from agents.buffers import ReplayBuffer
-from agents.networks import DeterministicActor, QEnsemble, polyak_update
+from agents.networks import DeterministicActor, QEnsemble, encoder_features_dim, polyak_update
 
 __all__ = ["TD3", "TD3Config"]
 
@@ -96,7 +96,14 @@ class TD3Config(AgentConfig):
 
 
 class TD3(Agent):
-    """TD3 on a deterministic tanh actor and an ensemble of Q critics."""
+    """TD3 on a deterministic tanh actor and an ensemble of Q critics.
+
+    The actor reads the critic's observation features, detached: for images
+    that is the critic's Nature CNN, trained by the TD loss only (the SAC-AE /
+    DrQ recipe, Yarats et al. 2021; an actor with its own CNN collapsed to
+    bang-bang steering on our image task), for vectors it is the observation
+    itself. One CNN forward then serves the actor and all critics.
+    """
 
     algo = "td3"
     config_class: ClassVar[type[AgentConfig]] = TD3Config
@@ -113,7 +120,8 @@ class TD3(Agent):
 
     def _build(self) -> None:
         cfg = self.config
-        self.actor = DeterministicActor(self.observation_space, self.action_space, cfg.hidden).to(self.device)
+        features = gymnasium.spaces.Box(-np.inf, np.inf, (encoder_features_dim(self.observation_space),), np.float32)
+        self.actor = DeterministicActor(features, self.action_space, cfg.hidden).to(self.device)
         self.critic = QEnsemble(self.observation_space, self.action_space, cfg.n_critics, cfg.hidden).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
@@ -138,7 +146,7 @@ class TD3(Agent):
         if not deterministic and self.steps < cfg.learning_starts:
             # Uniform random warm-up fills the buffer with diverse actions (Fujimoto et al.).
             return self.rng.uniform(self.low, self.high).astype(np.float32)
-        action = self.actor(self.obs_batch(obs))[0].cpu().numpy()
+        action = self.actor(self.critic.encode(self.obs_batch(obs)))[0].cpu().numpy()
         if not deterministic:
             action = action + self.rng.normal(0.0, cfg.exploration_noise, action.shape) * self.half_range
         return np.clip(action, self.low, self.high).astype(np.float32)
@@ -167,8 +175,11 @@ class TD3(Agent):
             noise = torch.randn(data.actions.shape, generator=self.generator, device=self.device)
             noise = (noise * cfg.target_policy_noise).clamp(-cfg.target_noise_clip, cfg.target_noise_clip)
             low, high = self.actor.action_bias - scale, self.actor.action_bias + scale
-            next_actions = (self.actor_target(data.next_obs) + noise * scale).clamp(low, high)
-            qf_next_target = self.critic_target(data.next_obs, next_actions).min(dim=0).values
+            next_features = self.critic_target.encode(data.next_obs)
+            next_actions = (self.actor_target(next_features) + noise * scale).clamp(low, high)
+            qf_next_target = torch.stack([
+                self.critic_target.q_from_features(next_features, next_actions, i) for i in range(cfg.n_critics)
+            ]).min(dim=0).values
             next_q_value = data.rewards + cfg.gamma * (1.0 - data.terminateds) * qf_next_target
 
         qf_values = self.critic(data.obs, data.actions)
@@ -181,11 +192,10 @@ class TD3(Agent):
         metrics = {"losses/qf_loss": qf_loss.item(), "losses/qf_values": qf_values.mean().item()}
 
         if self.gradient_updates % cfg.policy_delay == 0:
-            # The actor's gradient reaches it through the action only: the critic's
-            # observation features need no graph (saves a CNN backward pass on images).
+            # Detached features: the actor's loss does not train the critic's encoder.
             with torch.no_grad():
                 features = self.critic.encode(data.obs)
-            actor_loss = -self.critic.q_from_features(features, self.actor(data.obs), head=0).mean()
+            actor_loss = -self.critic.q_from_features(features, self.actor(features), head=0).mean()
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
             self.actor_optimizer.step()

@@ -23,8 +23,8 @@ Shutdown order (why it is safe): the parent sets the stop event, drains the
 queues while it joins (a child blocked on a full pipe could never exit
 otherwise), then ``terminate()`` (SIGTERM) the stragglers, then ``kill()``
 (SIGKILL). Workers ignore SIGINT, so a Ctrl-C in a terminal (delivered to the
-whole process group) is handled once, by the parent. Workers also stop on
-their own when their parent dies, even by SIGKILL (Linux ``PR_SET_PDEATHSIG``).
+whole process group) is handled once, by the parent. A worker also dies when
+the parent dies without cleaning up (SIGKILL): see :func:`_die_with_owner`.
 """
 
 from __future__ import annotations
@@ -151,19 +151,17 @@ class WorkerLink:
         index: Worker index, 0..N-1.
         stop_event: Set by the parent when every worker must stop.
         results: Queue of messages for the parent.
-        parent_pid: Pid of the worker's parent process, recorded when the worker
-            starts (the main process under spawn, the fork server under
-            forkserver); when it changes, the parent died and we were reparented.
+        owner_pid: Pid of the process that owns the pool (the trainer).
     """
 
     index: int
     stop_event: Any
     results: Any
-    parent_pid: int | None = None
+    owner_pid: int
 
     def should_stop(self) -> bool:
-        """True when the parent asked to stop, or is gone (we must not outlive it)."""
-        return self.stop_event.is_set() or os.getppid() != self.parent_pid
+        """True when the owner asked every worker to stop."""
+        return self.stop_event.is_set()
 
     def send(self, message: Any) -> bool:
         """Put ``message`` on the result queue, waiting while it is full.
@@ -180,21 +178,30 @@ class WorkerLink:
         return False
 
 
-def _die_with_parent() -> None:
-    """Ask Linux to SIGKILL this process when its parent dies (best effort).
+def _die_with_owner(owner_pid: int, poll_s: float = 0.5) -> None:
+    """Make sure this worker dies when the pool's owner dies, even by SIGKILL.
 
-    Covers what the stop event cannot: a parent killed with SIGKILL while this
-    worker is stuck inside its simulator. Elsewhere (no prctl) workers still
-    notice a dead parent through :meth:`WorkerLink.should_stop`.
+    Nothing in the owner runs on SIGKILL, and a worker stuck in a simulator
+    never looks at the stop event. Two guards: Linux's ``PR_SET_PDEATHSIG``
+    (the kernel kills us with our parent; our parent is the owner under
+    ``spawn`` but the fork server under ``forkserver``, which outlives the
+    owner while any worker lives), and a watchdog thread that polls the
+    owner's pid and kills this process once the owner is gone.
     """
     try:
         import ctypes
 
-        libc = ctypes.CDLL(None, use_errno=True)
         pr_set_pdeathsig = 1
-        libc.prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
-    except (OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):  # not Linux: the watchdog alone
         pass
+
+    def watch() -> None:
+        while live_pids([owner_pid]):
+            time.sleep(poll_s)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="owner-watchdog", daemon=True).start()
 
 
 def _worker_entry(target: Callable, link: WorkerLink, args: tuple, errors) -> None:
@@ -203,8 +210,7 @@ def _worker_entry(target: Callable, link: WorkerLink, args: tuple, errors) -> No
     torch.set_num_threads(1)
     # The parent owns Ctrl-C; it tells us to stop through the event.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _die_with_parent()
-    link.parent_pid = os.getppid()
+    _die_with_owner(link.owner_pid)
     try:
         target(link, *args)
     except BaseException as exc:  # KeyboardInterrupt, SystemExit too: all must reach the parent
@@ -280,7 +286,7 @@ class WorkerPool:
         self._install_sigterm_handler()
         try:
             for index, args in enumerate(self.worker_args):
-                link = WorkerLink(index, self.stop_event, self.results)
+                link = WorkerLink(index, self.stop_event, self.results, os.getpid())
                 process = self.context.Process(
                     target=_worker_entry,
                     args=(self.target, link, args, self.errors),
@@ -524,6 +530,8 @@ class EpisodeReport:
     worker: int
     returns: dict[str, float] = field(default_factory=dict)
     lengths: dict[str, int] = field(default_factory=dict)
+    extras: dict[str, dict] = field(default_factory=dict)
+    """Per agent, the env's own episode summary (``info["episode"]``) when it gives one."""
 
 
 # A policy maps one observation to (action, log mu(action | obs)).
@@ -554,6 +562,7 @@ class EnvRunner:
         self._check_agents(self.obs)
         self._returns = dict.fromkeys(self.obs, 0.0)
         self._lengths = dict.fromkeys(self.obs, 0)
+        self._extras: dict[str, dict] = {}
 
     def _check_agents(self, obs: Mapping) -> None:
         unknown = set(obs) - set(self.agent_ids)
@@ -576,7 +585,10 @@ class EnvRunner:
             actions, log_probs = {}, {}
             for aid in self.env.agents:
                 actions[aid], log_probs[aid] = policies[aid](self.obs[aid])
-            next_obs, rewards, terminations, truncations, _ = self.env.step(actions)
+            next_obs, rewards, terminations, truncations, infos = self.env.step(actions)
+            for aid, info in infos.items():
+                if isinstance(info, Mapping) and "episode" in info:
+                    self._extras[aid] = info["episode"]
             for aid in actions:
                 builders[aid].add(
                     self.obs[aid], actions[aid], rewards[aid], next_obs[aid],
@@ -586,7 +598,10 @@ class EnvRunner:
                 self._lengths[aid] += 1
             self.obs = next_obs
             if not self.env.agents:
-                episodes.append(EpisodeReport(self.worker, self._returns, self._lengths))
+                episodes.append(
+                    EpisodeReport(self.worker, self._returns, self._lengths, self._extras)
+                )
+                self._extras = {}
                 self.obs, _ = self.env.reset()
                 self._check_agents(self.obs)
                 self._returns = dict.fromkeys(self.obs, 0.0)

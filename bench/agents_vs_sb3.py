@@ -3,8 +3,10 @@
 Both libraries train on :class:`agents.envs.ColourBar` (84x84x3 uint8) for the
 same env-step budget with the same schedule, minibatch size and network sizes
 (Nature CNN; PPO: shared CNN + linear heads; DQN: CNN + linear Q head (ours
-adds the one-unit dueling value stream); TD3: actor CNN + linear head, critic
-CNN shared by two [256, 256] Q heads), on one CPU thread. Reported: env steps
+adds the one-unit dueling value stream); TD3: ONE CNN shared by the actor's
+[256, 256] head and two [256, 256] Q heads: SB3's ``share_features_extractor=True``
+(there the actor loss trains the CNN, in ours the critic loss does), with
+target networks, policy delay 2 and target noise 0.2 in both), on one CPU thread. Reported: env steps
 per second over the whole run (acting + learning) and gradient updates per
 second inside the learning phase. stable-baselines3 is a bench-only extra
 (``pip install stable-baselines3``), never a runtime dependency.
@@ -30,7 +32,7 @@ from agents.loop import run_loop
 from agents.ppo import PPO, PPOConfig
 from agents.td3 import TD3, TD3Config
 
-BUDGET = {"ppo": 2048, "dqn": 3000, "td3": 2000}
+BUDGET = {"ppo": 2048, "dqn": 3000, "td3": 1000}
 # Small, so both libraries act with their networks for most of the run (SB3 acts
 # uniformly at random before learning_starts; ours follows its epsilon schedule).
 LEARNING_STARTS = 200
@@ -127,7 +129,8 @@ def sb3(algo: str, seed: int = 0) -> Throughput:
         model = SB3TD3("CnnPolicy", env, batch_size=BATCH[algo], buffer_size=10_000,
                        learning_starts=LEARNING_STARTS, train_freq=1,
                        action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),
-                       policy_kwargs={"net_arch": {"pi": [], "qf": [256, 256]}}, seed=seed, device="cpu",
+                       policy_kwargs={"net_arch": {"pi": [256, 256], "qf": [256, 256]},
+                                      "share_features_extractor": True}, seed=seed, device="cpu",
                        verbose=0)
         per_train = 1
     timer = _Timer(model, "train")

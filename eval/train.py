@@ -534,9 +534,14 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
         for ep in p.episodes:
             for aid, stats in getattr(ep, "extras", {}).items():
                 runlog.episode(aid, stats, now)
-        for aid in p.agents:
-            if p.metrics:
-                runlog.metrics(aid, p.metrics, now)
+        metrics = p.metrics or {}
+        if metrics and all(isinstance(v, dict) for v in metrics.values()):
+            for aid, m in metrics.items():  # per-agent metrics
+                runlog.metrics(aid, {k: v for k, v in m.items() if np.isscalar(v)}, now)
+        elif metrics:  # shared metrics (e.g. policy lag)
+            scalars = {k: v for k, v in metrics.items() if np.isscalar(v)}
+            for aid in p.agents:
+                runlog.metrics(aid, scalars, now)
         bar.update(max(now - last["step"], 0))
         last["step"] = now
         if now - last["ckpt"] >= cfg.checkpoint_every or now >= cfg.steps:

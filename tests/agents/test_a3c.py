@@ -133,7 +133,7 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
 # ----------------------------------------------------------------------------- asynchronous
 
 
-def test_async_training_updates_the_shared_model():
+def test_async_training_updates_the_shared_model(tmp_path):
     reports = []
     trained = train_a3c(
         CARTPOLE, *SPACES, config=A3CConfig(n_steps=10), total_steps=3000, num_workers=2,
@@ -147,7 +147,12 @@ def test_async_training_updates_the_shared_model():
     assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both workers played
     assert live_pids(reports[-1].worker_pids) == []
     assert agent.num_updates == sum(1 for _ in reports)  # one shared step per worker rollout
-    assert isinstance(agent.act(np.zeros(4, np.float32)), int)
+    agent.save(tmp_path / "async.ckpt")  # shared-memory weights save like any others
+    loaded = agents.load(tmp_path / "async.ckpt")
+    observations = np.random.default_rng(1).normal(size=(20, 4)).astype(np.float32)
+    assert [loaded.act(o, deterministic=True) for o in observations] == [
+        agent.act(o, deterministic=True) for o in observations
+    ]
 
 
 def test_async_multi_agent_trains_one_network_per_agent():

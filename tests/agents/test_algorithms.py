@@ -177,3 +177,13 @@ def test_same_seed_same_behaviour():
         stats = run_loop({"agent_0": agent}, SingleAgentParallel(gym.make("CartPole-v1")), 150, seed=7)
         runs.append(stats.episode_returns["agent_0"])
     assert runs[0] == runs[1]
+
+
+def test_td3_image_actor_reads_the_critics_cnn_features():
+    env = ColourBar(continuous=True, size=36)
+    agent = TD3.from_spaces(env.observation_space, env.action_space, TD3Config(learning_starts=0))
+    assert not any(isinstance(m, torch.nn.Conv2d) for m in agent.actor.modules())
+    obs, _ = env.reset(seed=0)
+    with torch.no_grad():
+        expected = agent.actor(agent.critic.encode(torch.as_tensor(obs[None])))[0].numpy()
+    np.testing.assert_allclose(agent.act(obs, deterministic=True), expected, rtol=1e-6)

@@ -131,7 +131,7 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
 # ----------------------------------------------------------------------------- asynchronous
 
 
-def test_actor_learner_training_updates_the_learner():
+def test_actor_learner_training_updates_the_learner(tmp_path):
     reports = []
     config = IMPALAConfig(unroll_length=10, batch_size=2)
     trained = train_impala(
@@ -147,6 +147,10 @@ def test_actor_learner_training_updates_the_learner():
     lags = [r.metrics["agent_0"]["charts/policy_lag"] for r in reports if r.metrics]
     assert lags and min(lags) >= 0
     assert live_pids(reports[-1].worker_pids) == []
+    agent.save(tmp_path / "async.ckpt")
+    loaded = agents.load(tmp_path / "async.ckpt")
+    assert loaded.num_updates == agent.num_updates
+    assert torch.equal(_weights(loaded), _weights(agent))
 
 
 def test_actor_learner_multi_agent_keeps_one_network_per_agent():

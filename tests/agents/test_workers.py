@@ -302,15 +302,16 @@ def test_a_stuck_worker_dies_with_a_sigkilled_parent(tmp_path):
     # only the kernel's parent-death signal can stop it.
     pid_file = tmp_path / "pids.json"
     python_path = os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))
+    log = (tmp_path / "stderr.txt").open("w")  # the orphaned resource tracker warns there
     child = subprocess.Popen(
         [sys.executable, "-c", _STUCK_POOL_SCRIPT, str(pid_file), str(Path(__file__).parent)],
-        env={**os.environ, "PYTHONPATH": python_path},
+        env={**os.environ, "PYTHONPATH": python_path}, stderr=log,
     )
     try:
         deadline = time.monotonic() + 60
         while not pid_file.exists() and time.monotonic() < deadline and child.poll() is None:
             time.sleep(0.1)
-        assert pid_file.exists(), f"the pool never started (exit code {child.poll()})"
+        assert pid_file.exists(), f"the pool never started: {(tmp_path / 'stderr.txt').read_text()}"
         pids = json.loads(pid_file.read_text())
         assert live_pids(pids) == pids
         child.kill()
@@ -319,6 +320,7 @@ def test_a_stuck_worker_dies_with_a_sigkilled_parent(tmp_path):
         if child.poll() is None:
             child.kill()
             child.wait()
+        log.close()
     deadline = time.monotonic() + 10
     while live_pids(pids) and time.monotonic() < deadline:
         time.sleep(0.1)
