@@ -48,6 +48,7 @@ from agents.workers import (
     WorkerPool,
     categorical_policy,
     get_context,
+    linear_learning_rate,
     make_parallel_env,
     private_copy,
     worker_seed,
@@ -81,6 +82,8 @@ class A3CConfig(AgentConfig):
     """Global gradient-norm clip applied by each worker before its shared step."""
     adam_eps: float = 1e-5
     """Adam epsilon."""
+    anneal_lr: bool = True
+    """Decay the learning rate linearly to 0 over ``total_steps`` (asynchronous training only)."""
     hidden: tuple[int, ...] = (64, 64)
     """Hidden sizes of the MLP encoder (image observations use the Nature CNN)."""
 
@@ -97,6 +100,7 @@ class A3CConfig(AgentConfig):
             "gamma": 0.99,
             "n_steps": 10,
             "adam_eps": 1e-8,
+            "anneal_lr": False,
         },
     }
 
@@ -299,6 +303,9 @@ def _a3c_worker(
                     local_models[aid].parameters(), shared_models[aid].parameters(), strict=True
                 ):
                     shared_p.grad = local_p.grad
+                if config.anneal_lr:
+                    lr = linear_learning_rate(optimizers[aid], config.learning_rate, global_steps.value, total_steps)
+                    metrics[aid]["charts/learning_rate"] = lr
                 optimizers[aid].step()
             link.send((env_steps, episodes, metrics))
     finally:

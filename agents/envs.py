@@ -86,7 +86,7 @@ class ColourBar(gymnasium.Env):
     steps from the centre it earns ``L - d(d-1)/2`` (``L = episode_length``):
     d=0: 10, d=1: 10, d=2: 9, d=3: 7, d=4: 4, so the mean over the 9 grid starts
     is ``70 / 9 = 7.78`` (:attr:`optimum`). Staying still earns -12.2 on
-    average and a uniform random policy about -9, so >= 90% of the optimum
+    average and a uniform random policy about -12, so >= 90% of the optimum
     (7.0) needs a policy that reads the bar's position from pixels.
     """
 

@@ -48,6 +48,7 @@ from agents.workers import (
     WorkerPool,
     categorical_policy,
     get_context,
+    linear_learning_rate,
     make_parallel_env,
     private_copy,
     worker_seed,
@@ -85,6 +86,8 @@ class IMPALAConfig(AgentConfig):
     """Global gradient-norm clip of the learner."""
     adam_eps: float = 1e-5
     """Adam epsilon."""
+    anneal_lr: bool = True
+    """Decay the learning rate linearly to 0 over ``total_steps`` (asynchronous training only)."""
     actor_sync_every: int = 1
     """Actors pull the learner's latest weights every this many unrolls."""
     queue_size: int = 32
@@ -107,6 +110,7 @@ class IMPALAConfig(AgentConfig):
             "unroll_length": 50,
             "batch_size": 10,
             "adam_eps": 1e-8,
+            "anneal_lr": False,
         },
     }
 
@@ -383,7 +387,10 @@ def train_impala(
             for aid, rollout in rollouts.items():
                 pending[aid].append(rollout)
                 if len(pending[aid]) >= config.batch_size:
+                    if config.anneal_lr:
+                        linear_learning_rate(agents[aid].optimizer, config.learning_rate, env_steps, total_steps)
                     metrics[aid] = agents[aid].learn(pending[aid])
+                    metrics[aid]["charts/learning_rate"] = agents[aid].optimizer.param_groups[0]["lr"]
                     # Weight publications the actors were behind, averaged over recent unrolls.
                     metrics[aid]["charts/policy_lag"] = float(np.mean(lags))
                     pending[aid] = []
@@ -392,5 +399,7 @@ def train_impala(
             if callback is not None and callback(progress):
                 logger.info("IMPALA: callback stopped training at %d steps", env_steps)
                 break
+    for agent in agents.values():  # in-process learning after this starts from the configured lr
+        linear_learning_rate(agent.optimizer, config.learning_rate, 0, total_steps)
     logger.info("IMPALA: done, %d env steps in %.1f s", env_steps, time.monotonic() - start)
     return agents

@@ -57,6 +57,7 @@ __all__ = [
     "categorical_policy",
     "get_context",
     "live_pids",
+    "linear_learning_rate",
     "make_parallel_env",
     "private_copy",
     "worker_seed",
@@ -635,6 +636,21 @@ def make_parallel_env(env_fn: Callable[[], Any]):
         f"env_fn returned {type(env).__name__}, which is neither a ParallelEnv (no "
         "possible_agents) nor a gymnasium.Env; return one of those from env_fn"
     )
+
+
+def linear_learning_rate(optimizer: torch.optim.Optimizer, base_lr: float, steps_done: int, total_steps: int) -> float:
+    """Set ``optimizer``'s learning rate to ``base_lr`` decayed linearly to 0 at ``total_steps``.
+
+    Only the calling process's optimizer object changes (param-group values
+    are not shared memory), so each asynchronous worker sets its own.
+
+    Returns:
+        The learning rate now in use.
+    """
+    lr = base_lr * max(0.0, 1.0 - steps_done / total_steps)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    return lr
 
 
 def private_copy(module: torch.nn.Module) -> torch.nn.Module:

@@ -50,6 +50,7 @@ def _weights(agent) -> torch.Tensor:
 def test_paper_preset_matches_table_3():
     config = A3CConfig.preset("paper")
     assert (config.learning_rate, config.vf_coef, config.ent_coef) == (5e-3, 1.0, 0.01)
+    assert not config.anneal_lr
     assert (config.gae_lambda, config.max_grad_norm, config.gamma) == (1.0, 30.0, 0.99)
 
 
@@ -147,6 +148,8 @@ def test_async_training_updates_the_shared_model(tmp_path):
     assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both workers played
     assert live_pids(reports[-1].worker_pids) == []
     assert agent.num_updates == sum(1 for _ in reports)  # one shared step per worker rollout
+    learning_rates = [r.metrics["agent_0"]["charts/learning_rate"] for r in reports]
+    assert learning_rates[0] > learning_rates[-1] and learning_rates[-1] < 0.02 * agent.config.learning_rate
     agent.save(tmp_path / "async.ckpt")  # shared-memory weights save like any others
     loaded = agents.load(tmp_path / "async.ckpt")
     observations = np.random.default_rng(1).normal(size=(20, 4)).astype(np.float32)

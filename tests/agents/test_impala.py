@@ -67,6 +67,7 @@ def _on_policy_rollout(agent, rng, steps: int = 6):
 def test_paper_preset_matches_table_3():
     config = IMPALAConfig.preset("paper")
     assert (config.learning_rate, config.vf_coef, config.ent_coef) == (1e-4, 0.5, 0.01)
+    assert not config.anneal_lr
     assert (config.rho_bar, config.c_bar, config.max_grad_norm) == (1.0, 1.0, 30.0)
 
 
@@ -146,6 +147,9 @@ def test_actor_learner_training_updates_the_learner(tmp_path):
     assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both actors played
     lags = [r.metrics["agent_0"]["charts/policy_lag"] for r in reports if r.metrics]
     assert lags and min(lags) >= 0
+    learning_rates = [r.metrics["agent_0"]["charts/learning_rate"] for r in reports if r.metrics]
+    assert learning_rates == sorted(learning_rates, reverse=True) and learning_rates[-1] < 0.02 * config.learning_rate
+    assert agent.optimizer.param_groups[0]["lr"] == config.learning_rate  # restored for in-process use
     assert live_pids(reports[-1].worker_pids) == []
     agent.save(tmp_path / "async.ckpt")
     loaded = agents.load(tmp_path / "async.ckpt")

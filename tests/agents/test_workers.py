@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from agents.envs import MultiColourBar
 from agents.workers import (
@@ -28,6 +29,7 @@ from agents.workers import (
     WorkerError,
     WorkerPool,
     get_context,
+    linear_learning_rate,
     live_pids,
     worker_seed,
 )
@@ -140,6 +142,14 @@ def test_env_runner_rejects_agents_without_a_model():
 def test_worker_seeds_differ_and_repeat():
     assert worker_seed(0, 0) != worker_seed(0, 1)
     assert worker_seed(3, 1) == worker_seed(3, 1)
+
+
+def test_linear_learning_rate_decays_to_zero():
+    optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
+    assert linear_learning_rate(optimizer, 0.4, 0, 100) == pytest.approx(0.4)
+    assert linear_learning_rate(optimizer, 0.4, 75, 100) == pytest.approx(0.1)
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(0.1)
+    assert linear_learning_rate(optimizer, 0.4, 120, 100) == 0.0  # overshoot clamps at 0
 
 
 def test_get_context_refuses_fork():
