@@ -10,7 +10,7 @@ its own). Both are rasterised once per scenario (:mod:`cosim.roadmap`).
 from __future__ import annotations
 
 import functools
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -55,10 +55,14 @@ class Events:
         return self.off_road or self.wrong_lane
 
     def as_dict(self) -> dict:
-        d = asdict(self)
+        # by hand: dataclasses.asdict deep-copies recursively and showed up in profiles
+        d = {f: getattr(self, f) for f in _EVENT_FIELDS}
         d["collision"] = self.collision
         d["lane_violation"] = self.lane_violation
         return d
+
+
+_EVENT_FIELDS = tuple(f.name for f in fields(Events))
 
 
 @functools.lru_cache(maxsize=16)
