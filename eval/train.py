@@ -201,10 +201,11 @@ def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
         raise TrainError(f"cannot write to output folder {out}: {exc.strerror or exc}; "
                          "choose another --out") from exc
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    run = out / f"{cfg.env}__{cfg.algo}__{cfg.seed}__{stamp}"
+    env = Path(cfg.env).stem  # a scenario given by path: name the folder after the file
+    run = out / f"{env}__{cfg.algo}__{cfg.seed}__{stamp}"
     suffix = 1
     while run.exists():
-        run = out / f"{cfg.env}__{cfg.algo}__{cfg.seed}__{stamp}-{suffix}"
+        run = out / f"{env}__{cfg.algo}__{cfg.seed}__{stamp}-{suffix}"
         suffix += 1
     (run / "checkpoints").mkdir(parents=True)
     _atomic_write(run / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
