@@ -10,6 +10,7 @@ its own). Both are rasterised once per scenario (:mod:`cosim.roadmap`).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -41,7 +42,9 @@ class Events:
     progress: float = 0.0
     """D(t-1) - D(t), metres."""
     speed: float = 0.0
-    """Forward speed, m/s."""
+    """Forward speed, m/s (along the car's heading; never negative: no reverse)."""
+    route_speed: float = 0.0
+    """Velocity along the route's direction at the car, m/s (negative when driving against it)."""
     hit: str = ""
     """Id of what it collided with this step (first found), for people reading logs."""
 
@@ -147,6 +150,7 @@ def detect_all(
         ev.wrong_lane = not route.lane_mask.value_at(x, y)
         ev.out_of_region = not (xmin <= x <= xmax and ymin <= y <= ymax)
         s = route.arc_length(x, y)
+        ev.route_speed = ev.speed * math.cos(float(heading[i]) - route.path.heading_at(s))
         ev.distance_to_goal = max(route.goal_s - s, 0.0)
         ev.progress = float(previous_distance[i]) - ev.distance_to_goal
         gx, gy = route.goal_point
@@ -158,7 +162,9 @@ def detect_all(
 
 def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float) -> dict[str, float]:
     """The weighted reward terms of SPEC §3; the reward is their sum."""
-    forward = min(max(ev.speed / speed_limit, 0.0), 1.0)
+    # F: speed along the route, not along the car's heading, so that circling on the spot
+    # at speed earns nothing (a policy exploited the heading version; see README)
+    forward = min(max(ev.route_speed / speed_limit, 0.0), 1.0)
     return {
         "collision": weights.collision * float(ev.collision),
         "efficiency": weights.efficiency * (ev.progress + forward),

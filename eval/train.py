@@ -96,8 +96,8 @@ PRESETS: dict[str, TrainPreset] = {
     ),
     # Each algorithm about 5-10 minutes on two cores.
     "quick": TrainPreset(
-        steps={"ppo": 12_000, "a3c": 12_000, "impala": 12_000, "dqn": 10_000,
-               "ddpg": 6_000, "td3": 6_000},
+        steps={"ppo": 12_000, "a3c": 12_000, "impala": 12_000, "dqn": 12_000,
+               "ddpg": 10_000, "td3": 10_000},
         agents=3, horizon=300, checkpoint_every=2_000, agent_preset="default", workers=2,
         overrides={
             "ppo": {"rollout_steps": 512, "batch_size": 64, "epochs": 4, "ent_coef": 0.01},
