@@ -45,10 +45,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--docs", type=Path, default=None, help="copy convergence plots here")
+    parser.add_argument("--steps", type=int, default=None, help="override the quick budget")
     args = parser.parse_args()
     results = {}
     for algo in args.algos:
-        cfg = make_config(algo, "env_1", "quick", seed=args.seed)
+        cfg = make_config(algo, "env_1", "quick", seed=args.seed, steps=args.steps)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)
         minutes = (time.monotonic() - t0) / 60

@@ -102,7 +102,7 @@ PRESETS: dict[str, TrainPreset] = {
         overrides={
             "ppo": {"rollout_steps": 512, "batch_size": 64, "epochs": 4, "ent_coef": 0.01},
             "dqn": {"learning_starts": 500, "buffer_size": 20_000, "exploration_steps": 5_000,
-                    "target_update_interval": 500},
+                    "target_update_interval": 500, "batch_size": 32, "gradient_steps": 1},
             "ddpg": {"learning_starts": 500, "buffer_size": 20_000, "batch_size": 64,
                      "train_freq": 4, "exploration_noise": 0.2},
             "td3": {"learning_starts": 500, "buffer_size": 20_000, "batch_size": 64,
