@@ -63,6 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--out", type=Path, default=Path("view"), help="output folder")
     v.add_argument("--image-size", type=int, default=84)
     v.add_argument("--moments", type=int, default=3, help="mosaics taken along the run")
+    v.add_argument("--extent", type=float, default=100.0,
+                   help="metres across the top-down view beside the mosaic")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
     v.set_defaults(func=cmd_view)
 
@@ -226,8 +228,10 @@ def cmd_view(args) -> int:
                 overview_frames.append(env.render())
             if step in moments:
                 cams = mosaic([last[a] for a in env.possible_agents], cols=3, scale=2)
+                # a close top-down view of the feature, as tall as the camera mosaic
+                top = env.mirror.overview((cams.shape[0], cams.shape[0]), extent=args.extent)
                 written.append(save_png(args.out / f"mosaic_{step:04d}.png",
-                                        side_by_side(cams, env.render())))
+                                        side_by_side(cams, top)))
         written.append(save_gif(args.out / f"camera_{first}.gif",
                                 [np.kron(f, np.ones((3, 3, 1), np.uint8)) for f in cam_frames]))
         written.append(save_gif(args.out / "overview.gif", overview_frames, fps=5))
