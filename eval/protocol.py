@@ -227,12 +227,8 @@ def _plots(records: pd.DataFrame, table: pd.DataFrame, out: Path) -> list[Path]:
             ax.set_xlabel("time (s)")
         axes[0][0].set_ylabel("speed (km/h)")
         axes[0][-1].legend(fontsize=7)
-        fig.suptitle(f"SPEED per timestep, scenario {scenario}")
-        fig.tight_layout()
-        path = out / f"speed_scenario{scenario}.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        written.append(path)
+        written.append(_save(fig, f"SPEED per timestep, scenario {scenario}",
+                             out / f"speed_scenario{scenario}.png"))
 
         sub = table[table["scenario"] == scenario]
         fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
@@ -244,13 +240,18 @@ def _plots(records: pd.DataFrame, table: pd.DataFrame, out: Path) -> list[Path]:
             ax.set_title(title)
             ax.set_xlabel("")
         axes[-1].legend(fontsize=7, loc="best")
-        fig.suptitle(f"Scenario {scenario}")
-        fig.tight_layout()
-        path = out / f"success_scenario{scenario}.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        written.append(path)
+        written.append(_save(fig, f"Scenario {scenario}", out / f"success_scenario{scenario}.png"))
     return written
+
+
+def _save(fig, title: str, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
 
 
 __all__ = ["METRICS", "ProtocolPlan", "find_checkpoints", "metrics_table", "policy_factory",
