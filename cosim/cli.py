@@ -37,6 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     except CosimError as exc:
         print(f"cosim: error: {exc}", file=sys.stderr)
         return 1
+    except Exception as exc:
+        # user-fixable errors of the training/evaluation side (corrupt checkpoint, bad run
+        # folder, a worker that died) get the same one-line treatment; anything else is a bug
+        if type(exc).__name__ in ("CheckpointError", "TrainError", "ProtocolError", "WorkerError"):
+            print(f"cosim: error: {exc}", file=sys.stderr)
+            return 1
+        raise
     except KeyboardInterrupt:
         print("cosim: interrupted", file=sys.stderr)
         return 130

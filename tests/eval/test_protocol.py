@@ -58,3 +58,17 @@ def test_trained_checkpoints_are_found_and_act(tmp_path):
 def test_cli_test_without_runs_says_how_to_get_them(tmp_path, capsys):
     assert main(["test", "--runs", str(tmp_path / "none"), "--quiet"]) == 2
     assert "--policy autopilot" in capsys.readouterr().err
+
+
+def test_corrupt_checkpoint_is_a_one_line_error(tmp_path, capsys):
+    ckpt = tmp_path / "env_1__ppo__0__20260101-000000" / "checkpoints" / "ac_0" / "best.pt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"not a checkpoint")
+    assert main(["test", "--agents", "1", "--runs", str(tmp_path), "--envs", "env_1", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "best.pt" in err and "corrupt" in err and err.count("\n") == 1
+
+
+def test_resume_of_a_folder_that_is_not_a_run(tmp_path, capsys):
+    assert main(["train", "--resume", str(tmp_path)]) == 2
+    assert "not a training run folder" in capsys.readouterr().err
