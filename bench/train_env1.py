@@ -46,10 +46,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--docs", type=Path, default=None, help="copy convergence plots here")
     parser.add_argument("--steps", type=int, default=None, help="override the quick budget")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="override agent hyperparameters, e.g. buffer_size=50000")
     args = parser.parse_args()
     results = {}
     for algo in args.algos:
         cfg = make_config(algo, "env_1", "quick", seed=args.seed, steps=args.steps)
+        for item in args.set:
+            key, value = item.split("=", 1)
+            cfg.agent_config[key] = type(cfg.agent_config[key])(value)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)
         minutes = (time.monotonic() - t0) / 60
