@@ -162,9 +162,10 @@ def detect_all(
 
 def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float) -> dict[str, float]:
     """The weighted reward terms of SPEC §3; the reward is their sum."""
-    # F: speed along the route, not along the car's heading, so that circling on the spot
-    # at speed earns nothing (a policy exploited the heading version; see README)
-    forward = min(max(ev.route_speed / speed_limit, 0.0), 1.0)
+    # F: speed along the route, not along the car's heading, and negative when driving
+    # against it, so that circling at speed averages to nothing (policies exploited both
+    # the heading version and a [0, 1] clip; see README)
+    forward = min(max(ev.route_speed / speed_limit, -1.0), 1.0)
     return {
         "collision": weights.collision * float(ev.collision),
         "efficiency": weights.efficiency * (ev.progress + forward),
