@@ -46,6 +46,7 @@ from agents.workers import (
     TrainProgress,
     WorkerLink,
     WorkerPool,
+    agents_for,
     categorical_policy,
     get_context,
     linear_learning_rate,
@@ -356,13 +357,7 @@ def train_a3c(
     agent_ids = list(agent_ids)
     if num_workers < 1 or total_steps < 1:
         raise ValueError(f"need num_workers >= 1 and total_steps >= 1, got {num_workers}, {total_steps}")
-    if agents is None:
-        agents = {
-            aid: A3C.from_spaces(observation_space, action_space, config, seed=seed + k)
-            for k, aid in enumerate(agent_ids)
-        }
-    elif sorted(agents) != sorted(agent_ids):
-        raise ValueError(f"agents covers {sorted(agents)} but agent_ids is {sorted(agent_ids)}")
+    agents = agents_for(A3C, observation_space, action_space, agent_ids, config, seed, agents)
     shared_models = {aid: agent.model.share_memory() for aid, agent in agents.items()}
     optimizers = {aid: agent.optimizer.share_memory() for aid, agent in agents.items()}
 

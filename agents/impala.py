@@ -46,6 +46,7 @@ from agents.workers import (
     TrainProgress,
     WorkerLink,
     WorkerPool,
+    agents_for,
     categorical_policy,
     get_context,
     linear_learning_rate,
@@ -355,13 +356,7 @@ def train_impala(
     agent_ids = list(agent_ids)
     if num_actors < 1 or total_steps < 1:
         raise ValueError(f"need num_actors >= 1 and total_steps >= 1, got {num_actors}, {total_steps}")
-    if agents is None:
-        agents = {
-            aid: IMPALA.from_spaces(observation_space, action_space, config, seed=seed + k)
-            for k, aid in enumerate(agent_ids)
-        }
-    elif sorted(agents) != sorted(agent_ids):
-        raise ValueError(f"agents covers {sorted(agents)} but agent_ids is {sorted(agent_ids)}")
+    agents = agents_for(IMPALA, observation_space, action_space, agent_ids, config, seed, agents)
     # The actors read these copies, never the learner's own weights mid-update.
     published = {aid: private_copy(agent.model).share_memory() for aid, agent in agents.items()}
 

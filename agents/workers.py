@@ -48,6 +48,7 @@ import torch.multiprocessing as mp
 __all__ = [
     "EnvRunner",
     "EpisodeReport",
+    "agents_for",
     "Rollout",
     "RolloutBuilder",
     "TrainProgress",
@@ -609,6 +610,22 @@ class EnvRunner:
                 self._lengths = dict.fromkeys(self.obs, 0)
         rollouts = {aid: builder.build() for aid, builder in builders.items() if len(builder)}
         return rollouts, episodes, num_steps
+
+
+def agents_for(cls, observation_space, action_space, agent_ids: Sequence[str], config, seed: int,
+               agents: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The agents an asynchronous trainer trains: the given ones (to resume) or fresh ones.
+
+    Fresh agent k (in ``agent_ids`` order) is seeded with ``seed + k``.
+    """
+    if agents is None:
+        return {
+            aid: cls.from_spaces(observation_space, action_space, config, seed=seed + k)
+            for k, aid in enumerate(agent_ids)
+        }
+    if sorted(agents) != sorted(agent_ids):
+        raise ValueError(f"agents covers {sorted(agents)} but agent_ids is {sorted(agent_ids)}")
+    return dict(agents)
 
 
 def make_parallel_env(env_fn: Callable[[], Any]):
