@@ -161,7 +161,8 @@ def cmd_drive(args) -> int:
             else:
                 controls = {a: tuple(rng.uniform(-1, 1, 2)) for a in world.active}
             for ac, res in world.step(controls).items():
-                final[ac] = (res, step + 1)
+                final[ac] = (step + 1, res.events.distance_to_goal,
+                             _outcome(res.events.goal_reached, res.terminated, res.truncated))
                 for key in EVENT_KEYS:
                     if getattr(res.events, key):
                         counts[(ac, key)] += 1
@@ -173,19 +174,22 @@ def cmd_drive(args) -> int:
     return 0
 
 
+def _outcome(goal: bool, terminated: bool, truncated: bool) -> str:
+    return "goal" if goal else "ended" if terminated else "truncated" if truncated else "running"
+
+
 def _print_summary(ac_ids, final, counts) -> None:
+    """`final`: AC -> (steps, metres to goal, outcome); `counts`: (AC, event) -> steps."""
     cols = ["vehicle", "pedestrian", "object", "off-road", "wrong lane"]
     print(f"\n{'AC':6s} {'steps':>5s} " + " ".join(f"{c:>10s}" for c in cols)
           + f" {'to goal m':>9s}  outcome")
     for ac in ac_ids:
         if ac not in final:
             continue
-        res, steps = final[ac]
+        steps, to_goal, outcome = final[ac]
         row = [counts[(ac, k)] for k in EVENT_KEYS[:5]]
-        outcome = ("goal" if res.events.goal_reached else
-                   "ended" if res.terminated else "truncated" if res.truncated else "running")
         print(f"{ac:6s} {steps:5d} " + " ".join(f"{v:10d}" for v in row)
-              + f" {res.events.distance_to_goal:9.1f}  {outcome}")
+              + f" {to_goal:9.1f}  {outcome}")
     print("(event columns count the steps with that event)")
 
 
@@ -222,10 +226,11 @@ def cmd_view(args) -> int:
                 actions = {a: pilots[a].act() for a in env.agents}
             else:
                 actions = {a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents}
-            obs, _, _, _, infos = env.step(actions)
+            obs, _, terms, truncs, infos = env.step(actions)
             last.update(obs)
             for ac, info in infos.items():
-                final[ac] = (_InfoResult(info), step + 1)
+                final[ac] = (step + 1, info["distance_to_goal"],
+                             _outcome(info["goal_reached"], terms[ac], truncs[ac]))
                 for key in EVENT_KEYS:
                     if info[key]:
                         counts[(ac, key)] += 1
@@ -247,17 +252,6 @@ def cmd_view(args) -> int:
     _print_summary(env.possible_agents, final, counts)
     print("\nwrote:\n" + "\n".join(f"  {p}" for p in written))
     return 0
-
-
-class _InfoResult:
-    """Adapts an info dict to what _print_summary reads."""
-
-    def __init__(self, info: dict):
-        from types import SimpleNamespace
-
-        self.events = SimpleNamespace(**{k: info[k] for k in ("goal_reached", "distance_to_goal")})
-        self.terminated = info["goal_reached"] or info["out_of_region"]
-        self.truncated = False
 
 
 def cmd_train(args) -> int:

@@ -121,13 +121,6 @@ class RoadMap:
         d = np.hypot(xy[:, None, 0] - c[None, :, 0], xy[:, None, 1] - c[None, :, 1])
         return list(zip(*np.nonzero(d <= self._object_radii[None, :] + reach), strict=True))
 
-    def objects_near(self, x: float, y: float, reach: float) -> list[RoadObject]:
-        """Objects whose bounding circle comes within `reach` metres of (x, y)."""
-        if not self.objects:
-            return []
-        d = np.hypot(self._object_centres[:, 0] - x, self._object_centres[:, 1] - y)
-        return [self.objects[i] for i in np.flatnonzero(d <= self._object_radii + reach)]
-
     # -- construction ----------------------------------------------------------
     def _build_route(self, index: int, ac: ACSpec) -> Route:
         where = f"{self.scenario.source or self.scenario.name}: acs[{index}]"

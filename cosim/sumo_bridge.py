@@ -18,7 +18,7 @@ import logging
 import math
 import os
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -79,7 +79,6 @@ class Snapshot:
     person_xy: np.ndarray  # (m, 2)
     person_heading: np.ndarray  # (m,)
     person_speed: np.ndarray  # (m,)
-    extra: dict = field(default_factory=dict)
 
     def actors(self) -> list[Actor]:
         """The snapshot as a flat list, for the mirror and for people."""

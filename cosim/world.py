@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -69,7 +69,6 @@ class StepTimes:
     snapshot: float = 0.0
     events: float = 0.0
     steps: int = 0
-    extra: dict = field(default_factory=dict)
 
 
 class World:

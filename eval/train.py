@@ -403,11 +403,8 @@ class _EpisodeTap:
     def __init__(self, env, on_episode: Callable[[str, dict], None]):
         self.env, self.on_episode = env, on_episode
 
-    def __getattr__(self, name):
+    def __getattr__(self, name):  # reset, agents, spaces, close: the env's own
         return getattr(self.env, name)
-
-    def reset(self, seed=None, options=None):
-        return self.env.reset(seed=seed, options=options)
 
     def step(self, actions):
         out = self.env.step(actions)
