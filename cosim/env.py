@@ -128,12 +128,13 @@ class CosimParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         if self._closed:
             raise EnvStateError("the environment is closed; create a new one")
-        options = dict(options or {})
-        for key in ("background", "pedestrians"):
-            if key in options:
-                setattr(self._world.bridge, key, bool(options.pop(key)) and (
-                    self.scenario.background.enabled if key == "background" else self.scenario.pedestrians
-                ))
+        options = options or {}
+        # these two take effect at this reset and stay until changed again
+        bridge = self._world.bridge
+        if "background" in options:
+            bridge.background = bool(options["background"]) and self.scenario.background.enabled
+        if "pedestrians" in options:
+            bridge.pedestrians = bool(options["pedestrians"]) and self.scenario.pedestrians
         if seed is not None:
             self._rng = np.random.default_rng(seed)
             for i, a in enumerate(self.possible_agents):

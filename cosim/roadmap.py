@@ -61,7 +61,7 @@ class Route:
         gx, gy = self.path.point_at(self.goal_s)
         return float(gx), float(gy)
 
-    @property
+    @functools.cached_property
     def spawn_xy(self) -> np.ndarray:
         return self.path.point_at(self.spawn_s)
 
