@@ -9,13 +9,12 @@ its own). Both are rasterised once per scenario (:mod:`cosim.roadmap`).
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, fields
 
 import numpy as np
 
-from cosim.geometry import convex_overlap, rect_circle_overlap, rect_corners
+from cosim.geometry import convex_overlap, rect_circle_overlap, rect_corners, rect_corners_many
 from cosim.roadmap import RoadMap, Route
 from cosim.scenario import RewardWeights
 from cosim.sumo_bridge import PERSON_RADIUS, Snapshot
@@ -68,22 +67,6 @@ class Events:
 _EVENT_FIELDS = tuple(f.name for f in fields(Events))
 
 
-@functools.lru_cache(maxsize=16)
-def _local_corners(length: float, width: float) -> tuple[np.ndarray, np.ndarray]:
-    hl, hw = length / 2, width / 2
-    return np.array([hl, hl, -hl, -hl]), np.array([-hw, hw, hw, -hw])
-
-
-def _batch_corners(xy: np.ndarray, heading: np.ndarray, length: float, width: float) -> np.ndarray:
-    """Corners (n, 4, 2) of n equal oriented rectangles (counter-clockwise, like rect_corners)."""
-    lx, ly = _local_corners(float(length), float(width))
-    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
-    out = np.empty((len(xy), 4, 2))
-    out[:, :, 0] = xy[:, 0:1] + c * lx - s * ly
-    out[:, :, 1] = xy[:, 1:2] + s * lx + c * ly
-    return out
-
-
 def detect_all(
     ac_ids: list[str],
     state: np.ndarray,
@@ -103,7 +86,7 @@ def detect_all(
     n = len(ac_ids)
     xy, heading, speed = state[:, :2], state[:, 2], state[:, 3]
     events = [Events(speed=float(v)) for v in speed]
-    corners = _batch_corners(xy, heading, length, width)
+    corners = rect_corners_many(xy, heading, length, width)
     reach = 0.5 * float(np.hypot(length, width))
 
     vxy = snapshot.vehicle_xy
@@ -138,7 +121,7 @@ def detect_all(
             ev.collision_object = True
             ev.hit = ev.hit or obj.id
 
-    inner = _batch_corners(
+    inner = rect_corners_many(
         xy, heading, length - 2 * OFFROAD_TOLERANCE, width - 2 * OFFROAD_TOLERANCE
     )
     on_road = roadmap.drivable.lookup(inner.reshape(-1, 2)).reshape(n, 4).all(axis=1)

@@ -13,13 +13,26 @@ from dataclasses import dataclass
 import numpy as np
 
 
+@functools.lru_cache(maxsize=16)
+def _local_corners(length: float, width: float) -> tuple[np.ndarray, np.ndarray]:
+    hl, hw = length / 2, width / 2
+    return np.array([hl, hl, -hl, -hl]), np.array([-hw, hw, hw, -hw])
+
+
+def rect_corners_many(xy: np.ndarray, heading: np.ndarray, length: float, width: float) -> np.ndarray:
+    """Corners (n, 4, 2) of n equal oriented rectangles centred at xy (n, 2), counter-clockwise."""
+    lx, ly = _local_corners(float(length), float(width))
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    out = np.empty((len(xy), 4, 2))
+    out[:, :, 0] = xy[:, 0:1] + c * lx - s * ly
+    out[:, :, 1] = xy[:, 1:2] + s * lx + c * ly
+    return out
+
+
 def rect_corners(x: float, y: float, heading: float, length: float, width: float) -> np.ndarray:
     """Corners (4, 2) of an oriented rectangle centred at (x, y), counter-clockwise."""
-    c, s = np.cos(heading), np.sin(heading)
-    hl, hw = length / 2.0, width / 2.0
-    local = np.array([[hl, -hw], [hl, hw], [-hl, hw], [-hl, -hw]])
-    rot = np.array([[c, -s], [s, c]])
-    return local @ rot.T + np.array([x, y])
+    return rect_corners_many(np.array([[x, y]], dtype=float), np.array([heading], dtype=float),
+                             length, width)[0]
 
 
 def convex_overlap(a: np.ndarray, b: np.ndarray) -> bool:
