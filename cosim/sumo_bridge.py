@@ -323,15 +323,20 @@ class SumoBridge:
             ls.vehicletype.setLength(type_id, length)
             ls.vehicletype.setWidth(type_id, width)
             ls.vehicletype.setColor(type_id, color)
-            ls.vehicle.add(
-                ac_id, route_id, typeID=type_id, depart="now",
-                departLane=str(sumo_lane), departPos=f"{pos:.2f}", departSpeed="0",
-            )
-            ls.vehicle.setSpeedMode(ac_id, 0)
-            ls.vehicle.setLaneChangeMode(ac_id, 0)
+            self._acs[ac_id] = (route_id, sumo_lane, pos)
+            self._insert_ac(ac_id)
         except self._errors as exc:
+            self._acs.pop(ac_id, None)
             self._fail(f"SUMO refused learning car {ac_id!r} on route {list(edges)}", exc)
-        self._acs[ac_id] = (route_id, sumo_lane, pos)
+
+    def _insert_ac(self, ac_id: str) -> None:
+        """(Re-)insert an AC's SUMO vehicle on its route; we drive it, SUMO must not."""
+        ls = self._ls
+        route_id, lane, pos = self._acs[ac_id]
+        ls.vehicle.add(ac_id, route_id, typeID=f"{ac_id}__type", depart="now",
+                       departLane=str(lane), departPos=f"{pos:.2f}", departSpeed="0")
+        ls.vehicle.setSpeedMode(ac_id, 0)
+        ls.vehicle.setLaneChangeMode(ac_id, 0)
 
     def move_ac(self, ac_id: str, x: float, y: float, heading: float, length: float) -> None:
         """Place an AC (centre pose) for the next SUMO step; it may leave the road."""
@@ -342,11 +347,8 @@ class SumoBridge:
             ls.vehicle.moveToXY(ac_id, "", -1, fx, fy, heading_to_sumo(heading), 2)
         except self._errors:
             # SUMO removed it (e.g. it ran off the end of its route): put it back, then move.
-            route_id, lane, pos = self._acs[ac_id]
             try:
-                ls.vehicle.add(ac_id, route_id, typeID=f"{ac_id}__type", depart="now",
-                               departLane=str(lane), departPos=f"{pos:.2f}", departSpeed="0")
-                ls.vehicle.setSpeedMode(ac_id, 0)
+                self._insert_ac(ac_id)
                 ls.vehicle.moveToXY(ac_id, "", -1, fx, fy, heading_to_sumo(heading), 2)
             except self._errors as exc:
                 self._fail(f"SUMO lost learning car {ac_id!r} and could not re-insert it", exc)
