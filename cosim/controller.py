@@ -144,9 +144,9 @@ class Autopilot:
     def _ac_conflict_gaps(self, s: float) -> list[float]:
         """Give way to lower-index ACs whose routes cross or merge with ours, until they pass."""
         gaps = []
-        me = self.world.ac_ids.index(self.ac)
+        me = self.world.index[self.ac]
         for other in self.world.active:
-            j = self.world.ac_ids.index(other)
+            j = self.world.index[other]
             if j >= me:
                 continue
             conflict = self._conflict(other)
@@ -190,7 +190,7 @@ class Autopilot:
         if self._waited > WAIT_BEFORE_CREEP:
             return False
         if snap.vehicle_is_ac[j]:
-            return self.world.ac_ids.index(vid) < self.world.ac_ids.index(self.ac)
+            return self.world.index[vid] < self.world.index[self.ac]
         return True
 
     def _crossing_gaps(self, x, y, v, path, s, idx) -> list[float]:

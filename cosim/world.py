@@ -93,6 +93,8 @@ class World:
             )
         self.num_acs = n
         self.ac_ids = [f"ac_{i}" for i in range(n)]
+        self.index = {ac: i for i, ac in enumerate(self.ac_ids)}
+        """AC id -> its row in the state arrays (and its priority: lower goes first)."""
         self.vehicle = vehicle or VehicleParams()
         self.roadmap: RoadMap = road_map(self.scenario)
         self.routes = self.roadmap.routes[:n]
@@ -157,7 +159,7 @@ class World:
         if not self.active:
             raise EnvStateError("every learning car is done; call reset() to start a new episode")
         t0 = time.perf_counter()
-        idx = np.array([self.ac_ids.index(a) for a in self.active])
+        idx = np.array([self.index[a] for a in self.active])
         tb = np.array([controls[a][0] for a in self.active], dtype=float)
         steer = np.array([controls[a][1] for a in self.active], dtype=float)
         s = self._state[idx]
@@ -194,7 +196,7 @@ class World:
 
     def _make_snapshot(self) -> Snapshot:
         ids, xy, hd, sp, ln, wd, pids, pxy, phd, psp = self.bridge.background_actors()
-        active = [self.ac_ids.index(a) for a in self.active]
+        active = [self.index[a] for a in self.active]
         n = len(active)
         st = self._state[active]
         return Snapshot(
@@ -242,7 +244,7 @@ class World:
 
     def place_ac(self, ac: str, x: float, y: float, heading: float, speed: float = 0.0) -> None:
         """Teleport an AC to a pose (scripted set-ups and tests); takes effect next step."""
-        i = self.ac_ids.index(ac)
+        i = self.index[ac]
         self._state[i] = (x, y, heading, speed)
         s, _ = self.routes[i].path.project(x, y)
         self._distance[i] = max(self.routes[i].goal_s - s, 0.0)
@@ -250,10 +252,10 @@ class World:
     # -- views for controllers and the mirror ---------------------------------
     def ac_state(self, ac: str) -> tuple[float, float, float, float]:
         """(x, y, heading, speed) of an AC."""
-        return tuple(float(v) for v in self._state[self.ac_ids.index(ac)])
+        return tuple(float(v) for v in self._state[self.index[ac]])
 
     def route(self, ac: str):
-        return self.routes[self.ac_ids.index(ac)]
+        return self.routes[self.index[ac]]
 
     def next_tls(self, ac: str):
         return self.bridge.next_tls(ac)
