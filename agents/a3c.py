@@ -106,6 +106,7 @@ class A3CConfig(AgentConfig):
     }
 
     def __post_init__(self):
+        super().__post_init__()
         check_range("learning_rate", self.learning_rate, 0.0, low_inclusive=False)
         check_range("gamma", self.gamma, 0.0, 1.0)
         check_range("gae_lambda", self.gae_lambda, 0.0, 1.0)
@@ -251,7 +252,7 @@ class A3C(Agent):
         return int(torch.multinomial(probs, 1, generator=self.generator))
 
     def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
-        self._builder.add(obs, action, reward, next_obs, terminated, truncated)
+        self._builder.add(obs, action, reward * self.config.reward_scale, next_obs, terminated, truncated)
 
     def update(self) -> dict[str, float]:
         if len(self._builder) < self.config.n_steps:
@@ -287,7 +288,7 @@ def _a3c_worker(
     torch.manual_seed(seed)
     env = make_parallel_env(env_fn)
     try:
-        runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index)
+        runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index, reward_scale=config.reward_scale)
         local_models = {aid: private_copy(shared_models[aid]) for aid in agent_ids}
         generator = torch.Generator().manual_seed(seed)
         policies = {aid: categorical_policy(local_models[aid], generator) for aid in agent_ids}

@@ -68,6 +68,13 @@ class AgentConfig:
 
     PRESETS: ClassVar[Mapping[str, Mapping[str, Any]]] = {"default": {}}
 
+    reward_scale: float = 1.0
+    """Every reward is multiplied by this before the agent learns from it (returns
+    in the thousands make value targets, and so the shared encoder's gradients, huge)."""
+
+    def __post_init__(self):
+        check_range("reward_scale", self.reward_scale, 0, low_inclusive=False)
+
     @classmethod
     def preset(cls, name: str = "default", **overrides: Any) -> AgentConfig:
         """Build the named preset, optionally with some fields changed.

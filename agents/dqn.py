@@ -79,6 +79,7 @@ class DQNConfig(AgentConfig):
     }
 
     def __post_init__(self):
+        super().__post_init__()
         check_range("learning_rate", self.learning_rate, 0, 1, low_inclusive=False)
         check_range("buffer_size", self.buffer_size, 2)
         check_range("batch_size", self.batch_size, 1)
@@ -147,7 +148,7 @@ class DQN(Agent):
 
     def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
         # A truncated step is stored as non-terminal, so its target bootstraps.
-        self.buffer.add(obs, int(action), reward, next_obs, terminated, truncated)
+        self.buffer.add(obs, int(action), reward * self.config.reward_scale, next_obs, terminated, truncated)
         self.steps += 1
 
     def update(self) -> dict[str, float]:

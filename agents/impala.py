@@ -116,6 +116,7 @@ class IMPALAConfig(AgentConfig):
     }
 
     def __post_init__(self):
+        super().__post_init__()
         check_range("learning_rate", self.learning_rate, 0.0, low_inclusive=False)
         check_range("gamma", self.gamma, 0.0, 1.0)
         check_range("unroll_length", self.unroll_length, 1)
@@ -238,7 +239,8 @@ class IMPALA(Agent):
                 logits, _ = self.model(self.obs_batch(obs))
             behaviour_log_prob = float(torch.log_softmax(logits[0], dim=-1)[int(action)])
         self._last_action = None
-        self._builder.add(obs, action, reward, next_obs, terminated, truncated, behaviour_log_prob)
+        self._builder.add(obs, action, reward * self.config.reward_scale, next_obs, terminated, truncated,
+                          behaviour_log_prob)
 
     def update(self) -> dict[str, float]:
         if len(self._builder) >= self.config.unroll_length:
@@ -284,7 +286,7 @@ def _impala_actor(
     torch.manual_seed(seed)
     env = make_parallel_env(env_fn)
     try:
-        runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index)
+        runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index, reward_scale=config.reward_scale)
         local_models = {aid: private_copy(published[aid]) for aid in agent_ids}
         generator = torch.Generator().manual_seed(seed)
         policies = {aid: categorical_policy(local_models[aid], generator) for aid in agent_ids}

@@ -73,6 +73,7 @@ class PPOConfig(AgentConfig):
     }
 
     def __post_init__(self):
+        super().__post_init__()
         check_range("learning_rate", self.learning_rate, 0, 1, low_inclusive=False)
         check_range("rollout_steps", self.rollout_steps, 1)
         check_range("batch_size", self.batch_size, 1, self.rollout_steps)
@@ -142,7 +143,8 @@ class PPO(Agent):
             self._cache = (action, log_prob, value.item(), logits[0].cpu().numpy())
         _, log_prob, value, logits = self._cache
         self._cache = None
-        t = self.buffer.add(obs, action, log_prob, value, reward, terminated, truncated, logits)
+        t = self.buffer.add(obs, action, log_prob, value, reward * self.config.reward_scale,
+                            terminated, truncated, logits)
         self.steps += 1
         if truncated and not terminated:
             # Time limit, not a real end: bootstrap from the final observation (Pardo et al. 2018).

@@ -79,6 +79,7 @@ class TD3Config(AgentConfig):
     }
 
     def __post_init__(self):
+        super().__post_init__()
         check_range("actor_learning_rate", self.actor_learning_rate, 0, 1, low_inclusive=False)
         check_range("critic_learning_rate", self.critic_learning_rate, 0, 1, low_inclusive=False)
         check_range("buffer_size", self.buffer_size, 2)
@@ -153,7 +154,7 @@ class TD3(Agent):
 
     def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
         action = np.asarray(action, dtype=np.float32).reshape(self.action_space.shape)
-        self.buffer.add(obs, action, reward, next_obs, terminated, truncated)
+        self.buffer.add(obs, action, reward * self.config.reward_scale, next_obs, terminated, truncated)
         self.steps += 1
 
     # ---- learning ---------------------------------------------------------------------

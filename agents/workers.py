@@ -554,10 +554,13 @@ class EnvRunner:
         agent_ids: The learning agents; every agent the env reports must be one.
         seed: Seed of the first reset.
         worker: Worker index, copied into episode reports.
+        reward_scale: Rewards are multiplied by this in the rollouts (the agents'
+            ``reward_scale``); episode reports keep the environment's own returns.
     """
 
-    def __init__(self, env, agent_ids: Sequence[str], seed: int, worker: int = 0):
+    def __init__(self, env, agent_ids: Sequence[str], seed: int, worker: int = 0, reward_scale: float = 1.0):
         self.env = env
+        self.reward_scale = float(reward_scale)
         self.agent_ids = list(agent_ids)
         self.worker = worker
         self.obs, _ = env.reset(seed=seed)
@@ -593,7 +596,7 @@ class EnvRunner:
                     self._extras[aid] = info["episode"]
             for aid in actions:
                 builders[aid].add(
-                    self.obs[aid], actions[aid], rewards[aid], next_obs[aid],
+                    self.obs[aid], actions[aid], rewards[aid] * self.reward_scale, next_obs[aid],
                     terminations[aid], truncations[aid], log_probs[aid],
                 )
                 self._returns[aid] += float(rewards[aid])

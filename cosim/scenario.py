@@ -29,9 +29,11 @@ from typing import Any
 
 import yaml
 
+from cosim.dynamics import VehicleParams
 from cosim.errors import ScenarioError
 
 MAX_ACS = 6
+MAX_DEPART_SPEED = VehicleParams.max_speed  # m/s, what the learning car's dynamics allow
 
 
 def nets_dir() -> Path:
@@ -89,12 +91,19 @@ class ACSpec:
     """Goal position along the last edge in metres; negative counts back from its end."""
     lane: int = 0
     """Lane of the first edge, counted among the lanes cars may use, 0 = rightmost."""
+    depart_speed: float = 0.0
+    """Forward speed in m/s at the spawn point (SUMO's departSpeed); 0 = start standing."""
 
     def __post_init__(self) -> None:
         if not self.route:
             raise ValueError("route must name at least one edge")
         if self.lane < 0:
             raise ValueError(f"lane must be >= 0, got {self.lane}")
+        if not 0.0 <= self.depart_speed <= MAX_DEPART_SPEED:
+            raise ValueError(
+                f"depart_speed must be 0..{MAX_DEPART_SPEED} m/s (the learning car's top speed), "
+                f"got {self.depart_speed}"
+            )
 
 
 @dataclass(frozen=True)

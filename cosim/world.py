@@ -119,7 +119,7 @@ class World:
         self.bridge.clear_around(spawns, SPAWN_CLEARANCE)
         for i, (ac, route) in enumerate(zip(self.ac_ids, self.routes, strict=True)):
             x, y = route.spawn_xy
-            self._state[i] = (x, y, route.spawn_heading, 0.0)
+            self._state[i] = (x, y, route.spawn_heading, self.scenario.acs[i].depart_speed)
             self._distance[i] = route.goal_s - route.spawn_s
             self.bridge.add_ac(
                 ac, route.edges, route.sumo_lane, route.spawn_s, self.vehicle.length,

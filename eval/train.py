@@ -77,6 +77,10 @@ class TrainPreset:
     """Worker/actor processes for A3C and IMPALA."""
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Per-algorithm hyperparameter changes on top of agent_preset."""
+    reward_scale: float = 0.01
+    """Every algorithm learns on reward x this: the driving reward is worth up to ~24
+    per step and -50 per collision, so unscaled returns run to thousands and the value
+    loss swamps the policy's gradients in the shared CNN (PPO collapsed without it)."""
 
 
 PRESETS: dict[str, TrainPreset] = {
@@ -178,7 +182,9 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     config_cls = get_agent_class(algo).config_class
     chosen = agent_preset or p.agent_preset
     try:
-        agent_config = config_cls.preset(chosen, **p.overrides.get(algo, {})).to_dict()
+        agent_config = config_cls.preset(
+            chosen, **{"reward_scale": p.reward_scale, **p.overrides.get(algo, {})}
+        ).to_dict()
     except ValueError as exc:
         raise TrainError(f"{algo} hyperparameters: {exc}") from exc
     return TrainConfig(
@@ -469,10 +475,10 @@ def _bar(cfg: TrainConfig, runlog: RunLog, quiet: bool, progress: bool):
 def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_log: list) -> None:
     mean = runlog.mean_recent()
     bar.set_postfix_str(f"return {mean:8.1f}", refresh=False)
-    if quiet and time.monotonic() - last_log[0] > 30:
-        last_log[0] = time.monotonic()
-        rate = (step - last_log[1]) / 30.0 if last_log[1] else float("nan")
-        last_log[1] = step
+    now = time.monotonic()
+    if quiet and now - last_log[0] > 30:
+        rate = (step - last_log[1]) / (now - last_log[0])
+        last_log[0], last_log[1] = now, step
         print(f"[{cfg.algo} {cfg.env}] step {step}/{cfg.steps} recent mean return {mean:.1f} "
               f"({rate:.0f} steps/s)", flush=True)
 
@@ -484,7 +490,7 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     env = _EpisodeTap(make_env(cfg.to_dict()), lambda a, s: runlog.episode(a, s, step_now[0]))
     step_now = [start_step]
     bar = _bar(cfg, runlog, quiet, progress)
-    last_log = [time.monotonic(), 0]
+    last_log = [time.monotonic(), start_step]
     try:
         agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
                                    env.action_space("ac_0"))
@@ -525,7 +531,7 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
     config = get_agent_class(cfg.algo).config_class.from_dict(cfg.agent_config)
     bar = _bar(cfg, runlog, quiet, progress)
     last = {"step": start_step, "ckpt": start_step}
-    last_log = [time.monotonic(), 0]
+    last_log = [time.monotonic(), start_step]
 
     def callback(p) -> bool:
         now = start_step + int(p.env_steps)

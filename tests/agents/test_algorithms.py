@@ -187,3 +187,14 @@ def test_td3_image_actor_reads_the_critics_cnn_features():
     with torch.no_grad():
         expected = agent.actor(agent.critic.encode(torch.as_tensor(obs[None])))[0].numpy()
     np.testing.assert_allclose(agent.act(obs, deterministic=True), expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_reward_scale_multiplies_what_the_agent_learns_from(algo):
+    obs_space, act_space = SPACES[algo]
+    agent = get_agent_class(algo).from_spaces(obs_space, act_space, FAST[algo].replace(reward_scale=0.01))
+    obs = np.zeros(obs_space.shape, np.float32)
+    agent.observe(obs, agent.act(obs), 250.0, obs, terminated=False, truncated=False)
+    assert agent.buffer.rewards[0] == pytest.approx(2.5)
+    with pytest.raises(ValueError, match="reward_scale=0.*valid range"):
+        FAST[algo].replace(reward_scale=0.0)

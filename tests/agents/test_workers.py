@@ -335,3 +335,15 @@ def test_a_stuck_worker_dies_with_a_sigkilled_parent(tmp_path):
     while live_pids(pids) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert live_pids(pids) == []
+
+
+def test_env_runner_scales_rollout_rewards_but_reports_raw_returns():
+    env = MultiColourBar([False, False], size=9, episode_length=3)
+    runner = EnvRunner(env, ["agent_0", "agent_1"], seed=0, reward_scale=0.1)
+    raw = EnvRunner(MultiColourBar([False, False], size=9, episode_length=3), ["agent_0", "agent_1"], seed=0)
+    policies = {aid: (lambda obs: (1, -1.1)) for aid in env.possible_agents}
+    rollouts, episodes, _ = runner.collect(policies, num_steps=4)
+    raw_rollouts, raw_episodes, _ = raw.collect(policies, num_steps=4)
+    np.testing.assert_allclose(rollouts["agent_1"].rewards, 0.1 * raw_rollouts["agent_1"].rewards, rtol=1e-6)
+    assert np.abs(raw_rollouts["agent_1"].rewards).sum() > 0
+    assert episodes[0].returns == raw_episodes[0].returns

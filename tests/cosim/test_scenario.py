@@ -67,6 +67,8 @@ def test_unknown_key_lists_valid_keys(tmp_path):
         (lambda d: d["acs"][0].update(route=["tx_e", "nowhere"]), "'nowhere' is not in"),
         (lambda d: d["acs"][0].update(route=["tx_e", "xs_n"]), "not connected"),
         (lambda d: d["acs"][0].update(lane=3), "lane 3 does not exist"),
+        (lambda d: d["acs"][0].update(depart_speed=-2), r"acs\[0\].*depart_speed must be 0..25"),
+        (lambda d: d["acs"][0].update(depart_speed=40), r"depart_speed must be 0..25.0 m/s"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, edit, message):

@@ -1,7 +1,9 @@
 """The world in the real simulator: traffic, events on purpose, determinism, SUMO errors."""
 
+import dataclasses
 import math
 
+import numpy as np
 import pytest
 
 from cosim.controller import Autopilot
@@ -237,3 +239,23 @@ def test_a_second_simulation_in_one_process_uses_traci_with_identical_results():
             assert b.bridge._ls is not a.bridge._ls
         assert a.step({"ac_0": (0.0, 0.0)})  # the first one is untouched
     assert xs_a == xs_b
+
+
+def test_acs_enter_at_their_depart_speed():
+    sc = load_scenario("env_1")
+    assert all(ac.depart_speed == 8.0 for ac in sc.acs)
+    with _straight_world() as w:
+        w.reset(seed=0)
+        x0, y0, h, speed = w.ac_state("ac_0")
+        assert speed == pytest.approx(8.0)
+        r = w.step({"ac_0": (0.0, 0.0)})["ac_0"]  # coasting: rolling resistance only
+        moved = np.hypot(r.x - x0, r.y - y0)
+        assert moved == pytest.approx(0.8, abs=0.02)
+        assert r.events.speed == pytest.approx(8.0 - 0.1 * (0.3 + 0.0015 * 64), abs=1e-6)
+    standing = dataclasses.replace(sc, acs=tuple(dataclasses.replace(a, depart_speed=0.0) for a in sc.acs))
+    with World(standing, 1, background=False) as w:
+        w.reset(seed=0)
+        assert w.ac_state("ac_0")[3] == 0.0
+        x0, y0 = w.ac_state("ac_0")[:2]
+        r = w.step({"ac_0": (0.0, 0.0)})["ac_0"]
+        assert (r.x, r.y) == pytest.approx((x0, y0))
