@@ -261,9 +261,17 @@ class DeterministicActor(nn.Module):
         self.register_buffer("action_scale", (high - low) / 2.0)
         self.register_buffer("action_bias", (high + low) / 2.0)
 
+    def preactivation(self, obs: torch.Tensor) -> torch.Tensor:
+        """The head's output before the tanh, ``(B, action_dim)``."""
+        return self.mu(self.encoder(obs))
+
+    def squash(self, preactivation: torch.Tensor) -> torch.Tensor:
+        """Map pre-tanh outputs into the Box bounds."""
+        return self.action_bias + self.action_scale * torch.tanh(preactivation)
+
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Return actions ``(B, action_dim)`` inside the Box bounds."""
-        return self.action_bias + self.action_scale * torch.tanh(self.mu(self.encoder(obs)))
+        return self.squash(self.preactivation(obs))
 
 
 class QEnsemble(nn.Module):

@@ -68,6 +68,9 @@ class TD3Config(AgentConfig):
     """number of critics; the target uses their minimum."""
     hidden: tuple[int, ...] = (256, 256)
     """hidden sizes of the MLPs (after the Nature CNN for images)."""
+    pre_tanh_penalty: float = 0.0
+    """weight of the actor's mean squared pre-tanh output in its loss: keeps the tanh
+    out of saturation, where its gradient vanishes and the actor sticks at a bound."""
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
@@ -94,6 +97,7 @@ class TD3Config(AgentConfig):
         check_range("target_noise_clip", self.target_noise_clip, 0)
         check_range("policy_delay", self.policy_delay, 1)
         check_range("n_critics", self.n_critics, 1)
+        check_range("pre_tanh_penalty", self.pre_tanh_penalty, 0)
 
 
 class TD3(Agent):
@@ -196,13 +200,18 @@ class TD3(Agent):
             # Detached features: the actor's loss does not train the critic's encoder.
             with torch.no_grad():
                 features = self.critic.encode(data.obs)
-            actor_loss = -self.critic.q_from_features(features, self.actor(features), head=0).mean()
+            pre = self.actor.preactivation(features)
+            actor_loss = -self.critic.q_from_features(features, self.actor.squash(pre), head=0).mean()
+            if cfg.pre_tanh_penalty > 0:
+                actor_loss = actor_loss + cfg.pre_tanh_penalty * pre.pow(2).mean()
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
             self.actor_optimizer.step()
             polyak_update(self.actor.parameters(), self.actor_target.parameters(), cfg.tau)
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), cfg.tau)
             metrics["losses/actor_loss"] = actor_loss.item()
+            # tanh(2.65) = 0.99: the share of action components pinned at a bound
+            metrics["losses/actor_saturated"] = (pre.detach().abs() > 2.65).float().mean().item()
         return metrics
 
     # ---- checkpoint extras ------------------------------------------------------------

@@ -198,3 +198,25 @@ def test_reward_scale_multiplies_what_the_agent_learns_from(algo):
     assert agent.buffer.rewards[0] == pytest.approx(2.5)
     with pytest.raises(ValueError, match="reward_scale=0.*valid range"):
         FAST[algo].replace(reward_scale=0.0)
+
+
+@pytest.mark.parametrize("penalty", [0.0, 1.0])
+def test_td3_pre_tanh_penalty_pulls_a_saturated_actor_back(penalty):
+    cfg = TD3Config(learning_starts=0, batch_size=16, buffer_size=100, policy_delay=1,
+                    actor_learning_rate=0.05, pre_tanh_penalty=penalty)
+    agent = TD3.from_spaces(*SPACES["td3"], cfg)
+    with torch.no_grad():
+        agent.actor.mu.bias.fill_(3.0)  # tanh(3) = 0.995: pinned at the upper bound
+        for p in agent.critic.parameters():
+            p.zero_()  # a flat critic: Q = 0 everywhere, no pull on the action
+        agent.critic_target.load_state_dict(agent.critic.state_dict())
+    obs = np.zeros(3, np.float32)
+    for _ in range(32):
+        agent.observe(obs, np.zeros(1, np.float32), 0.0, obs, terminated=False, truncated=False)
+    metrics = [agent._gradient_step() for _ in range(30)]
+    pre = agent.actor.preactivation(torch.zeros(1, 3)).item()
+    assert metrics[0]["losses/actor_saturated"] == 1.0
+    if penalty:
+        assert pre < 2.0, "the penalty brings the actor out of saturation"
+    else:
+        assert pre == pytest.approx(3.0, abs=1e-3), "without it nothing moves a saturated actor"
