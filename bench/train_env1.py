@@ -51,10 +51,8 @@ def main() -> None:
     args = parser.parse_args()
     results = {}
     for algo in args.algos:
-        cfg = make_config(algo, "env_1", "quick", seed=args.seed, steps=args.steps)
-        for item in args.set:
-            key, value = item.split("=", 1)
-            cfg.agent_config[key] = type(cfg.agent_config[key])(value)
+        hyper = dict(item.split("=", 1) for item in args.set)
+        cfg = make_config(algo, "env_1", "quick", seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)
         minutes = (time.monotonic() - t0) / 60

@@ -92,6 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
                    help="must match the algorithm (discrete: ppo a3c impala dqn)")
     t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
+    t.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="hyper",
+                   help="change one agent hyperparameter, e.g. --set learning_rate=3e-4 (repeatable)")
     t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
     t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
                    help="continue an interrupted run from its last checkpoint")
@@ -266,9 +268,16 @@ def cmd_train(args) -> int:
             print(f"run folder: {run}")
             return 0
         algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
+        hyper = {}
+        for item in args.hyper:
+            key, sep, value = item.partition("=")
+            if not sep or not key:
+                raise TrainError(f"--set {item!r}: write FIELD=VALUE, e.g. --set learning_rate=3e-4")
+            hyper[key.strip()] = value.strip()
         configs = [
             make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
-                        seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset)
+                        seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
+                        hyper=hyper)
             for a in algos
         ]
     except TrainError as exc:
@@ -296,6 +305,8 @@ def cmd_train(args) -> int:
         base += ["--steps", str(args.steps)]
     if args.agent_preset is not None:
         base += ["--agent-preset", args.agent_preset]
+    for item in args.hyper:
+        base += ["--set", item]
     try:
         while pending or running:
             while pending and len(running) < parallel:

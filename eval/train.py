@@ -39,7 +39,7 @@ import subprocess
 import sys
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -150,8 +150,12 @@ class TrainConfig:
 
 def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents: int | None = None,
                 steps: int | None = None, seed: int = 0, action_type: str | None = None,
-                image_size: int = 84, agent_preset: str | None = None) -> TrainConfig:
+                image_size: int = 84, agent_preset: str | None = None,
+                hyper: Mapping[str, str] | None = None) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
+
+    ``hyper`` changes agent hyperparameters last, field name -> value as text
+    (``cosim train --set actor_learning_rate=1e-4``).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -185,9 +189,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     config_cls = get_agent_class(algo).config_class
     chosen = agent_preset or p.agent_preset
     try:
-        agent_config = config_cls.preset(
-            chosen, **{"reward_scale": p.reward_scale, **p.overrides.get(algo, {})}
-        ).to_dict()
+        base = config_cls.preset(chosen, **{"reward_scale": p.reward_scale, **p.overrides.get(algo, {})})
+        agent_config = base.replace(**parse_hyper(base.to_dict(), hyper or {}, algo)).to_dict()
     except ValueError as exc:
         raise TrainError(f"{algo} hyperparameters: {exc}") from exc
     return TrainConfig(
@@ -195,6 +198,37 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
         image_size=int(image_size), agent_config=agent_config,
     )
+
+
+def parse_hyper(current: Mapping[str, Any], hyper: Mapping[str, str], algo: str) -> dict[str, Any]:
+    """Typed values for hyperparameter overrides given as text, checked against ``current``.
+
+    Raises:
+        ValueError: an unknown field (listing the valid ones) or a value of the wrong type.
+    """
+    out: dict[str, Any] = {}
+    for key, text in hyper.items():
+        if key not in current:
+            raise ValueError(f"--set {key}: {algo} has no such hyperparameter; valid: {', '.join(sorted(current))}")
+        old = current[key]
+        try:
+            value = yaml.safe_load(text)
+            if isinstance(old, bool):
+                if not isinstance(value, bool):
+                    raise TypeError
+            elif isinstance(old, int | float):
+                value = float(value) if isinstance(old, float) else value
+                if isinstance(old, int) and not (isinstance(value, int) and not isinstance(value, bool)):
+                    raise TypeError
+            elif isinstance(old, tuple | list):
+                value = tuple(value)
+        except (TypeError, ValueError, yaml.YAMLError):
+            kind = type(old).__name__
+            raise ValueError(
+                f"--set {key}={text}: expected {'an' if kind[0] in 'aeiou' else 'a'} {kind} like {old!r}"
+            ) from None
+        out[key] = value
+    return out
 
 
 # -- run folder -------------------------------------------------------------------

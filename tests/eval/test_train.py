@@ -121,3 +121,18 @@ def test_unwritable_output_fails_before_training(tmp_path, capsys):
     assert main(["train", "--algo", "ppo", "--preset", "smoke", "--out", str(blocker / "runs")]) == 2
     assert "cannot write to output folder" in capsys.readouterr().err
     assert time.monotonic() - started < 20
+
+
+def test_hyperparameter_overrides_are_typed_and_checked(capsys):
+    cfg = make_config("td3", hyper={"actor_learning_rate": "1e-4", "buffer_size": "5000", "hidden": "[64, 64]"})
+    assert cfg.agent_config["actor_learning_rate"] == 1e-4
+    assert cfg.agent_config["buffer_size"] == 5000 and cfg.agent_config["hidden"] == (64, 64)
+    assert cfg.agent_config["reward_scale"] == 0.01  # the preset's, untouched
+    with pytest.raises(TrainError, match="td3 has no such hyperparameter; valid: .*actor_learning_rate"):
+        make_config("td3", hyper={"learning_rate": "1e-4"})
+    with pytest.raises(TrainError, match=r"buffer_size=lots: expected an int like 20000"):
+        make_config("td3", hyper={"buffer_size": "lots"})
+    with pytest.raises(TrainError, match="tau=0.0 is out of range"):
+        make_config("td3", hyper={"tau": "0"})
+    assert main(["train", "--algo", "ppo", "--set", "learning_rate"]) == 2
+    assert "write FIELD=VALUE" in capsys.readouterr().err
