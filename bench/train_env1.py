@@ -3,9 +3,11 @@
 Trains each algorithm with `cosim train --preset quick`, then evaluates the best
 checkpoint of every AC and a uniform random policy on the SAME held-out seeds
 (episodes the training never saw), with collisions not ending the episode, and
-prints mean return, DISTANCE and OS (lane violations) per policy.
+prints mean return, DISTANCE and OS (lane violations) per policy, over all ACs
+and per AC.
 
     python bench/train_env1.py [--algos ppo td3] [--episodes 5] [--out bench/results]
+    python bench/train_env1.py --eval runs/env_1__ppo__1__...   # evaluate finished runs only
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import shutil
 import time
 from pathlib import Path
 
+import yaml
+
 import agents
 import cosim
 from eval.metrics import episode_metrics
@@ -23,19 +27,32 @@ from eval.rollout import RandomPolicy, run_episodes
 from eval.train import make_config, train
 
 HELD_OUT_SEEDS = [90_001, 90_002, 90_003, 90_004, 90_005, 90_006, 90_007, 90_008]
+COLUMNS = ["return", "DISTANCE", "OS", "goal", "CV", "CO", "SPEED"]
 
 
-def evaluate(policies_for, action_type: str, episodes: int, horizon: int) -> dict:
-    env = cosim.parallel_env("env_1", num_agents=3, action_types=action_type,
+def evaluate(policies_for, action_type: str, episodes: int, horizon: int, num_agents: int) -> dict:
+    env = cosim.parallel_env("env_1", num_agents=num_agents, action_types=action_type,
                              terminate_on_collision=False, horizon=horizon)
     try:
         records = run_episodes(env, policies_for(env), HELD_OUT_SEEDS[:episodes])
     finally:
         env.close()
     m = episode_metrics(records, dt=0.1)
-    return {"return": float(m["return"].mean()), "DISTANCE": float(m["DISTANCE"].mean()),
-            "OS": float(m["OS"].mean()), "goal": float(m["goal"].mean()),
-            "CV": float(m["CV"].mean()), "SPEED": float(m["SPEED"].mean())}
+    out = {k: float(m[k].mean()) for k in COLUMNS}
+    out["per_ac"] = {aid: {k: round(float(g[k].mean()), 3) for k in ("return", "DISTANCE", "OS")}
+                     for aid, g in m.groupby("agent")}
+    return out
+
+
+def evaluate_run(run: Path, episodes: int) -> dict:
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    action_type = "discrete" if cfg["algo"] in ("ppo", "a3c", "impala", "dqn") else "continuous"
+    n = cfg["agents"]
+    ckpts = {f"ac_{k}": agents.load(run / "checkpoints" / f"ac_{k}" / "best.pt") for k in range(n)}
+    trained = evaluate(lambda env: ckpts, action_type, episodes, cfg["horizon"], n)
+    rand = evaluate(lambda env: {a: RandomPolicy(env.action_space(a), 7) for a in env.possible_agents},
+                    action_type, episodes, cfg["horizon"], n)
+    return {"algo": cfg["algo"], "steps": cfg["steps"], "trained": trained, "random": rand, "run": str(run)}
 
 
 def main() -> None:
@@ -48,31 +65,37 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="override the quick budget")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="override agent hyperparameters, e.g. buffer_size=50000")
+    parser.add_argument("--eval", nargs="+", type=Path, default=None, metavar="RUN_DIR",
+                        help="evaluate these finished runs instead of training")
     args = parser.parse_args()
-    results = {}
-    for algo in args.algos:
+    results = []
+    if args.eval:
+        results = [evaluate_run(run, args.episodes) for run in args.eval]
+    for algo in [] if args.eval else args.algos:
         hyper = dict(item.split("=", 1) for item in args.set)
         cfg = make_config(algo, "env_1", "quick", seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)
         minutes = (time.monotonic() - t0) / 60
-        ckpts = {f"ac_{k}": agents.load(run / "checkpoints" / f"ac_{k}" / "best.pt") for k in range(3)}
-        trained = evaluate(lambda env, c=ckpts: c, cfg.action_type, args.episodes, cfg.horizon)
-        rand = evaluate(lambda env: {a: RandomPolicy(env.action_space(a), 7) for a in env.possible_agents},
-                        cfg.action_type, args.episodes, cfg.horizon)
-        results[algo] = {"trained": trained, "random": rand, "steps": cfg.steps,
-                         "train_minutes": round(minutes, 1), "run": str(run)}
+        result = evaluate_run(run, args.episodes)
+        result["train_minutes"] = round(minutes, 1)
+        results.append(result)
         if args.docs:
             args.docs.mkdir(parents=True, exist_ok=True)
             shutil.copy(run / "convergence.png", args.docs / f"convergence_{algo}_env_1.png")
-        print(json.dumps({algo: results[algo]}, indent=2), flush=True)
-    print("\n| algorithm | steps | train min | policy | mean return | DISTANCE m | OS | goal rate |")
+        print(json.dumps(result, indent=2), flush=True)
+    print("\n| algorithm | env steps | train min | policy | mean return | DISTANCE m | OS | goal rate |")
     print("|---|---|---|---|---|---|---|---|")
-    for algo, r in results.items():
+    for r in results:
         for who in ("trained", "random"):
             v = r[who]
-            print(f"| {algo} | {r['steps']} | {r['train_minutes']} | {who} | {v['return']:.1f} | "
+            print(f"| {r['algo']} | {r['steps']:,} | {r.get('train_minutes', '')} | {who} | {v['return']:,.1f} | "
                   f"{v['DISTANCE']:.1f} | {v['OS']:.3f} | {v['goal']:.2f} |")
+    print("\nper AC (trained): return / DISTANCE / OS")
+    for r in results:
+        cells = [f"{aid}: {v['return']:,.0f} / {v['DISTANCE']:.0f} m / {v['OS']:.2f}"
+                 for aid, v in r["trained"]["per_ac"].items()]
+        print(f"{r['algo']}: " + "; ".join(cells))
 
 
 if __name__ == "__main__":
