@@ -65,6 +65,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="override the quick budget")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="override agent hyperparameters, e.g. buffer_size=50000")
+    parser.add_argument("--env", default="env_1",
+                        help="scenario to TRAIN on (e.g. an env_1 copy with other reward weights); "
+                             "evaluation is always on env_1")
     parser.add_argument("--eval", nargs="+", type=Path, default=None, metavar="RUN_DIR",
                         help="evaluate these finished runs instead of training")
     args = parser.parse_args()
@@ -73,7 +76,7 @@ def main() -> None:
         results = [evaluate_run(run, args.episodes) for run in args.eval]
     for algo in [] if args.eval else args.algos:
         hyper = dict(item.split("=", 1) for item in args.set)
-        cfg = make_config(algo, "env_1", "quick", seed=args.seed, steps=args.steps, hyper=hyper)
+        cfg = make_config(algo, args.env, "quick", seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)
         minutes = (time.monotonic() - t0) / 60
