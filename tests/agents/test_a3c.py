@@ -201,3 +201,15 @@ def test_keyboard_interrupt_in_the_callback_leaves_no_process():
         train_a3c(CARTPOLE, *SPACES, total_steps=10**6, num_workers=2, callback=interrupt, start_method="forkserver")
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
+
+
+def test_reward_scale_applies_to_a3c_and_impala_rollouts():
+    from agents.impala import IMPALA, IMPALAConfig
+
+    for cls, cfg in ((A3C, A3CConfig(n_steps=5, reward_scale=0.1)),
+                     (IMPALA, IMPALAConfig(unroll_length=5, batch_size=1, reward_scale=0.1))):
+        agent = cls.from_spaces(*SPACES, cfg)
+        obs = np.zeros(4, np.float32)
+        for reward in (10.0, -20.0):
+            agent.observe(obs, agent.act(obs), reward, obs, terminated=False, truncated=False)
+        np.testing.assert_allclose(agent._builder.build().rewards, [1.0, -2.0], rtol=1e-6)
