@@ -8,6 +8,7 @@ and per AC.
 
     python bench/train_env1.py [--algos ppo td3] [--episodes 5] [--out bench/results]
     python bench/train_env1.py --eval runs/env_1__ppo__1__...   # evaluate finished runs only
+    python bench/train_env1.py --algos ppo --lane-weight -5      # train with 10x the lane weight
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import yaml
 
 import agents
 import cosim
+from cosim.scenario import nets_dir
 from eval.metrics import episode_metrics
 from eval.rollout import RandomPolicy, run_episodes
 from eval.train import make_config, train
@@ -55,6 +57,22 @@ def evaluate_run(run: Path, episodes: int) -> dict:
     return {"algo": cfg["algo"], "steps": cfg["steps"], "trained": trained, "random": rand, "run": str(run)}
 
 
+def env_1_with_lane_weight(weight: float, folder: Path) -> Path:
+    """A copy of env_1's YAML with another lane weight (file paths made absolute)."""
+    root = nets_dir()
+    data = yaml.safe_load((root / "scenarios" / "env_1.yaml").read_text())
+    for key in ("net", "additional", "demand"):
+        value = data[key]
+        absolute = [str((root / "scenarios" / v).resolve()) for v in ([value] if isinstance(value, str) else value)]
+        data[key] = absolute[0] if isinstance(value, str) else absolute
+    data["reward"]["lane"] = weight
+    data["name"] = f"env_1_lane{weight:g}"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{data['name']}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algos", nargs="+", default=["ppo", "td3"])
@@ -68,10 +86,14 @@ def main() -> None:
     parser.add_argument("--env", default="env_1",
                         help="scenario to TRAIN on (e.g. an env_1 copy with other reward weights); "
                              "evaluation is always on env_1")
+    parser.add_argument("--lane-weight", type=float, default=None,
+                        help="train on a copy of env_1 with this lane-keeping weight (paper: -0.5)")
     parser.add_argument("--eval", nargs="+", type=Path, default=None, metavar="RUN_DIR",
                         help="evaluate these finished runs instead of training")
     args = parser.parse_args()
     results = []
+    if args.lane_weight is not None:
+        args.env = str(env_1_with_lane_weight(args.lane_weight, args.out))
     if args.eval:
         results = [evaluate_run(run, args.episodes) for run in args.eval]
     for algo in [] if args.eval else args.algos:
