@@ -14,9 +14,11 @@ import math
 import numpy as np
 import pytest
 
+from cosim import meshes
 from cosim import mirror as mirror_mod
 from cosim.errors import SimulatorUnavailable
-from cosim.mirror import Mirror, camera_backdrop, prism, ribbon, triangulate
+from cosim.meshes import prism, ribbon, triangulate
+from cosim.mirror import Mirror, camera_backdrop
 from cosim.roadmap import road_map
 from cosim.scenario import load_scenario
 from cosim.sumo_bridge import Snapshot
@@ -104,7 +106,7 @@ def test_ribbon_has_the_lane_area_and_faces_up():
     # mitred bend: area = length x width exactly
     assert sum(areas) == pytest.approx(22 * 3.0, rel=1e-6)
     seg = np.linalg.norm(np.diff(verts[: len(verts) // 2, :2], axis=0), axis=1)
-    assert seg.max() <= mirror_mod.MAX_SEGMENT + 1.5 + 1e-9  # pieces cut along the lane
+    assert seg.max() <= meshes.MAX_SEGMENT + 1.5 + 1e-9  # pieces cut along the lane
 
 
 def test_prism_faces_point_outwards():
@@ -265,11 +267,11 @@ def test_long_triangles_render_like_short_ones():
         images = []
         for cut in (400.0, 2.0):
             shape = np.array([[-200.0, 0.0], [200.0, 0.0]])
-            old, mirror_mod.MAX_SEGMENT = mirror_mod.MAX_SEGMENT, cut
+            old, meshes.MAX_SEGMENT = meshes.MAX_SEGMENT, cut
             try:
                 verts, tris = ribbon(shape, 3.0, -3.0, 0.0)
             finally:
-                mirror_mod.MAX_SEGMENT = old
+                meshes.MAX_SEGMENT = old
             vs = p.createVisualShape(p.GEOM_MESH, vertices=verts.tolist(),
                                      indices=tris.ravel().tolist(),
                                      normals=[[0, 0, 1]] * len(verts), rgbaColor=(0.3, 0.3, 0.3, 1),
@@ -339,10 +341,10 @@ def test_close_is_idempotent_and_disconnects():
 
 def test_triangle_budget_of_every_scenario(env1_mirror):
     for name in ("env_1", "env_2", "env_3", "env_4", "env_5"):
-        meshes = mirror_mod.build_static(road_map(load_scenario(name)))
-        static = sum(mesh.triangles for mesh in meshes.values())
+        static_meshes = meshes.build_static(road_map(load_scenario(name)))
+        static = sum(mesh.triangles for mesh in static_meshes.values())
         assert 300 < static < 5000, (name, static)
-        assert meshes["road"].triangles > 50 and meshes["sidewalk"].triangles > 10, name
+        assert static_meshes["road"].triangles > 50 and static_meshes["sidewalk"].triangles > 10, name
     pool = mirror_mod.BOX_TRIANGLES * (mirror_mod.MAX_ACS + 40 + 40)
     assert env1_mirror.triangle_count == env1_mirror._static_triangles + pool
 
