@@ -9,6 +9,7 @@ and per AC.
     python bench/train_env1.py [--algos ppo td3] [--episodes 5] [--out bench/results]
     python bench/train_env1.py --eval runs/env_1__ppo__1__...   # evaluate finished runs only
     python bench/train_env1.py --algos ppo --lane-weight -5      # train with 10x the lane weight
+    python bench/train_env1.py --eval --baselines                 # non-learning references only
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import agents
 import cosim
 from cosim.scenario import nets_dir
 from eval.metrics import episode_metrics
-from eval.rollout import RandomPolicy, run_episodes
+from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
 from eval.train import make_config, train
 
 HELD_OUT_SEEDS = [90_001, 90_002, 90_003, 90_004, 90_005, 90_006, 90_007, 90_008]
@@ -43,6 +44,27 @@ def evaluate(policies_for, action_type: str, episodes: int, horizon: int, num_ag
     out = {k: float(m[k].mean()) for k in COLUMNS}
     out["per_ac"] = {aid: {k: round(float(g[k].mean()), 3) for k in ("return", "DISTANCE", "OS")}
                      for aid, g in m.groupby("agent")}
+    return out
+
+
+def forward_policy(action_type: str):
+    """Full throttle, wheel straight, every step: no camera needed on a straight road."""
+    import numpy as np
+
+    action = 3 if action_type == "discrete" else np.array([1.0, 0.0], np.float32)
+    return lambda obs: action
+
+
+def baselines(episodes: int, horizon: int = 300, num_agents: int = 3) -> dict:
+    """Non-learning references on the same held-out seeds: always-forward and the autopilot."""
+    out = {}
+    for action_type in ("discrete", "continuous"):
+        out[f"forward ({action_type})"] = evaluate(
+            lambda env, t=action_type: dict.fromkeys(env.possible_agents, forward_policy(t)),
+            action_type, episodes, horizon, num_agents)
+    out["autopilot (privileged)"] = evaluate(
+        lambda env: {a: AutopilotPolicy(env, a) for a in env.possible_agents},
+        "continuous", episodes, horizon, num_agents)
     return out
 
 
@@ -88,15 +110,17 @@ def main() -> None:
                              "evaluation is always on env_1")
     parser.add_argument("--lane-weight", type=float, default=None,
                         help="train on a copy of env_1 with this lane-keeping weight (paper: -0.5)")
-    parser.add_argument("--eval", nargs="+", type=Path, default=None, metavar="RUN_DIR",
+    parser.add_argument("--baselines", action="store_true",
+                        help="also evaluate always-forward and the scripted autopilot")
+    parser.add_argument("--eval", nargs="*", type=Path, default=None, metavar="RUN_DIR",
                         help="evaluate these finished runs instead of training")
     args = parser.parse_args()
     results = []
     if args.lane_weight is not None:
         args.env = str(env_1_with_lane_weight(args.lane_weight, args.out))
-    if args.eval:
+    if args.eval is not None:
         results = [evaluate_run(run, args.episodes) for run in args.eval]
-    for algo in [] if args.eval else args.algos:
+    for algo in [] if args.eval is not None else args.algos:
         hyper = dict(item.split("=", 1) for item in args.set)
         cfg = make_config(algo, args.env, "quick", seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()
@@ -116,6 +140,9 @@ def main() -> None:
             v = r[who]
             print(f"| {r['algo']} | {r['steps']:,} | {r.get('train_minutes', '')} | {who} | {v['return']:,.1f} | "
                   f"{v['DISTANCE']:.1f} | {v['OS']:.3f} | {v['goal']:.2f} |")
+    if args.baselines:
+        for name, v in baselines(args.episodes).items():
+            print(f"| {name} | | | | {v['return']:,.1f} | {v['DISTANCE']:.1f} | {v['OS']:.3f} | {v['goal']:.2f} |")
     print("\nper AC (trained): return / DISTANCE / OS")
     for r in results:
         cells = [f"{aid}: {v['return']:,.0f} / {v['DISTANCE']:.0f} m / {v['OS']:.2f}"
