@@ -146,6 +146,27 @@ class Background:
 
 
 @dataclass(frozen=True)
+class SpawnJitter:
+    """Seeded random offsets of every AC's spawn pose, drawn anew at each reset.
+
+    With none, an AC starts exactly on its lane's centre line, facing along it;
+    on a straight road an open-loop "full throttle, wheel straight" then keeps
+    its lane. Offsets make a car steer back into its lane.
+    """
+
+    heading_deg: float = 0.0
+    """Heading offset drawn uniformly from [-heading_deg, heading_deg] degrees."""
+    lateral: float = 0.0
+    """Sideways offset drawn uniformly from [-lateral, lateral] metres."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.heading_deg <= 45.0:
+            raise ValueError(f"heading_deg must be 0..45 degrees, got {self.heading_deg}")
+        if not 0.0 <= self.lateral <= 2.0:
+            raise ValueError(f"lateral must be 0..2 metres, got {self.lateral}")
+
+
+@dataclass(frozen=True)
 class Scenario:
     """One driving environment: a region of a SUMO network plus ACs, demand and rules."""
 
@@ -179,6 +200,8 @@ class Scenario:
     """Whether the pedestrian demand runs (env_2 and env_3)."""
     reward: RewardWeights = field(default_factory=RewardWeights)
     termination: Termination = field(default_factory=Termination)
+    spawn_jitter: SpawnJitter = field(default_factory=SpawnJitter)
+    """Random spawn-pose offsets per reset (none by default)."""
     source: Path | None = None
     """The YAML file this scenario was read from."""
 
@@ -268,6 +291,7 @@ def _scenario_from_dict(data: dict[str, Any], path: Path) -> Scenario:
         "background": Background,
         "reward": RewardWeights,
         "termination": Termination,
+        "spawn_jitter": SpawnJitter,
     }
     for key, cls in nested.items():
         if key in data:

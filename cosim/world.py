@@ -20,6 +20,7 @@ The order of one step (DESIGN.md), done in :meth:`World.step`:
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -117,9 +118,14 @@ class World:
         self.bridge.advance(self.scenario.warmup)
         spawns = np.array([r.spawn_xy for r in self.routes])
         self.bridge.clear_around(spawns, SPAWN_CLEARANCE)
+        jitter = self.scenario.spawn_jitter
+        rng = np.random.default_rng([seed % 2**32, 1])  # its own stream: SUMO keeps the seed itself
+        offsets = rng.uniform(-1.0, 1.0, (self.num_acs, 2)) * [math.radians(jitter.heading_deg), jitter.lateral]
         for i, (ac, route) in enumerate(zip(self.ac_ids, self.routes, strict=True)):
             x, y = route.spawn_xy
-            self._state[i] = (x, y, route.spawn_heading, self.scenario.acs[i].depart_speed)
+            h = route.spawn_heading
+            x, y = x - math.sin(h) * offsets[i, 1], y + math.cos(h) * offsets[i, 1]  # + = to the left
+            self._state[i] = (x, y, h + offsets[i, 0], self.scenario.acs[i].depart_speed)
             self._distance[i] = route.goal_s - route.spawn_s
             self.bridge.add_ac(
                 ac, route.edges, route.sumo_lane, route.spawn_s, self.vehicle.length,

@@ -100,7 +100,7 @@ PRESETS: dict[str, TrainPreset] = {
     ),
     # Each algorithm about 5-10 minutes on two cores.
     "quick": TrainPreset(
-        steps={"ppo": 30_000, "a3c": 30_000, "impala": 30_000, "dqn": 12_000,
+        steps={"ppo": 30_000, "a3c": 60_000, "impala": 60_000, "dqn": 12_000,
                "ddpg": 10_000, "td3": 10_000},
         agents=3, horizon=300, checkpoint_every=2_000, agent_preset="default", workers=2,
         overrides={

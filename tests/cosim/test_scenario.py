@@ -69,6 +69,8 @@ def test_unknown_key_lists_valid_keys(tmp_path):
         (lambda d: d["acs"][0].update(lane=3), "lane 3 does not exist"),
         (lambda d: d["acs"][0].update(depart_speed=-2), r"acs\[0\].*depart_speed must be 0..25"),
         (lambda d: d["acs"][0].update(depart_speed=40), r"depart_speed must be 0..25.0 m/s"),
+        (lambda d: d.update(spawn_jitter={"heading_deg": 90}), r"'spawn_jitter'.*heading_deg must be 0..45"),
+        (lambda d: d.update(spawn_jitter={"lateral_m": 1}), r"'spawn_jitter'.*unknown key.*lateral"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, edit, message):

@@ -259,3 +259,31 @@ def test_acs_enter_at_their_depart_speed():
         x0, y0 = w.ac_state("ac_0")[:2]
         r = w.step({"ac_0": (0.0, 0.0)})["ac_0"]
         assert (r.x, r.y) == pytest.approx((x0, y0))
+
+
+def test_spawn_jitter_is_seeded_bounded_and_off_by_default():
+    from cosim.scenario import SpawnJitter
+
+    sc = load_scenario("env_1")
+    assert sc.spawn_jitter == SpawnJitter()  # off: every AC starts on its lane's centre line
+
+    def spawn_poses(scenario, seed):
+        with World(scenario, 3, background=False) as w:
+            w.reset(seed=seed)
+            return np.array([w.ac_state(a)[:3] for a in w.ac_ids]), [w.route(a) for a in w.ac_ids]
+
+    exact, routes = spawn_poses(sc, 5)
+    for (x, y, h), route in zip(exact, routes, strict=True):
+        assert (x, y, h) == pytest.approx((*route.spawn_xy, route.spawn_heading))
+    jittered = dataclasses.replace(sc, spawn_jitter=SpawnJitter(heading_deg=10.0, lateral=0.5))
+    a, _ = spawn_poses(jittered, 5)
+    b, _ = spawn_poses(jittered, 5)
+    c, _ = spawn_poses(jittered, 6)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+    for (x, y, h), route in zip(a, routes, strict=True):
+        sx, sy = route.spawn_xy
+        along = math.cos(route.spawn_heading) * (x - sx) + math.sin(route.spawn_heading) * (y - sy)
+        side = -math.sin(route.spawn_heading) * (x - sx) + math.cos(route.spawn_heading) * (y - sy)
+        assert abs(along) < 1e-9 and 0 < abs(side) <= 0.5
+        assert 0 < abs(h - route.spawn_heading) <= math.radians(10.0)
