@@ -10,6 +10,7 @@ and per AC.
     python bench/train_env1.py --eval runs/env_1__ppo__1__...   # evaluate finished runs only
     python bench/train_env1.py --algos ppo --lane-weight -5      # train with 10x the lane weight
     python bench/train_env1.py --eval --baselines                 # non-learning references only
+    python bench/train_env1.py --algos ppo --jitter 5 0.5 --baselines   # env_1 with spawn jitter
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ HELD_OUT_SEEDS = [90_001, 90_002, 90_003, 90_004, 90_005, 90_006, 90_007, 90_008
 COLUMNS = ["return", "DISTANCE", "OS", "goal", "CV", "CO", "SPEED"]
 
 
-def evaluate(policies_for, action_type: str, episodes: int, horizon: int, num_agents: int) -> dict:
-    env = cosim.parallel_env("env_1", num_agents=num_agents, action_types=action_type,
+def evaluate(policies_for, action_type: str, episodes: int, horizon: int, num_agents: int,
+             scenario: str = "env_1") -> dict:
+    env = cosim.parallel_env(scenario, num_agents=num_agents, action_types=action_type,
                              terminate_on_collision=False, horizon=horizon)
     try:
         records = run_episodes(env, policies_for(env), HELD_OUT_SEEDS[:episodes])
@@ -55,40 +57,49 @@ def forward_policy(action_type: str):
     return lambda obs: action
 
 
-def baselines(episodes: int, horizon: int = 300, num_agents: int = 3) -> dict:
-    """Non-learning references on the same held-out seeds: always-forward and the autopilot."""
+def baselines(episodes: int, scenario: str = "env_1", horizon: int = 300, num_agents: int = 3) -> dict:
+    """Non-learning references on the same held-out seeds: random, always-forward, the autopilot."""
     out = {}
     for action_type in ("discrete", "continuous"):
+        out[f"random ({action_type})"] = evaluate(
+            lambda env: {a: RandomPolicy(env.action_space(a), 7) for a in env.possible_agents},
+            action_type, episodes, horizon, num_agents, scenario)
         out[f"forward ({action_type})"] = evaluate(
             lambda env, t=action_type: dict.fromkeys(env.possible_agents, forward_policy(t)),
-            action_type, episodes, horizon, num_agents)
+            action_type, episodes, horizon, num_agents, scenario)
     out["autopilot (privileged)"] = evaluate(
         lambda env: {a: AutopilotPolicy(env, a) for a in env.possible_agents},
-        "continuous", episodes, horizon, num_agents)
+        "continuous", episodes, horizon, num_agents, scenario)
     return out
 
 
-def evaluate_run(run: Path, episodes: int) -> dict:
+def evaluate_run(run: Path, episodes: int, scenario: str = "env_1") -> dict:
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     action_type = "discrete" if cfg["algo"] in ("ppo", "a3c", "impala", "dqn") else "continuous"
     n = cfg["agents"]
     ckpts = {f"ac_{k}": agents.load(run / "checkpoints" / f"ac_{k}" / "best.pt") for k in range(n)}
-    trained = evaluate(lambda env: ckpts, action_type, episodes, cfg["horizon"], n)
+    trained = evaluate(lambda env: ckpts, action_type, episodes, cfg["horizon"], n, scenario)
     rand = evaluate(lambda env: {a: RandomPolicy(env.action_space(a), 7) for a in env.possible_agents},
-                    action_type, episodes, cfg["horizon"], n)
+                    action_type, episodes, cfg["horizon"], n, scenario)
     return {"algo": cfg["algo"], "steps": cfg["steps"], "trained": trained, "random": rand, "run": str(run)}
 
 
-def env_1_with_lane_weight(weight: float, folder: Path) -> Path:
-    """A copy of env_1's YAML with another lane weight (file paths made absolute)."""
+def env_1_variant(folder: Path, lane_weight: float | None = None, jitter: list[float] | None = None) -> Path:
+    """A copy of env_1's YAML with another lane weight and/or spawn jitter (paths made absolute)."""
     root = nets_dir()
     data = yaml.safe_load((root / "scenarios" / "env_1.yaml").read_text())
     for key in ("net", "additional", "demand"):
         value = data[key]
         absolute = [str((root / "scenarios" / v).resolve()) for v in ([value] if isinstance(value, str) else value)]
         data[key] = absolute[0] if isinstance(value, str) else absolute
-    data["reward"]["lane"] = weight
-    data["name"] = f"env_1_lane{weight:g}"
+    name = "env_1"
+    if lane_weight is not None:
+        data["reward"]["lane"] = lane_weight
+        name += f"_lane{lane_weight:g}"
+    if jitter is not None:
+        data["spawn_jitter"] = {"heading_deg": jitter[0], "lateral": jitter[1]}
+        name += f"_jitter{jitter[0]:g}deg{jitter[1]:g}m"
+    data["name"] = name
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{data['name']}.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -107,26 +118,31 @@ def main() -> None:
                         help="override agent hyperparameters, e.g. buffer_size=50000")
     parser.add_argument("--env", default="env_1",
                         help="scenario to TRAIN on (e.g. an env_1 copy with other reward weights); "
-                             "evaluation is always on env_1")
+                             "evaluation is on env_1 (or its --jitter variant)")
     parser.add_argument("--lane-weight", type=float, default=None,
                         help="train on a copy of env_1 with this lane-keeping weight (paper: -0.5)")
+    parser.add_argument("--jitter", nargs=2, type=float, default=None, metavar=("DEG", "METRES"),
+                        help="train AND evaluate on env_1 with this spawn jitter (heading, lateral)")
     parser.add_argument("--baselines", action="store_true",
                         help="also evaluate always-forward and the scripted autopilot")
     parser.add_argument("--eval", nargs="*", type=Path, default=None, metavar="RUN_DIR",
                         help="evaluate these finished runs instead of training")
     args = parser.parse_args()
     results = []
-    if args.lane_weight is not None:
-        args.env = str(env_1_with_lane_weight(args.lane_weight, args.out))
+    eval_env = "env_1"
+    if args.jitter is not None:
+        eval_env = str(env_1_variant(args.out, jitter=args.jitter))
+    if args.lane_weight is not None or args.jitter is not None:
+        args.env = str(env_1_variant(args.out, args.lane_weight, args.jitter))
     if args.eval is not None:
-        results = [evaluate_run(run, args.episodes) for run in args.eval]
+        results = [evaluate_run(run, args.episodes, eval_env) for run in args.eval]
     for algo in [] if args.eval is not None else args.algos:
         hyper = dict(item.split("=", 1) for item in args.set)
         cfg = make_config(algo, args.env, "quick", seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)
         minutes = (time.monotonic() - t0) / 60
-        result = evaluate_run(run, args.episodes)
+        result = evaluate_run(run, args.episodes, eval_env)
         result["train_minutes"] = round(minutes, 1)
         results.append(result)
         if args.docs:
@@ -141,7 +157,7 @@ def main() -> None:
             print(f"| {r['algo']} | {r['steps']:,} | {r.get('train_minutes', '')} | {who} | {v['return']:,.1f} | "
                   f"{v['DISTANCE']:.1f} | {v['OS']:.3f} | {v['goal']:.2f} |")
     if args.baselines:
-        for name, v in baselines(args.episodes).items():
+        for name, v in baselines(args.episodes, eval_env).items():
             print(f"| {name} | | | | {v['return']:,.1f} | {v['DISTANCE']:.1f} | {v['OS']:.3f} | {v['goal']:.2f} |")
     print("\nper AC (trained): return / DISTANCE / OS")
     for r in results:
