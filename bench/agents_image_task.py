@@ -17,12 +17,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
-from dataclasses import asdict
 
 import numpy as np
 import torch
-from agents_reference import markdown_table, train_until
+from agents_reference import markdown_table, report, train_until
 
 from agents.ddpg import DDPGConfig
 from agents.dqn import DQNConfig
@@ -83,11 +81,7 @@ def main() -> None:
             )
             results.append(result)
             print(markdown_table([result]).splitlines()[-1], flush=True)
-    print()
-    print(markdown_table(results))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump([asdict(r) for r in results], fh, indent=1)
+    report(results, args.json)
 
 
 if __name__ == "__main__":

@@ -117,6 +117,15 @@ def train_until(
     return result
 
 
+def report(results: list[RunResult], json_path: str | None) -> None:
+    """Print the full table; write the results as JSON if a path is given."""
+    print()
+    print(markdown_table(results))
+    if json_path:
+        with open(json_path, "w") as fh:
+            json.dump([asdict(r) for r in results], fh, indent=1)
+
+
 def markdown_table(results: list[RunResult]) -> str:
     """Render results as a Markdown table."""
     lines = [
@@ -153,11 +162,7 @@ def main() -> None:
             )
             results.append(result)
             print(markdown_table([result]).splitlines()[-1], flush=True)
-    print()
-    print(markdown_table(results))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump([asdict(r) for r in results], fh, indent=1)
+    report(results, args.json)
 
 
 if __name__ == "__main__":
