@@ -28,7 +28,7 @@ import cosim
 from cosim.scenario import nets_dir
 from eval.metrics import episode_metrics
 from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
-from eval.train import make_config, train
+from eval.train import make_config, parse_set, train
 
 HELD_OUT_SEEDS = [90_001, 90_002, 90_003, 90_004, 90_005, 90_006, 90_007, 90_008]
 COLUMNS = ["return", "DISTANCE", "OS", "goal", "CV", "CO", "SPEED"]
@@ -136,8 +136,8 @@ def main() -> None:
         args.env = str(env_1_variant(args.out, args.lane_weight, args.jitter))
     if args.eval is not None:
         results = [evaluate_run(run, args.episodes, eval_env) for run in args.eval]
+    hyper = parse_set(args.set)
     for algo in [] if args.eval is not None else args.algos:
-        hyper = dict(item.split("=", 1) for item in args.set)
         cfg = make_config(algo, args.env, "quick", seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)

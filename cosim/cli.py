@@ -260,7 +260,7 @@ def cmd_train(args) -> int:
     import os
     import subprocess
 
-    from eval.train import ALGORITHMS, TrainError, make_config, train
+    from eval.train import ALGORITHMS, TrainError, make_config, parse_set, train
 
     try:
         if args.resume is not None:
@@ -268,12 +268,7 @@ def cmd_train(args) -> int:
             print(f"run folder: {run}")
             return 0
         algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
-        hyper = {}
-        for item in args.hyper:
-            key, sep, value = item.partition("=")
-            if not sep or not key:
-                raise TrainError(f"--set {item!r}: write FIELD=VALUE, e.g. --set learning_rate=3e-4")
-            hyper[key.strip()] = value.strip()
+        hyper = parse_set(args.hyper)
         configs = [
             make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,

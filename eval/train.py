@@ -83,6 +83,12 @@ class TrainPreset:
     loss swamps the policy's gradients in the shared CNN (PPO collapsed without it)."""
 
 
+# DDPG and TD3 in the quick preset. From pixels the deterministic actor ran into a bound
+# (full steer) and stuck there at lr 1e-3; a slower actor, the pre-tanh penalty and
+# gentler noise learn to drive env_1 (README, Training).
+_QUICK_ACTOR_CRITIC = {"learning_starts": 500, "buffer_size": 20_000, "batch_size": 64, "train_freq": 4,
+                       "exploration_noise": 0.1, "actor_learning_rate": 1e-4, "pre_tanh_penalty": 0.1}
+
 PRESETS: dict[str, TrainPreset] = {
     # CI: the whole six-algorithm run in about three minutes on two cores.
     "smoke": TrainPreset(
@@ -107,13 +113,8 @@ PRESETS: dict[str, TrainPreset] = {
             "ppo": {"rollout_steps": 512, "batch_size": 64, "epochs": 4, "ent_coef": 0.01},
             "dqn": {"learning_starts": 500, "buffer_size": 20_000, "exploration_steps": 5_000,
                     "target_update_interval": 500, "batch_size": 32, "gradient_steps": 1},
-            # From pixels the deterministic actor ran into a bound (full steer) and stuck
-            # there at lr 1e-3; a slower actor, the pre-tanh penalty and gentler noise
-            # learn to drive env_1 (README, Training).
-            "ddpg": {"learning_starts": 500, "buffer_size": 20_000, "batch_size": 64, "train_freq": 4,
-                     "exploration_noise": 0.1, "actor_learning_rate": 1e-4, "pre_tanh_penalty": 0.1},
-            "td3": {"learning_starts": 500, "buffer_size": 20_000, "batch_size": 64, "train_freq": 4,
-                    "exploration_noise": 0.1, "actor_learning_rate": 1e-4, "pre_tanh_penalty": 0.1},
+            "ddpg": _QUICK_ACTOR_CRITIC,
+            "td3": _QUICK_ACTOR_CRITIC,
         },
     ),
     # SPEC §5 budgets: 600-800 episodes, ~1.2 M steps per algorithm, Table 3 hyperparameters.
@@ -200,8 +201,22 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     )
 
 
+def parse_set(items: list[str]) -> dict[str, str]:
+    """``["lr=3e-4", ...]`` (``--set`` arguments) -> ``{"lr": "3e-4"}``; values stay text."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise TrainError(f"--set {item!r}: write FIELD=VALUE, e.g. --set learning_rate=3e-4")
+        out[key.strip()] = value.strip()
+    return out
+
+
 def parse_hyper(current: Mapping[str, Any], hyper: Mapping[str, str], algo: str) -> dict[str, Any]:
     """Typed values for hyperparameter overrides given as text, checked against ``current``.
+
+    A value must have the type of the field's current value; ints are accepted for
+    floats and lists for tuples. (YAML reads "1e-4" as text, hence float().)
 
     Raises:
         ValueError: an unknown field (listing the valid ones) or a value of the wrong type.
@@ -213,20 +228,18 @@ def parse_hyper(current: Mapping[str, Any], hyper: Mapping[str, str], algo: str)
         old = current[key]
         try:
             value = yaml.safe_load(text)
-            if isinstance(old, bool):
-                if not isinstance(value, bool):
-                    raise TypeError
-            elif isinstance(old, int | float):
-                value = float(value) if isinstance(old, float) else value
-                if isinstance(old, int) and not (isinstance(value, int) and not isinstance(value, bool)):
-                    raise TypeError
-            elif isinstance(old, tuple | list):
+            if isinstance(old, float) and not isinstance(value, bool):
+                value = float(value)
+            elif isinstance(old, tuple) and isinstance(value, list):
                 value = tuple(value)
+            ok = type(value) is type(old)
         except (TypeError, ValueError, yaml.YAMLError):
+            ok = False
+        if not ok:
             kind = type(old).__name__
             raise ValueError(
                 f"--set {key}={text}: expected {'an' if kind[0] in 'aeiou' else 'a'} {kind} like {old!r}"
-            ) from None
+            )
         out[key] = value
     return out
 
