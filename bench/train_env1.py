@@ -16,11 +16,13 @@ and per AC.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import shutil
 import time
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 import agents
@@ -28,7 +30,7 @@ import cosim
 from cosim.scenario import nets_dir
 from eval.metrics import episode_metrics
 from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
-from eval.train import make_config, parse_set, train
+from eval.train import DISCRETE_ALGOS, make_config, parse_set, train
 
 HELD_OUT_SEEDS = [90_001, 90_002, 90_003, 90_004, 90_005, 90_006, 90_007, 90_008]
 COLUMNS = ["return", "DISTANCE", "OS", "goal", "CV", "CO", "SPEED"]
@@ -49,10 +51,15 @@ def evaluate(policies_for, action_type: str, episodes: int, horizon: int, num_ag
     return out
 
 
+@functools.cache
+def random_reference(action_type: str, episodes: int, horizon: int, num_agents: int, scenario: str) -> dict:
+    """The uniform random policy (seed 7), evaluated once per setting and reused."""
+    return evaluate(lambda env: {a: RandomPolicy(env.action_space(a), 7) for a in env.possible_agents},
+                    action_type, episodes, horizon, num_agents, scenario)
+
+
 def forward_policy(action_type: str):
     """Full throttle, wheel straight, every step: no camera needed on a straight road."""
-    import numpy as np
-
     action = 3 if action_type == "discrete" else np.array([1.0, 0.0], np.float32)
     return lambda obs: action
 
@@ -61,9 +68,7 @@ def baselines(episodes: int, scenario: str = "env_1", horizon: int = 300, num_ag
     """Non-learning references on the same held-out seeds: random, always-forward, the autopilot."""
     out = {}
     for action_type in ("discrete", "continuous"):
-        out[f"random ({action_type})"] = evaluate(
-            lambda env: {a: RandomPolicy(env.action_space(a), 7) for a in env.possible_agents},
-            action_type, episodes, horizon, num_agents, scenario)
+        out[f"random ({action_type})"] = random_reference(action_type, episodes, horizon, num_agents, scenario)
         out[f"forward ({action_type})"] = evaluate(
             lambda env, t=action_type: dict.fromkeys(env.possible_agents, forward_policy(t)),
             action_type, episodes, horizon, num_agents, scenario)
@@ -75,12 +80,11 @@ def baselines(episodes: int, scenario: str = "env_1", horizon: int = 300, num_ag
 
 def evaluate_run(run: Path, episodes: int, scenario: str = "env_1") -> dict:
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    action_type = "discrete" if cfg["algo"] in ("ppo", "a3c", "impala", "dqn") else "continuous"
+    action_type = "discrete" if cfg["algo"] in DISCRETE_ALGOS else "continuous"
     n = cfg["agents"]
     ckpts = {f"ac_{k}": agents.load(run / "checkpoints" / f"ac_{k}" / "best.pt") for k in range(n)}
     trained = evaluate(lambda env: ckpts, action_type, episodes, cfg["horizon"], n, scenario)
-    rand = evaluate(lambda env: {a: RandomPolicy(env.action_space(a), 7) for a in env.possible_agents},
-                    action_type, episodes, cfg["horizon"], n, scenario)
+    rand = random_reference(action_type, episodes, cfg["horizon"], n, scenario)
     return {"algo": cfg["algo"], "steps": cfg["steps"], "trained": trained, "random": rand, "run": str(run)}
 
 
