@@ -1,5 +1,7 @@
 """Shared fixtures for the agents tests: small spaces and fast configs."""
 
+import functools
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -29,6 +31,29 @@ SPACES = {
     "ddpg": (PENDULUM_OBS, BOX),
     "td3": (PENDULUM_OBS, BOX),
 }
+CARTPOLE = functools.partial(gym.make, "CartPole-v1")
+CARTPOLE_SPACES = (gym.spaces.Box(-np.inf, np.inf, (4,), np.float32), gym.spaces.Discrete(2))
+
+
+class Explodes(gym.Wrapper):
+    """CartPole that raises after some steps: a simulator crash inside a worker or actor."""
+
+    def __init__(self, after: int):
+        super().__init__(gym.make("CartPole-v1"))
+        self.after, self.steps = after, 0
+
+    def step(self, action):
+        self.steps += 1
+        if self.steps > self.after:
+            raise RuntimeError("simulated simulator crash")
+        return super().step(action)
+
+
+def model_weights(agent) -> torch.Tensor:
+    """All of an A3C/IMPALA agent's model parameters as one flat copy."""
+    return torch.cat([p.detach().flatten().clone() for p in agent.model.parameters()])
+
+
 GYM_ENV = {"ppo": "CartPole-v1", "dqn": "CartPole-v1", "ddpg": "Pendulum-v1", "td3": "Pendulum-v1"}
 
 

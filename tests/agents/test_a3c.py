@@ -22,27 +22,7 @@ from agents.envs import MultiColourBar, SingleAgentParallel
 from agents.loop import run_loop
 from agents.workers import RolloutBuilder, WorkerError, live_pids
 
-CARTPOLE = functools.partial(gymnasium.make, "CartPole-v1")
-SPACES = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spaces.Discrete(2))
-
-
-class _Explodes(gymnasium.Wrapper):
-    """CartPole that raises after some steps: a simulator crash inside a worker."""
-
-    def __init__(self, after: int):
-        super().__init__(gymnasium.make("CartPole-v1"))
-        self.after, self.steps = after, 0
-
-    def step(self, action):
-        self.steps += 1
-        if self.steps > self.after:
-            raise RuntimeError("simulated simulator crash")
-        return super().step(action)
-
-
-def _weights(agent) -> torch.Tensor:
-    return torch.cat([p.detach().flatten().clone() for p in agent.model.parameters()])
-
+from .conftest import CARTPOLE, CARTPOLE_SPACES, Explodes, model_weights
 
 # ----------------------------------------------------------------------------- config and loss
 
@@ -63,7 +43,7 @@ def test_config_rejects_bad_values_with_the_field_name():
 
 @pytest.mark.parametrize("reward, direction", [(10.0, 1), (-10.0, -1)])
 def test_loss_step_moves_probability_with_the_advantage(reward, direction):
-    agent = A3C.from_spaces(*SPACES, A3CConfig(ent_coef=0.0, vf_coef=0.0, learning_rate=1e-2))
+    agent = A3C.from_spaces(*CARTPOLE_SPACES, A3CConfig(ent_coef=0.0, vf_coef=0.0, learning_rate=1e-2))
     obs = np.array([0.1, -0.2, 0.05, 0.3], dtype=np.float32)
     builder = RolloutBuilder("a")
     builder.add(obs, 1, reward, obs, True, False)  # terminal: the return is just the reward
@@ -84,7 +64,7 @@ def test_loss_step_moves_probability_with_the_advantage(reward, direction):
 
 
 def test_value_loss_uses_n_step_returns():
-    agent = A3C.from_spaces(*SPACES, A3CConfig(gamma=0.5))
+    agent = A3C.from_spaces(*CARTPOLE_SPACES, A3CConfig(gamma=0.5))
     builder = RolloutBuilder("a")
     obs = [np.full(4, i, dtype=np.float32) for i in range(3)]
     builder.add(obs[0], 0, 1.0, obs[1], False, False)
@@ -99,7 +79,7 @@ def test_value_loss_uses_n_step_returns():
 
 
 def test_shared_adam_state_is_shared_memory():
-    agent = A3C.from_spaces(*SPACES)
+    agent = A3C.from_spaces(*CARTPOLE_SPACES)
     optimizer = agent.optimizer.share_memory()
     assert isinstance(optimizer, SharedAdam)
     assert all(v.is_shared() for state in optimizer.state.values() for v in state.values())
@@ -110,16 +90,16 @@ def test_shared_adam_state_is_shared_memory():
 
 def test_in_process_trains_through_the_common_loop():
     config = A3CConfig(n_steps=5)
-    agent = A3C.from_spaces(*SPACES, config, seed=1)
-    before = _weights(agent)
+    agent = A3C.from_spaces(*CARTPOLE_SPACES, config, seed=1)
+    before = model_weights(agent)
     stats = run_loop({"agent_0": agent}, SingleAgentParallel(CARTPOLE()), total_steps=300, seed=1)
     assert stats.updates == 300 // config.n_steps
     assert all(np.isfinite(v) for v in stats.last_metrics["agent_0"].values())
-    assert not torch.equal(before, _weights(agent))
+    assert not torch.equal(before, model_weights(agent))
 
 
 def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
-    agent = A3C.from_spaces(*SPACES, A3CConfig(n_steps=5), seed=3)
+    agent = A3C.from_spaces(*CARTPOLE_SPACES, A3CConfig(n_steps=5), seed=3)
     run_loop({"agent_0": agent}, SingleAgentParallel(CARTPOLE()), total_steps=100)
     agent.save(tmp_path / "a3c.ckpt")
     loaded = agents.load(tmp_path / "a3c.ckpt")
@@ -137,13 +117,13 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
 def test_async_training_updates_the_shared_model(tmp_path):
     reports = []
     trained = train_a3c(
-        CARTPOLE, *SPACES, config=A3CConfig(n_steps=10), total_steps=3000, num_workers=2,
+        CARTPOLE, *CARTPOLE_SPACES, config=A3CConfig(n_steps=10), total_steps=3000, num_workers=2,
         seed=0, callback=reports.append, start_method="forkserver",
     )
     agent = trained["agent_0"]
-    untrained = A3C.from_spaces(*SPACES, A3CConfig(n_steps=10), seed=0)
+    untrained = A3C.from_spaces(*CARTPOLE_SPACES, A3CConfig(n_steps=10), seed=0)
     assert isinstance(agent, A3C)
-    assert not torch.equal(_weights(agent), _weights(untrained))
+    assert not torch.equal(model_weights(agent), model_weights(untrained))
     assert 3000 <= reports[-1].env_steps <= 3000 + 2 * 10  # both workers counted, none overshoots a rollout
     assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both workers played
     assert live_pids(reports[-1].worker_pids) == []
@@ -169,8 +149,8 @@ def test_async_multi_agent_trains_one_network_per_agent():
     assert set(trained) == set(ids)
     for k, aid in enumerate(ids):
         untrained = A3C.from_spaces(observation_space, gymnasium.spaces.Discrete(3), A3CConfig(n_steps=8), seed=k)
-        assert not torch.equal(_weights(trained[aid]), _weights(untrained)), aid
-    assert not torch.equal(_weights(trained["agent_0"]), _weights(trained["agent_1"]))
+        assert not torch.equal(model_weights(trained[aid]), model_weights(untrained)), aid
+    assert not torch.equal(model_weights(trained["agent_0"]), model_weights(trained["agent_1"]))
 
 
 def test_a_raising_worker_surfaces_its_traceback_and_leaves_no_process():
@@ -181,7 +161,7 @@ def test_a_raising_worker_surfaces_its_traceback_and_leaves_no_process():
 
     with pytest.raises(WorkerError, match="simulated simulator crash") as info:
         train_a3c(
-            functools.partial(_Explodes, 200), *SPACES, total_steps=10**6, num_workers=2,
+            functools.partial(Explodes, 200), *CARTPOLE_SPACES, total_steps=10**6, num_workers=2,
             callback=record, start_method="forkserver",
         )
     assert "in step" in info.value.worker_traceback  # the frame inside the worker
@@ -198,7 +178,7 @@ def test_keyboard_interrupt_in_the_callback_leaves_no_process():
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        train_a3c(CARTPOLE, *SPACES, total_steps=10**6, num_workers=2, callback=interrupt, start_method="forkserver")
+        train_a3c(CARTPOLE, *CARTPOLE_SPACES, total_steps=10**6, num_workers=2, callback=interrupt, start_method="forkserver")
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
 
@@ -208,7 +188,7 @@ def test_reward_scale_applies_to_a3c_and_impala_rollouts():
 
     for cls, cfg in ((A3C, A3CConfig(n_steps=5, reward_scale=0.1)),
                      (IMPALA, IMPALAConfig(unroll_length=5, batch_size=1, reward_scale=0.1))):
-        agent = cls.from_spaces(*SPACES, cfg)
+        agent = cls.from_spaces(*CARTPOLE_SPACES, cfg)
         obs = np.zeros(4, np.float32)
         for reward in (10.0, -20.0):
             agent.observe(obs, agent.act(obs), reward, obs, terminated=False, truncated=False)

@@ -22,26 +22,7 @@ from agents.impala import IMPALA, IMPALAConfig, impala_loss, train_impala
 from agents.loop import run_loop
 from agents.workers import RolloutBuilder, WorkerError, live_pids
 
-CARTPOLE = functools.partial(gymnasium.make, "CartPole-v1")
-SPACES = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spaces.Discrete(2))
-
-
-class _Explodes(gymnasium.Wrapper):
-    """CartPole that raises after some steps: a simulator crash inside an actor."""
-
-    def __init__(self, after: int):
-        super().__init__(gymnasium.make("CartPole-v1"))
-        self.after, self.steps = after, 0
-
-    def step(self, action):
-        self.steps += 1
-        if self.steps > self.after:
-            raise RuntimeError("simulated simulator crash")
-        return super().step(action)
-
-
-def _weights(agent) -> torch.Tensor:
-    return torch.cat([p.detach().flatten().clone() for p in agent.model.parameters()])
+from .conftest import CARTPOLE, CARTPOLE_SPACES, Explodes, model_weights
 
 
 @torch.no_grad()
@@ -80,7 +61,7 @@ def test_config_rejects_bad_values_with_the_field_name():
 
 def test_on_policy_vtrace_targets_equal_the_a3c_n_step_returns():
     # With mu == pi and rho/c bars of 1, V-trace targets are the lambda=1 returns.
-    agent = IMPALA.from_spaces(*SPACES, seed=2)
+    agent = IMPALA.from_spaces(*CARTPOLE_SPACES, seed=2)
     rollout = _on_policy_rollout(agent, np.random.default_rng(0))
     _, impala_metrics = impala_loss(agent.model, rollout, agent.config)
     _, a3c_metrics = a3c_loss(agent.model, rollout, A3CConfig(gamma=agent.config.gamma, gae_lambda=1.0))
@@ -90,7 +71,7 @@ def test_on_policy_vtrace_targets_equal_the_a3c_n_step_returns():
 
 
 def test_policy_gradient_is_weighted_by_the_importance_ratio():
-    agent = IMPALA.from_spaces(*SPACES, seed=0)
+    agent = IMPALA.from_spaces(*CARTPOLE_SPACES, seed=0)
     obs = np.array([0.1, 0.2, -0.1, 0.0], dtype=np.float32)
     pi = float(np.exp(_log_probs(agent, obs[None])[0, 1]))
 
@@ -108,16 +89,16 @@ def test_policy_gradient_is_weighted_by_the_importance_ratio():
 
 def test_in_process_learner_trains_through_the_common_loop():
     config = IMPALAConfig(unroll_length=10, batch_size=2)
-    agent = IMPALA.from_spaces(*SPACES, config, seed=1)
-    before = _weights(agent)
+    agent = IMPALA.from_spaces(*CARTPOLE_SPACES, config, seed=1)
+    before = model_weights(agent)
     stats = run_loop({"agent_0": agent}, SingleAgentParallel(CARTPOLE()), total_steps=400, seed=1)
     assert stats.updates == 400 // (10 * 2)
     assert all(np.isfinite(v) for v in stats.last_metrics["agent_0"].values())
-    assert not torch.equal(before, _weights(agent))
+    assert not torch.equal(before, model_weights(agent))
 
 
 def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
-    agent = IMPALA.from_spaces(*SPACES, IMPALAConfig(unroll_length=10, batch_size=2), seed=3)
+    agent = IMPALA.from_spaces(*CARTPOLE_SPACES, IMPALAConfig(unroll_length=10, batch_size=2), seed=3)
     run_loop({"agent_0": agent}, SingleAgentParallel(CARTPOLE()), total_steps=100)
     agent.save(tmp_path / "impala.ckpt")
     loaded = agents.load(tmp_path / "impala.ckpt")
@@ -136,12 +117,12 @@ def test_actor_learner_training_updates_the_learner(tmp_path):
     reports = []
     config = IMPALAConfig(unroll_length=10, batch_size=2)
     trained = train_impala(
-        CARTPOLE, *SPACES, config=config, total_steps=2000, num_actors=2, seed=0,
+        CARTPOLE, *CARTPOLE_SPACES, config=config, total_steps=2000, num_actors=2, seed=0,
         callback=reports.append, start_method="forkserver",
     )
     agent = trained["agent_0"]
     assert isinstance(agent, IMPALA)
-    assert not torch.equal(_weights(agent), _weights(IMPALA.from_spaces(*SPACES, config, seed=0)))
+    assert not torch.equal(model_weights(agent), model_weights(IMPALA.from_spaces(*CARTPOLE_SPACES, config, seed=0)))
     assert reports[-1].env_steps == 2000  # counted by the learner, one unroll at a time
     assert agent.num_updates == 2000 // (10 * 2)
     assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both actors played
@@ -154,7 +135,7 @@ def test_actor_learner_training_updates_the_learner(tmp_path):
     agent.save(tmp_path / "async.ckpt")
     loaded = agents.load(tmp_path / "async.ckpt")
     assert loaded.num_updates == agent.num_updates
-    assert torch.equal(_weights(loaded), _weights(agent))
+    assert torch.equal(model_weights(loaded), model_weights(agent))
 
 
 def test_actor_learner_multi_agent_keeps_one_network_per_agent():
@@ -166,7 +147,7 @@ def test_actor_learner_multi_agent_keeps_one_network_per_agent():
         total_steps=320, num_actors=2, seed=0, start_method="forkserver",
     )
     assert trained["agent_0"].num_updates >= 1 and trained["agent_1"].num_updates >= 1
-    assert not torch.equal(_weights(trained["agent_0"]), _weights(trained["agent_1"]))
+    assert not torch.equal(model_weights(trained["agent_0"]), model_weights(trained["agent_1"]))
 
 
 def test_a_raising_actor_surfaces_its_traceback_and_leaves_no_process():
@@ -177,7 +158,7 @@ def test_a_raising_actor_surfaces_its_traceback_and_leaves_no_process():
 
     with pytest.raises(WorkerError, match="simulated simulator crash") as info:
         train_impala(
-            functools.partial(_Explodes, 200), *SPACES, total_steps=10**6, num_actors=2,
+            functools.partial(Explodes, 200), *CARTPOLE_SPACES, total_steps=10**6, num_actors=2,
             callback=record, start_method="forkserver",
         )
     assert "in step" in info.value.worker_traceback
@@ -194,6 +175,6 @@ def test_keyboard_interrupt_in_the_callback_leaves_no_process():
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        train_impala(CARTPOLE, *SPACES, total_steps=10**6, num_actors=2, callback=interrupt, start_method="forkserver")
+        train_impala(CARTPOLE, *CARTPOLE_SPACES, total_steps=10**6, num_actors=2, callback=interrupt, start_method="forkserver")
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
