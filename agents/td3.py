@@ -28,6 +28,9 @@ __all__ = ["TD3", "TD3Config"]
 
 logger = logging.getLogger(__name__)
 
+SATURATED = float(np.arctanh(0.99))
+"""|pre-tanh| above which an action component counts as pinned at a bound (|tanh| > 0.99)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class TD3Config(AgentConfig):
@@ -210,8 +213,7 @@ class TD3(Agent):
             polyak_update(self.actor.parameters(), self.actor_target.parameters(), cfg.tau)
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), cfg.tau)
             metrics["losses/actor_loss"] = actor_loss.item()
-            # tanh(2.65) = 0.99: the share of action components pinned at a bound
-            metrics["losses/actor_saturated"] = (pre.detach().abs() > 2.65).float().mean().item()
+            metrics["losses/actor_saturated"] = (pre.detach().abs() > SATURATED).float().mean().item()
         return metrics
 
     # ---- checkpoint extras ------------------------------------------------------------
