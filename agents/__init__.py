@@ -7,16 +7,35 @@ self-describing checkpoint format and ``agents/registry.py`` the name -> class
 table that :func:`load` uses.
 """
 
-from agents.base import Agent, AgentConfig
-from agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from agents.ddpg import DDPG, DDPGConfig
-from agents.dqn import DQN, DQNConfig
-from agents.loop import LoopStats, evaluate, run_loop
-from agents.networks import polyak_update
-from agents.ppo import PPO, PPOConfig
-from agents.registry import ALGORITHMS, available, get_agent_class
-from agents.returns import gae, nstep_returns, vtrace
-from agents.td3 import TD3, TD3Config
+import importlib
+
+# Submodules are imported on first use (PEP 562), so ``import agents.errors`` (which
+# cosim.errors re-exports) does not import torch.
+_EXPORTS = {
+    "Agent": "agents.base", "AgentConfig": "agents.base",
+    "CheckpointError": "agents.checkpoint", "load_checkpoint": "agents.checkpoint",
+    "save_checkpoint": "agents.checkpoint",
+    "CosimError": "agents.errors",
+    "DDPG": "agents.ddpg", "DDPGConfig": "agents.ddpg",
+    "DQN": "agents.dqn", "DQNConfig": "agents.dqn",
+    "LoopStats": "agents.loop", "evaluate": "agents.loop", "run_loop": "agents.loop",
+    "polyak_update": "agents.networks",
+    "PPO": "agents.ppo", "PPOConfig": "agents.ppo",
+    "ALGORITHMS": "agents.registry", "available": "agents.registry",
+    "get_agent_class": "agents.registry",
+    "gae": "agents.returns", "nstep_returns": "agents.returns", "vtrace": "agents.returns",
+    "TD3": "agents.td3", "TD3Config": "agents.td3",
+}
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'agents' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "ALGORITHMS",
@@ -27,6 +46,7 @@ __all__ = [
     "Agent",
     "AgentConfig",
     "CheckpointError",
+    "CosimError",
     "DDPGConfig",
     "DQNConfig",
     "LoopStats",
@@ -45,7 +65,7 @@ __all__ = [
 ]
 
 
-def load(path, device: str = "cpu") -> Agent:
+def load(path, device: str = "cpu"):
     """Rebuild any registered agent from a checkpoint file.
 
     Args:
@@ -56,4 +76,6 @@ def load(path, device: str = "cpu") -> Agent:
         CheckpointError: If the file is missing, corrupt, of another format, or
             holds an algorithm that is not registered.
     """
+    from agents.checkpoint import load_checkpoint
+
     return load_checkpoint(path, device=device)

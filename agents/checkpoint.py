@@ -30,6 +30,8 @@ import gymnasium
 import numpy as np
 import torch
 
+from agents.errors import CosimError
+
 __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
@@ -46,7 +48,7 @@ FORMAT = "cosim-agents-checkpoint"
 FORMAT_VERSION = 1
 
 
-class CheckpointError(Exception):
+class CheckpointError(CosimError):
     """A checkpoint file is missing, unreadable, of another format or another algorithm."""
 
 

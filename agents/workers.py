@@ -45,6 +45,8 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 
+from agents.errors import CosimError
+
 __all__ = [
     "EnvRunner",
     "EpisodeReport",
@@ -69,7 +71,7 @@ logger = logging.getLogger(__name__)
 START_METHODS = ("spawn", "forkserver")
 
 
-class WorkerError(RuntimeError):
+class WorkerError(CosimError, RuntimeError):
     """A worker process failed; the message carries the worker's own traceback.
 
     Attributes:

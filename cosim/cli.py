@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections import Counter
 from pathlib import Path
@@ -35,18 +36,34 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except CosimError as exc:
-        print(f"cosim: error: {exc}", file=sys.stderr)
+        # the project's one error root (cosim, agents and eval): the message names the
+        # input and the fix; a multi-line one (a worker's traceback) goes to a log file
+        lines = str(exc).strip().splitlines() or [type(exc).__name__]
+        more = f" (details in {_write_log(str(exc))})" if len(lines) > 1 else ""
+        print(f"cosim: error: {lines[0]}{more}", file=sys.stderr)
         return 1
-    except Exception as exc:
-        # user-fixable errors of the training/evaluation side (corrupt checkpoint, bad run
-        # folder, a worker that died) get the same one-line treatment; anything else is a bug
-        if type(exc).__name__ in ("CheckpointError", "TrainError", "ProtocolError", "WorkerError"):
-            print(f"cosim: error: {exc}", file=sys.stderr)
-            return 1
-        raise
     except KeyboardInterrupt:
         print("cosim: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug: one line here, the traceback in a log file
+        import traceback
+
+        path = _write_log(traceback.format_exc())
+        first = (str(exc).strip().splitlines() or [""])[0][:200]
+        print(f"cosim: unexpected error {type(exc).__name__}: {first} (traceback in {path}; "
+              "please report it)", file=sys.stderr)
+        return 1
+
+
+def _write_log(text: str) -> Path:
+    """Write `text` to a fresh log file under the temp folder and return its path."""
+    import datetime as dt
+    import tempfile
+
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    path = Path(tempfile.gettempdir()) / f"cosim-error-{stamp}-{os.getpid()}.log"
+    path.write_text(f"cosim {' '.join(sys.argv[1:])}\n{text}")
+    return path
 
 
 def build_parser() -> argparse.ArgumentParser:

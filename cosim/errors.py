@@ -2,9 +2,19 @@
 
 from __future__ import annotations
 
+# The root lives in agents/errors.py, a module that imports nothing, so that agents
+# (which never imports cosim) and eval subclass the same class; the CLI catches it.
+from agents.errors import CosimError
 
-class CosimError(Exception):
-    """Base class of every error cosim raises on purpose."""
+__all__ = [
+    "ActionError",
+    "CosimError",
+    "EnvStateError",
+    "NetError",
+    "ScenarioError",
+    "SimulatorUnavailable",
+    "SumoError",
+]
 
 
 class ScenarioError(CosimError, ValueError):

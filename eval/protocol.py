@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cosim.errors import CosimError
 from eval.metrics import METRICS, episode_metrics, speed_curve, success_rates, summarize
 from eval.records import save
 from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
@@ -31,7 +32,7 @@ CONTINUOUS = ("ddpg", "td3")
 ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
 
 
-class ProtocolError(ValueError):
+class ProtocolError(CosimError, ValueError):
     """The test cannot run as asked; the message says what to change."""
 
 

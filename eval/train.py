@@ -47,6 +47,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from cosim.errors import CosimError
+
 log = logging.getLogger(__name__)
 
 ALGORITHMS = ("ppo", "a3c", "impala", "dqn", "ddpg", "td3")
@@ -55,7 +57,7 @@ CONTINUOUS_ALGOS = ("ddpg", "td3")
 ASYNC_ALGOS = ("a3c", "impala")
 
 
-class TrainError(ValueError):
+class TrainError(CosimError, ValueError):
     """A training request that cannot run; the message says what to change."""
 
 
