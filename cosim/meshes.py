@@ -51,13 +51,18 @@ ZEBRA = 0.5  # metres of each zebra stripe and of each gap
 MAX_SEGMENT = 8.0  # longest road/marking quad along a lane (fastest as meshes: 5-10 m)
 
 
-def write_obj(path: Path, vertices: np.ndarray, triangles: np.ndarray,
-              normals: np.ndarray) -> None:
-    """A Wavefront OBJ of one mesh (vertex normals, 1-based faces)."""
+def obj_text(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray) -> str:
+    """A Wavefront OBJ of one mesh (vertex normals, 1-based faces), as text."""
     lines = [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in vertices]
     lines += [f"vn {x:.4f} {y:.4f} {z:.4f}" for x, y, z in normals]
     lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in np.asarray(triangles) + 1]
-    Path(path).write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
+
+
+def write_obj(path: Path, vertices: np.ndarray, triangles: np.ndarray,
+              normals: np.ndarray) -> None:
+    """Write :func:`obj_text` of one mesh to ``path``."""
+    Path(path).write_text(obj_text(vertices, triangles, normals))
 
 
 

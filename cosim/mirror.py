@@ -45,6 +45,7 @@ Measured facts this design rests on (pybullet 3.2.7 TinyRenderer; docs/mirror.md
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
@@ -58,7 +59,7 @@ import numpy as np
 
 from cosim.dynamics import VehicleParams
 from cosim.errors import SimulatorUnavailable
-from cosim.meshes import Mesh, build_static, write_obj
+from cosim.meshes import Mesh, build_static, obj_text
 from cosim.roadmap import RoadMap
 from cosim.scenario import MAX_ACS
 from cosim.sumo_bridge import Snapshot
@@ -327,6 +328,37 @@ def _quat_z(heading: float) -> tuple[float, float, float, float]:
     return (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2))
 
 
+# -- static meshes as files -----------------------------------------------------------------
+
+_MESH_DIR: tuple[int, tempfile.TemporaryDirectory] | None = None  # (owner pid, directory)
+
+
+def mesh_file(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray) -> Path:
+    """The OBJ file of one mesh, named by its content and written once per process.
+
+    Static meshes reach pybullet as files, for two measured reasons (pybullet 3.2.7):
+    the EGL plugin only draws meshes read from files ("issue extracting mesh"
+    otherwise), and ``createVisualShape(vertices=..., indices=..., normals=...)``
+    never releases the Python sequences it is given (two extra references on each
+    list and row), so every mirror built that way kept ~0.75 MB after ``close()``
+    (issue 10; ``bench/env_memory.py``). pybullet caches each mesh file it loads by
+    path for the life of the process, so the name is the content's hash: rebuilding
+    the same region hits that cache and adds nothing, and the cache is bounded by
+    the distinct meshes of the scenarios used. The directory lives as long as the
+    process (a forked child makes its own).
+    """
+    global _MESH_DIR
+    if _MESH_DIR is None or _MESH_DIR[0] != os.getpid():
+        _MESH_DIR = (os.getpid(), tempfile.TemporaryDirectory(prefix="cosim_meshes_"))
+    text = obj_text(vertices, triangles, normals)
+    path = Path(_MESH_DIR[1].name) / f"{hashlib.sha1(text.encode()).hexdigest()}.obj"
+    if not path.exists():
+        tmp = path.with_suffix(f".{os.getpid()}.{id(text)}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)  # atomic: another thread never reads half a file
+    return path
+
+
 # -- the mirror -----------------------------------------------------------------------------
 
 
@@ -364,7 +396,6 @@ class Mirror:
         self.vehicle = VehicleParams()
         self._p = _pybullet()
         self._client: int | None = None
-        self._tmpdir: tempfile.TemporaryDirectory | None = None
         self._egl_plugin = -1
         self._warned_overflow = False
         cid = self._p.connect(self._p.DIRECT)
@@ -486,9 +517,6 @@ class Mirror:
             self._p.disconnect(physicsClientId=cid)
         except self._p.error as exc:  # already gone (e.g. the server died): nothing to free
             log.debug("pybullet client %d was already disconnected: %s", cid, exc)
-        if self._tmpdir is not None:
-            self._tmpdir.cleanup()
-            self._tmpdir = None
 
     def __enter__(self) -> Mirror:
         return self
@@ -555,21 +583,10 @@ class Mirror:
         p, cid = self._p, self._client
         triangles = 0
         for name, mesh in meshes.items():
-            for k, (verts, tris, normals) in enumerate(mesh.chunks()):
-                if self.renderer == "egl":
-                    # the EGL plugin only draws meshes read from files (in-memory vertices
-                    # give "issue extracting mesh" and nothing on screen)
-                    if self._tmpdir is None:
-                        self._tmpdir = tempfile.TemporaryDirectory(prefix="cosim_mirror_")
-                    path = Path(self._tmpdir.name) / f"{name}_{k}.obj"
-                    write_obj(path, verts, tris, normals)
-                    shape = p.createVisualShape(p.GEOM_MESH, fileName=str(path),
-                                                rgbaColor=COLORS[name], physicsClientId=cid)
-                else:
-                    shape = p.createVisualShape(
-                        p.GEOM_MESH, vertices=verts.tolist(), indices=tris.ravel().tolist(),
-                        normals=normals.tolist(), rgbaColor=COLORS[name], physicsClientId=cid,
-                    )
+            for verts, tris, normals in mesh.chunks():
+                path = mesh_file(verts, tris, normals)  # a file, not lists: see mesh_file
+                shape = p.createVisualShape(p.GEOM_MESH, fileName=str(path),
+                                            rgbaColor=COLORS[name], physicsClientId=cid)
                 body = p.createMultiBody(0, baseCollisionShapeIndex=-1,
                                          baseVisualShapeIndex=shape, physicsClientId=cid)
                 if name in GROUND_LAYERS:
