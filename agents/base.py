@@ -11,6 +11,15 @@ loop (``agents/loop.py``) can drive any mix of them:
    time (a full rollout, every ``train_freq`` steps, ...) and returns namespaced
    metrics (``losses/...``, ``charts/...``), else ``{}``.
 
+With N environments (``agents/vector.py``, :func:`agents.loop.run_vector_loop`)
+the same agent acts for its slot in all of them in one forward pass:
+``act_batch(obs, columns)`` takes a batch of observations, row j from
+environment ``columns[j]``; ``observe_batch(...)`` records the transitions that
+followed (one per row, with their environment index); ``update()`` is then
+called once per vector step and does every learning step that the transitions
+observed since the last call are due (so an update-to-data ratio such as DQN's
+``gradient_steps / train_freq`` per transition holds for any N).
+
 Hyperparameters live in one frozen :class:`AgentConfig` dataclass per
 algorithm, with named presets (``"default"``, ``"paper"``). Checkpoints are
 self-describing (``agents/checkpoint.py``).
@@ -31,7 +40,7 @@ import torch
 
 from agents.networks import obs_to_tensor
 
-__all__ = ["Agent", "AgentConfig", "check_range", "seeded_init"]
+__all__ = ["Agent", "AgentConfig", "check_range", "due", "seeded_init"]
 
 logger = logging.getLogger(__name__)
 
@@ -111,6 +120,19 @@ class AgentConfig:
     def to_dict(self) -> dict[str, Any]:
         """Plain-dict view (``dataclasses.asdict``) for logs and checkpoints."""
         return dataclasses.asdict(self)
+
+
+def due(before: int, now: int, every: int, start: int = 0) -> int:
+    """How many multiples ``m`` of ``every`` with ``m >= start`` lie in ``(before, now]``.
+
+    The steps counter of an off-policy agent moves by one per transition in one
+    environment and by up to N per ``update()`` call with N environments; this is
+    how many training phases (or target copies) fell due in between, so the
+    update-to-data ratio does not depend on N. For ``now = before + 1`` it is 1
+    exactly when ``now >= start`` and ``now % every == 0``.
+    """
+    low = max(before, start - 1)
+    return max(0, now // every - low // every) if now >= start else 0
 
 
 @contextlib.contextmanager
@@ -199,6 +221,25 @@ class Agent(abc.ABC):
     @abc.abstractmethod
     def update(self) -> dict[str, float]:
         """Learn if it is time; return namespaced metrics, or ``{}`` if nothing was learned."""
+
+    # ---- batched acting (vector envs); the defaults loop over one row at a time ----------
+    def prepare_envs(self, num_envs: int) -> None:  # noqa: B027 - optional hook
+        """Called once before a vector loop steps ``num_envs`` environments (e.g. replay rings)."""
+
+    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Actions for a batch of observations; row j comes from environment ``columns[j]``.
+
+        The default calls :meth:`act` per row; algorithms override it with one forward pass.
+        """
+        return np.stack([np.asarray(self.act(o, deterministic=deterministic)) for o in obs])
+
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        """Record the transitions that followed :meth:`act_batch`, one per row (environment ``columns[j]``).
+
+        The default calls :meth:`observe` per row.
+        """
+        for j in range(len(columns)):
+            self.observe(obs[j], actions[j], float(rewards[j]), next_obs[j], bool(terminated[j]), bool(truncated[j]))
 
     def _extra_state(self) -> dict[str, Any]:
         """Plain values (ints, floats, tensors) besides weights needed to resume."""

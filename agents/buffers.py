@@ -9,6 +9,12 @@ each observation ONCE: ``next_obs`` of transition ``i`` is read from slot
 ``optimize_memory_usage`` idea). The only exception is a truncated episode,
 whose final observation is kept on the side because the next slot holds the
 first observation of the following episode.
+
+Both take transitions from several environments at once (``agents/vector.py``):
+each transition carries its environment index (``column``). The rollout
+buffer keeps one flat list and bootstraps and computes advantages per column;
+the replay buffer splits its capacity into one ring per column, so the
+"next observation is the next slot" rule holds inside each ring.
 """
 
 from __future__ import annotations
@@ -37,6 +43,9 @@ class RolloutBuffer:
         action_shape: Shape of one action (``()`` for Discrete).
         action_dtype: numpy dtype of the actions.
         n_logits: Width of the stored policy logits (0 to skip them).
+
+    ``full`` once ``size`` transitions are stored; :meth:`ensure_capacity` lets a
+    batch from several environments run past ``size`` (the learner takes them all).
     """
 
     def __init__(self, size: int, observation_space, action_shape=(), action_dtype=np.int64, n_logits: int = 0):
@@ -53,20 +62,37 @@ class RolloutBuffer:
         self.truncateds = np.zeros(size, bool)
         # Value of the observation that followed step t; filled where it is not values[t + 1].
         self.next_values = np.zeros(size, np.float32)
+        self.columns = np.zeros(size, np.int64)  # environment index of each transition
         self.pos = 0
+
+    @property
+    def capacity(self) -> int:
+        """Transitions the arrays can hold now (``size`` unless grown)."""
+        return len(self.rewards)
+
+    def ensure_capacity(self, n: int) -> None:
+        """Grow the arrays so that ``n`` transitions fit (a batch of N envs past ``size``)."""
+        if n <= self.capacity:
+            return
+        for name in ("obs", "actions", "log_probs", "logits", "values", "rewards", "terminateds",
+                     "truncateds", "next_values", "columns"):
+            old = getattr(self, name)
+            new = np.zeros((n, *old.shape[1:]), old.dtype)
+            new[: len(old)] = old
+            setattr(self, name, new)
 
     @property
     def full(self) -> bool:
         """True once ``size`` transitions are stored."""
         return self.pos >= self.size
 
-    def add(self, obs, action, log_prob, value, reward, terminated, truncated, logits=None) -> int:
-        """Append one transition; returns its index.
+    def add(self, obs, action, log_prob, value, reward, terminated, truncated, logits=None, column: int = 0) -> int:
+        """Append one transition of environment ``column``; returns its index.
 
         Raises:
             RuntimeError: If the buffer is already full (call ``reset`` after learning).
         """
-        if self.full:
+        if self.pos >= self.capacity:
             raise RuntimeError("RolloutBuffer is full; learn from it and call reset() first")
         t = self.pos
         self.obs[t] = obs
@@ -78,6 +104,7 @@ class RolloutBuffer:
         self.truncateds[t] = truncated
         if logits is not None:
             self.logits[t] = logits
+        self.columns[t] = column
         self.pos += 1
         return t
 
@@ -88,12 +115,30 @@ class RolloutBuffer:
         they were observed (the final observation's value for a truncation; ignored
         for a termination).
         """
-        ended = self.terminateds | self.truncateds
-        inside = ~ended[:-1]
-        self.next_values[:-1][inside] = self.values[1:][inside]
-        if not ended[-1]:
-            self.next_values[-1] = last_next_value
-        return self.next_values
+        return self.bootstrap_columns(dict.fromkeys(np.unique(self.columns[: self.pos]).tolist(), last_next_value))
+
+    def bootstrap_columns(self, last_next_values) -> np.ndarray:
+        """:meth:`bootstrap_values` per environment: inside each column's sequence of
+        transitions ``next_values`` is the next one's value; each column's last
+        transition, if its episode goes on, gets ``last_next_values[column]``.
+
+        Returns:
+            ``next_values`` of the ``pos`` stored transitions.
+        """
+        n = self.pos
+        ended = (self.terminateds | self.truncateds)[:n]
+        for column in np.unique(self.columns[:n]):
+            idx = np.flatnonzero(self.columns[:n] == column)
+            inside = ~ended[idx[:-1]]
+            self.next_values[idx[:-1][inside]] = self.values[idx[1:][inside]]
+            if not ended[idx[-1]]:
+                self.next_values[idx[-1]] = last_next_values[int(column)]
+        return self.next_values[:n]
+
+    def column_indices(self) -> list[np.ndarray]:
+        """Indices of each environment's transitions, in time order (GAE runs per column)."""
+        columns = self.columns[: self.pos]
+        return [np.flatnonzero(columns == c) for c in np.unique(columns)]
 
     def reset(self) -> None:
         """Start a new rollout (the arrays are reused)."""
@@ -115,22 +160,28 @@ class ReplaySample:
 class ReplayBuffer:
     """Circular replay buffer of one agent's transitions, each observation stored once.
 
-    Transitions must be added in the order they happened (what one agent in
-    ``run_loop`` does): while an episode continues, ``obs`` of a transition is
-    the ``next_obs`` of the one before it. Once full, ``capacity - 1`` transitions
-    are sampled: the oldest slot already holds the newest ``next_obs``.
+    Transitions of one column (one environment) must be added in the order they
+    happened (what one agent in ``run_loop`` does): while an episode continues,
+    ``obs`` of a transition is the ``next_obs`` of the one before it. Once a
+    column's ring is full, all but its oldest transition are sampled: the oldest
+    slot already holds the newest ``next_obs``.
 
     Args:
-        capacity: Maximum number of transitions kept.
+        capacity: Maximum number of transitions kept (split evenly between columns).
         observation_space: Space of one observation (uint8 images stay uint8).
         action_space: Discrete or Box space of one action.
         seed: Seed of the sampling generator.
+        columns: Number of environments feeding the buffer (one ring each).
     """
 
-    def __init__(self, capacity: int, observation_space, action_space, seed: int = 0):
-        if capacity < 2:
-            raise ValueError(f"ReplayBuffer capacity must be >= 2, got {capacity}")
-        self.capacity = capacity
+    def __init__(self, capacity: int, observation_space, action_space, seed: int = 0, columns: int = 1):
+        if columns < 1:
+            raise ValueError(f"ReplayBuffer columns must be >= 1, got {columns}")
+        if capacity // columns < 2:
+            raise ValueError(f"ReplayBuffer capacity must be >= 2 per column, got {capacity} for {columns} column(s)")
+        self.columns = columns
+        self.ring = capacity // columns
+        self.capacity = capacity = self.ring * columns
         self.obs = np.zeros((capacity, *observation_space.shape), _obs_dtype(observation_space))
         if isinstance(action_space, gymnasium.spaces.Discrete):
             self.actions = np.zeros(capacity, np.int64)
@@ -140,16 +191,27 @@ class ReplayBuffer:
         self.terminateds = np.zeros(capacity, np.float32)
         self.truncateds = np.zeros(capacity, bool)
         self.final_obs: dict[int, np.ndarray] = {}  # truncated slot -> its real next_obs
-        self.pos = 0
-        self.size = 0
+        self.positions = np.zeros(columns, np.int64)  # next slot of each ring, relative to its start
+        self.sizes = np.zeros(columns, np.int64)
         self.rng = np.random.default_rng(seed)
+
+    @property
+    def size(self) -> int:
+        """Transitions stored, over all columns."""
+        return int(self.sizes.sum())
+
+    @property
+    def pos(self) -> int:
+        """Next slot of column 0 (the only one for a single environment)."""
+        return int(self.positions[0])
 
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
-        """Store one transition."""
-        i, after = self.pos, (self.pos + 1) % self.capacity
+    def add(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool, column: int = 0) -> None:
+        """Store one transition of environment ``column``."""
+        base, j = column * self.ring, int(self.positions[column])
+        i, after = base + j, base + (j + 1) % self.ring
         self.obs[i] = obs
         # Written now so the newest transition can be sampled; the next add() overwrites it
         # with the same array while the episode goes on.
@@ -161,8 +223,8 @@ class ReplayBuffer:
         self.final_obs.pop(i, None)
         if self.truncateds[i]:
             self.final_obs[i] = np.array(next_obs, dtype=self.obs.dtype, copy=True)
-        self.pos = after
-        self.size = min(self.size + 1, self.capacity)
+        self.positions[column] = (j + 1) % self.ring
+        self.sizes[column] = min(self.sizes[column] + 1, self.ring)
 
     def sample(self, batch_size: int, device="cpu") -> ReplaySample:
         """Sample ``batch_size`` transitions uniformly (with replacement).
@@ -172,13 +234,21 @@ class ReplayBuffer:
         """
         if self.size == 0:
             raise ValueError("cannot sample from an empty ReplayBuffer")
-        if self.size < self.capacity:
-            idx = self.rng.integers(0, self.size, batch_size)
+        # A full ring's slot `pos` is its oldest transition, but its obs slot already
+        # holds the newest next_obs: skip it.
+        full = self.sizes == self.ring
+        valid = np.where(full, self.ring - 1, self.sizes)
+        if self.columns == 1:  # the common case, one draw per sample
+            column = np.zeros(batch_size, np.int64)
+            offset = self.rng.integers(0, int(valid[0]), batch_size)
         else:
-            # Slot `pos` is the oldest transition, but its obs slot already holds the
-            # newest next_obs: skip it.
-            idx = (self.rng.integers(1, self.capacity, batch_size) + self.pos) % self.capacity
-        next_obs = self.obs[(idx + 1) % self.capacity]
+            u = self.rng.integers(0, int(valid.sum()), batch_size)
+            ends = np.cumsum(valid)
+            column = np.searchsorted(ends, u, side="right")
+            offset = u - (ends - valid)[column]
+        offset = np.where(full[column], (offset + 1 + self.positions[column]) % self.ring, offset)
+        idx = column * self.ring + offset
+        next_obs = self.obs[column * self.ring + (offset + 1) % self.ring]
         for row in np.flatnonzero(self.truncateds[idx]):
             next_obs[row] = self.final_obs[int(idx[row])]
         return ReplaySample(

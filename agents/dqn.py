@@ -19,9 +19,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from agents.base import Agent, AgentConfig, check_range
+from agents.base import Agent, AgentConfig, check_range, due
 from agents.buffers import ReplayBuffer
-from agents.networks import DuelingQNetwork
+from agents.networks import DuelingQNetwork, obs_to_tensor
 
 __all__ = ["DQN", "DQNConfig", "linear_schedule"]
 
@@ -132,7 +132,18 @@ class DQN(Agent):
         self.optimizers = {"optimizer": self.optimizer}
         self.buffer = ReplayBuffer(cfg.buffer_size, self.observation_space, self.action_space, seed=self.seed)
         self.steps = 0
+        self._updated_to = 0  # self.steps at the last update() call
         self.gradient_updates = 0
+
+    def prepare_envs(self, num_envs: int) -> None:
+        """One replay ring per environment (each ring's slots follow its own episodes)."""
+        if self.buffer.columns == num_envs:
+            return
+        if len(self.buffer):
+            raise RuntimeError(f"DQN replay already holds {len(self.buffer)} transitions from "
+                               f"{self.buffer.columns} env(s); cannot switch to {num_envs}")
+        self.buffer = ReplayBuffer(self.config.buffer_size, self.observation_space, self.action_space,
+                                   seed=self.seed, columns=num_envs)
 
     @property
     def epsilon(self) -> float:
@@ -146,18 +157,36 @@ class DQN(Agent):
             return int(self.rng.integers(self.action_space.n))
         return int(self.q_network(self.obs_batch(obs)).argmax(-1).item())
 
+    @torch.no_grad()
+    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        actions = self.q_network(obs_to_tensor(np.asarray(obs), self.device)).argmax(-1).cpu().numpy()
+        if not deterministic:
+            explore = self.rng.random(len(actions)) < self.epsilon
+            actions = np.where(explore, self.rng.integers(self.action_space.n, size=len(actions)), actions)
+        return actions
+
     def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
         # A truncated step is stored as non-terminal, so its target bootstraps.
         self.buffer.add(obs, int(action), reward * self.config.reward_scale, next_obs, terminated, truncated)
         self.steps += 1
 
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        scale = self.config.reward_scale
+        for j, column in enumerate(np.asarray(columns).tolist()):
+            self.buffer.add(obs[j], int(actions[j]), float(rewards[j]) * scale, next_obs[j],
+                            bool(terminated[j]), bool(truncated[j]), column=column)
+        self.steps += len(columns)
+
     def update(self) -> dict[str, float]:
+        """Target copies and gradient steps due for the transitions observed since the last call."""
         cfg = self.config
-        if self.steps % cfg.target_update_interval == 0:
+        before, self._updated_to = self._updated_to, self.steps
+        if due(before, self.steps, cfg.target_update_interval):
             self.target_network.load_state_dict(self.q_network.state_dict())
-        if self.steps < cfg.learning_starts or self.steps % cfg.train_freq != 0:
+        phases = due(before, self.steps, cfg.train_freq, start=cfg.learning_starts)
+        if not phases:
             return {}
-        for _ in range(cfg.gradient_steps):
+        for _ in range(cfg.gradient_steps * phases):
             loss, q_mean = self._gradient_step()
         return {"losses/td_loss": loss, "losses/q_values": q_mean, "charts/epsilon": self.epsilon}
 
@@ -186,5 +215,5 @@ class DQN(Agent):
         return {"steps": self.steps, "gradient_updates": self.gradient_updates}
 
     def _load_extra_state(self, state) -> None:
-        self.steps = int(state.get("steps", 0))
+        self.steps = self._updated_to = int(state.get("steps", 0))
         self.gradient_updates = int(state.get("gradient_updates", 0))

@@ -7,6 +7,10 @@
   env's observation format (84x84x3 uint8) and a known optimal return.
 - :class:`MultiColourBar` runs several independent ColourBar agents in one
   ParallelEnv, with episodes of different lengths, to exercise multi-agent loops.
+- :class:`ScriptedParallelEnv` has observations that say which environment,
+  agent, episode seed and step they belong to, and agents that finish at
+  different steps: the check that a vector runner hands each agent its own
+  transitions (tests/agents/test_vector.py, bench/train_throughput.py).
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 
-__all__ = ["ColourBar", "MultiColourBar", "SingleAgentParallel"]
+__all__ = ["ColourBar", "MultiColourBar", "ScriptedParallelEnv", "SingleAgentParallel"]
 
 
 class SingleAgentParallel:
@@ -207,3 +211,75 @@ class MultiColourBar:
             if results[2] or results[3]:
                 self.agents.remove(a)
         return out
+
+
+class ScriptedParallelEnv:
+    """A ParallelEnv whose observations encode where they come from; no simulator.
+
+    Agent ``k`` (``agent_k``) of environment ``env_index`` sees the float32 vector
+    ``[env_index, k, t, seed, action]``: ``t`` counts its steps in the episode
+    (0 at reset), ``seed`` is the reset seed (-1 for None) and ``action`` the
+    action it just took (-1 at reset). Its reward is ``t`` after the step plus
+    ``100 * env_index + 10 * k``. It finishes after ``lengths[k] + seed % 3``
+    steps (seed None counts as 0): terminated for even ``k``, truncated for odd.
+    ``fail_at`` makes ``step`` raise ``ValueError`` at that step of the first
+    episode (error propagation); ``image`` switches to uint8 ``(8, 8, 3)``
+    observations holding the same numbers in the first pixels.
+    """
+
+    metadata = {"name": "scripted_v0"}
+
+    def __init__(self, env_index: int = 0, num_agents: int = 3, lengths=(3, 5, 4), fail_at: int | None = None,
+                 image: bool = False):
+        self.env_index, self.lengths, self.fail_at, self.image = env_index, tuple(lengths), fail_at, image
+        self.possible_agents = [f"agent_{k}" for k in range(num_agents)]
+        self.agents: list[str] = []
+        if image:
+            self._obs_space = gymnasium.spaces.Box(0, 255, (8, 8, 3), np.uint8)
+        else:
+            self._obs_space = gymnasium.spaces.Box(-np.inf, np.inf, (5,), np.float32)
+        self._act_space = gymnasium.spaces.Discrete(3)
+        self.t: dict[str, int] = {}
+        self.seed = -1
+        self.episodes = 0
+
+    def observation_space(self, agent: str) -> gymnasium.Space:
+        return self._obs_space
+
+    def action_space(self, agent: str) -> gymnasium.Space:
+        return self._act_space
+
+    def _obs(self, agent: str, action: int) -> np.ndarray:
+        values = [self.env_index, self.possible_agents.index(agent), self.t[agent], self.seed, action]
+        if not self.image:
+            return np.array(values, np.float32)
+        out = np.zeros(self._obs_space.shape, np.uint8)
+        out.reshape(-1)[:5] = np.array(values) % 256
+        return out
+
+    def reset(self, seed: int | None = None, options=None):
+        self.seed = -1 if seed is None else int(seed)
+        self.agents = list(self.possible_agents)
+        self.t = dict.fromkeys(self.agents, 0)
+        self.episodes += 1
+        return {a: self._obs(a, -1) for a in self.agents}, {a: {} for a in self.agents}
+
+    def step(self, actions):
+        if set(actions) != set(self.agents):
+            raise ValueError(f"actions for {sorted(actions)}, live agents {self.agents}")
+        obs, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
+        for a in self.agents:
+            k = self.possible_agents.index(a)
+            self.t[a] += 1
+            if self.fail_at is not None and self.episodes == 1 and self.t[a] == self.fail_at:
+                raise ValueError(f"scripted failure in env {self.env_index} at step {self.t[a]}")
+            obs[a] = self._obs(a, int(actions[a]))
+            rewards[a] = float(self.t[a] + 100 * self.env_index + 10 * k)
+            done = self.t[a] >= self.lengths[k] + max(self.seed, 0) % 3
+            terms[a], truncs[a] = done and k % 2 == 0, done and k % 2 == 1
+            infos[a] = {"cosim_episode": {"t": self.t[a]}} if done else {}
+        self.agents = [a for a in self.agents if not (terms[a] or truncs[a])]
+        return obs, rewards, terms, truncs, infos
+
+    def close(self) -> None:
+        self.agents = []

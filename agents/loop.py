@@ -12,6 +12,13 @@ This loop IS the contract between environments and agents (acme style):
    no agent is left the env is reset (seed + episode index) and its episode
    return and length are recorded.
 
+:func:`run_vector_loop` is the same contract over N environments at once
+(``agents/vector.py``): each agent acts for its slot in every environment
+where it is alive in ONE batched forward pass (``act_batch``), records that
+slot's transitions with their environment index (``observe_batch``), and
+``update()`` runs once per vector step, doing the learning those transitions
+made due. Environments reset themselves when all their agents have finished.
+
 Every agent has its own networks (any mix of algorithms and of Discrete/Box
 action spaces). The loop times ``env.step`` separately from the agents'
 ``act``/``observe``/``update`` so the bottleneck is visible in :class:`LoopStats`.
@@ -24,9 +31,11 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from agents.base import Agent
 
-__all__ = ["LoopStats", "evaluate", "run_loop"]
+__all__ = ["LoopStats", "evaluate", "run_loop", "run_vector_loop"]
 
 logger = logging.getLogger(__name__)
 
@@ -181,3 +190,98 @@ def evaluate(agents: Mapping[str, Agent], env, episodes: int, seed: int = 10_000
 
     stats = run_loop(agents, env, total_steps=10**9, callback=stop, seed=seed, learn=False, deterministic=deterministic)
     return stats.episode_returns
+
+
+def run_vector_loop(
+    agents: Mapping[str, Agent],
+    venv,
+    total_steps: int,
+    callback: Callable[[int, LoopStats, dict[str, dict[str, float]]], bool | None] | None = None,
+    seed: int | None = 0,
+    learn: bool = True,
+    deterministic: bool = False,
+) -> LoopStats:
+    """Step the N environments of ``venv`` until ``total_steps`` env steps, all agents acting and learning.
+
+    Args:
+        agents: Agent id -> agent; must cover ``venv.possible_agents``.
+        venv: An :class:`agents.vector.VectorEnv` or ``InProcessVectorEnv``.
+        total_steps: Environment steps to make, summed over the environments
+            (each vector step makes ``venv.num_envs``; the last one may overshoot).
+        callback: Called after every vector step as ``callback(env_steps, stats, metrics)``
+            (``env_steps`` counted over all environments; ``metrics`` holds this
+            step's non-empty ``update()`` results by agent); True stops the loop.
+        seed: Reset seed (env ``i``, episode ``k`` gets ``seed + i + k * N``).
+        learn: If False, agents only act: evaluation.
+        deterministic: Passed to ``act_batch``.
+
+    Returns:
+        The :class:`LoopStats` of the run; ``env_steps`` counts env steps over all
+        environments and ``episodes`` the finished episodes of all of them.
+    """
+    missing = sorted(set(venv.possible_agents) - set(agents))
+    if missing:
+        raise KeyError(f"run_vector_loop has no agent for env agent(s) {missing}; pass one Agent per id")
+    n = venv.num_envs
+    if learn:
+        for agent in agents.values():
+            agent.prepare_envs(n)
+    stats = LoopStats()
+    clock = time.perf_counter
+    ids = list(venv.possible_agents)
+    returns = {a: np.zeros(n) for a in ids}
+    lengths = {a: np.zeros(n, np.int64) for a in ids}
+
+    start = clock()
+    state = venv.reset(seed=seed)
+    stats.env_time_s += clock() - start
+    while stats.env_steps < total_steps:
+        start = clock()
+        acted: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # id -> (envs, obs copy, actions)
+        full_actions = {}
+        for a in ids:
+            envs = np.flatnonzero(state.alive[a])
+            if envs.size == 0:
+                continue
+            obs = state.obs[a][envs]  # a copy: the vector env overwrites its arrays on step
+            actions = np.asarray(agents[a].act_batch(obs, envs, deterministic=deterministic))
+            batch = np.zeros((n, *actions.shape[1:]), actions.dtype)
+            batch[envs] = actions
+            full_actions[a] = batch
+            acted[a] = (envs, obs, actions)
+        stats.act_time_s += clock() - start
+
+        start = clock()
+        state = venv.step(full_actions)
+        stats.env_time_s += clock() - start
+        stats.env_steps += n
+
+        start = clock()
+        step_metrics: dict[str, dict[str, float]] = {}
+        for a, (envs, obs, actions) in acted.items():
+            if not state.active[a][envs].all():
+                raise RuntimeError(f"agent {a} was alive in envs {envs.tolist()} but not all of them stepped it")
+            rewards = state.rewards[a][envs]
+            returns[a][envs] += rewards
+            lengths[a][envs] += 1
+            stats.agent_steps += envs.size
+            if learn:
+                agents[a].observe_batch(obs, actions, rewards, state.next_obs[a][envs], state.terminated[a][envs],
+                                        state.truncated[a][envs], envs)
+                metrics = agents[a].update()
+                if metrics:
+                    step_metrics[a] = metrics
+                    stats.last_metrics[a] = metrics
+                    stats.updates += 1
+        for i in np.flatnonzero(state.env_reset):
+            for a in ids:
+                stats.episode_returns.setdefault(a, []).append(float(returns[a][i]))
+                stats.episode_lengths.setdefault(a, []).append(int(lengths[a][i]))
+                returns[a][i], lengths[a][i] = 0.0, 0
+            stats.episodes += 1
+        stats.learn_time_s += clock() - start
+
+        if callback is not None and callback(stats.env_steps, stats, step_metrics):
+            logger.info("run_vector_loop stopped by callback at env step %d", stats.env_steps)
+            break
+    return stats

@@ -5,7 +5,10 @@ the clipped surrogate PLUS an adaptive KL penalty, as in RLlib (which the
 paper used): ``coef *= 1.5`` when the KL exceeds twice its target, ``*= 0.5``
 when it falls below half of it. Advantages come from GAE over one rollout of
 ``rollout_steps`` transitions of this agent, and truncated episodes bootstrap
-from the value of their final observation.
+from the value of their final observation. With N environments the rollout
+holds the agent's ``rollout_steps`` transitions from all of them (about
+``rollout_steps / N`` per environment, so the learning per transition does not
+change with N), and GAE runs over each environment's column separately.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ class PPOConfig(AgentConfig):
     learning_rate: float = 3e-4
     """Adam learning rate."""
     rollout_steps: int = 2048
-    """transitions collected per training iteration (per agent)."""
+    """transitions collected per training iteration (per agent, summed over environments)."""
     batch_size: int = 128
     """SGD minibatch size."""
     epochs: int = 10
@@ -114,7 +117,8 @@ class PPO(Agent):
         self.iterations = 0
         self.steps = 0
         self._cache: tuple[int, float, float, np.ndarray] | None = None
-        self._last_next_value = 0.0
+        self._column_cache: dict[int, tuple[int, float, float, np.ndarray]] = {}  # act_batch, per env
+        self._column_next: dict[int, np.ndarray] = {}  # env -> next_obs of its last transition, if it went on
 
     # ---- acting -----------------------------------------------------------------------
     @torch.no_grad()
@@ -128,6 +132,54 @@ class PPO(Agent):
         log_prob = torch.log_softmax(logits, -1)[0, action].item()
         self._cache = (action, log_prob, value.item(), logits[0].cpu().numpy())
         return action
+
+    @torch.no_grad()
+    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        logits, values = self.net(obs_to_tensor(np.asarray(obs), self.device))
+        if deterministic:
+            actions = logits.argmax(-1)
+        else:
+            actions = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.generator)[:, 0]
+        log_probs = torch.log_softmax(logits, -1).gather(1, actions[:, None])[:, 0]
+        actions_np, log_probs, values = actions.cpu().numpy(), log_probs.cpu().numpy(), values.cpu().numpy()
+        logits = logits.cpu().numpy()
+        for j, column in enumerate(np.asarray(columns).tolist()):
+            self._column_cache[column] = (int(actions_np[j]), float(log_probs[j]), float(values[j]), logits[j])
+        return actions_np
+
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        columns = np.asarray(columns).tolist()
+        self.buffer.ensure_capacity(self.buffer.pos + len(columns))
+        cached = [self._column_cache.pop(c, None) for c in columns]
+        missing = [j for j, (c, a) in enumerate(zip(cached, actions, strict=True)) if c is None or c[0] != int(a)]
+        if missing:  # not from our last act_batch: score them now
+            with torch.no_grad():
+                logits, values = self.net(obs_to_tensor(np.asarray(obs)[missing], self.device))
+            log_probs = torch.log_softmax(logits, -1)
+            for row, j in enumerate(missing):
+                a = int(actions[j])
+                cached[j] = (a, log_probs[row, a].item(), values[row].item(), logits[row].cpu().numpy())
+        bootstrap = []
+        for j, column in enumerate(columns):
+            _, log_prob, value, logits = cached[j]
+            term, trunc = bool(terminated[j]), bool(truncated[j])
+            t = self.buffer.add(obs[j], int(actions[j]), log_prob, value, float(rewards[j]) * self.config.reward_scale,
+                                term, trunc, logits, column=column)
+            self.steps += 1
+            if trunc and not term:
+                bootstrap.append((t, j))
+            if term or trunc:
+                self._column_next.pop(column, None)
+            else:
+                self._column_next[column] = np.array(next_obs[j], copy=True)
+        if bootstrap:  # time limit, not a real end: bootstrap from the final observations, one pass
+            values = self._values(np.stack([next_obs[j] for _, j in bootstrap]))
+            for (t, _), v in zip(bootstrap, values, strict=True):
+                self.buffer.next_values[t] = v
+
+    @torch.no_grad()
+    def _values(self, obs: np.ndarray) -> np.ndarray:
+        return self.net(obs_to_tensor(np.asarray(obs), self.device))[1].cpu().numpy()
 
     @torch.no_grad()
     def _value(self, obs: np.ndarray) -> float:
@@ -149,26 +201,35 @@ class PPO(Agent):
         if truncated and not terminated:
             # Time limit, not a real end: bootstrap from the final observation (Pardo et al. 2018).
             self.buffer.next_values[t] = self._value(next_obs)
-        if self.buffer.full and not (terminated or truncated):
-            self._last_next_value = self._value(next_obs)
+        if terminated or truncated:
+            self._column_next.pop(0, None)
+        elif self.buffer.full:
+            self._column_next[0] = np.array(next_obs, copy=True)
 
     # ---- learning ---------------------------------------------------------------------
     def update(self) -> dict[str, float]:
         if not self.buffer.full:
             return {}
         cfg, buf = self.config, self.buffer
-        next_values = buf.bootstrap_values(self._last_next_value)
-        advantages, returns = gae(
-            buf.rewards, buf.values, next_values, buf.terminateds, buf.truncateds, cfg.gamma, cfg.gae_lambda
-        )
-        b_obs = obs_to_tensor(buf.obs, self.device)
-        b_actions = torch.as_tensor(buf.actions, device=self.device)
-        b_log_probs = torch.as_tensor(buf.log_probs, device=self.device)
-        b_logits = torch.as_tensor(buf.logits, device=self.device)
+        n = buf.pos
+        # Each environment's last transition, if its episode goes on, bootstraps from V(next obs).
+        going_on = sorted(self._column_next)
+        last_values = self._values(np.stack([self._column_next[c] for c in going_on])) if going_on else []
+        next_values = buf.bootstrap_columns(dict(zip(going_on, np.asarray(last_values).tolist(), strict=True)))
+        self._column_next.clear()
+        advantages, returns = np.zeros(n, np.float32), np.zeros(n, np.float32)
+        for idx in buf.column_indices():  # GAE along each environment's own sequence
+            advantages[idx], returns[idx] = gae(
+                buf.rewards[idx], buf.values[idx], next_values[idx], buf.terminateds[idx], buf.truncateds[idx],
+                cfg.gamma, cfg.gae_lambda,
+            )
+        b_obs = obs_to_tensor(buf.obs[:n], self.device)
+        b_actions = torch.as_tensor(buf.actions[:n], device=self.device)
+        b_log_probs = torch.as_tensor(buf.log_probs[:n], device=self.device)
+        b_logits = torch.as_tensor(buf.logits[:n], device=self.device)
         b_advantages = torch.as_tensor(advantages, device=self.device)
         b_returns = torch.as_tensor(returns, device=self.device)
 
-        n = cfg.rollout_steps
         for _epoch in range(cfg.epochs):
             epoch_stats: list[list[float]] = []
             for mb in np.array_split(self.rng.permutation(n), max(1, n // cfg.batch_size)):
@@ -187,7 +248,7 @@ class PPO(Agent):
             self.kl_coef *= 0.5
         self.iterations += 1
         self.buffer.reset()
-        explained_var = 1.0 - np.var(returns - buf.values) / max(np.var(returns), 1e-8)
+        explained_var = 1.0 - np.var(returns - buf.values[:n]) / max(np.var(returns), 1e-8)
         return {
             "losses/pg_loss": float(pg_loss),
             "losses/v_loss": float(v_loss),

@@ -20,9 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from agents.base import Agent, AgentConfig, check_range
+from agents.base import Agent, AgentConfig, check_range, due
 from agents.buffers import ReplayBuffer
-from agents.networks import DeterministicActor, QEnsemble, encoder_features_dim, polyak_update
+from agents.networks import DeterministicActor, QEnsemble, encoder_features_dim, obs_to_tensor, polyak_update
 
 __all__ = ["TD3", "TD3Config"]
 
@@ -145,7 +145,18 @@ class TD3(Agent):
         self.high = self.action_space.high.astype(np.float32)
         self.half_range = (self.high - self.low) / 2.0
         self.steps = 0
+        self._updated_to = 0  # self.steps at the last update() call
         self.gradient_updates = 0
+
+    def prepare_envs(self, num_envs: int) -> None:
+        """One replay ring per environment (each ring's slots follow its own episodes)."""
+        if self.buffer.columns == num_envs:
+            return
+        if len(self.buffer):
+            raise RuntimeError(f"{self.algo} replay already holds {len(self.buffer)} transitions from "
+                               f"{self.buffer.columns} env(s); cannot switch to {num_envs}")
+        self.buffer = ReplayBuffer(self.config.buffer_size, self.observation_space, self.action_space,
+                                   seed=self.seed, columns=num_envs)
 
     # ---- acting -----------------------------------------------------------------------
     @torch.no_grad()
@@ -159,18 +170,37 @@ class TD3(Agent):
             action = action + self.rng.normal(0.0, cfg.exploration_noise, action.shape) * self.half_range
         return np.clip(action, self.low, self.high).astype(np.float32)
 
+    @torch.no_grad()
+    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        cfg, n = self.config, len(obs)
+        if not deterministic and self.steps < cfg.learning_starts:
+            return self.rng.uniform(self.low, self.high, (n, *self.low.shape)).astype(np.float32)
+        actions = self.actor(self.critic.encode(obs_to_tensor(np.asarray(obs), self.device))).cpu().numpy()
+        if not deterministic:
+            actions = actions + self.rng.normal(0.0, cfg.exploration_noise, actions.shape) * self.half_range
+        return np.clip(actions, self.low, self.high).astype(np.float32)
+
     def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
         action = np.asarray(action, dtype=np.float32).reshape(self.action_space.shape)
         self.buffer.add(obs, action, reward * self.config.reward_scale, next_obs, terminated, truncated)
         self.steps += 1
 
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        scale = self.config.reward_scale
+        for j, column in enumerate(np.asarray(columns).tolist()):
+            action = np.asarray(actions[j], dtype=np.float32).reshape(self.action_space.shape)
+            self.buffer.add(obs[j], action, float(rewards[j]) * scale, next_obs[j],
+                            bool(terminated[j]), bool(truncated[j]), column=column)
+        self.steps += len(columns)
+
     # ---- learning ---------------------------------------------------------------------
     def update(self) -> dict[str, float]:
+        """The gradient steps due for the transitions observed since the last call."""
         cfg = self.config
-        if self.steps < cfg.learning_starts or self.steps % cfg.train_freq != 0:
-            return {}
+        before, self._updated_to = self._updated_to, self.steps
+        phases = due(before, self.steps, cfg.train_freq, start=cfg.learning_starts)
         metrics: dict[str, float] = {}
-        for _ in range(cfg.gradient_steps):
+        for _ in range(cfg.gradient_steps * phases):
             metrics.update(self._gradient_step())
         return metrics
 
@@ -221,5 +251,5 @@ class TD3(Agent):
         return {"steps": self.steps, "gradient_updates": self.gradient_updates}
 
     def _load_extra_state(self, state) -> None:
-        self.steps = int(state.get("steps", 0))
+        self.steps = self._updated_to = int(state.get("steps", 0))
         self.gradient_updates = int(state.get("gradient_updates", 0))
