@@ -11,11 +11,19 @@ A run lives in ``runs/<env>__<algo>__<seed>__<timestamp>/``:
     checkpoints/<ac>/latest.pt, best.pt    self-describing agent checkpoints
     state.json         progress at the last checkpoint (steps, episodes, CSV rows)
     convergence.png    mean episodic reward against env steps, per AC and mean
+    run.lock           held (fcntl.flock) by the process training the run; holds its PID
 
 Resuming (``cosim train --resume DIR``) reloads the latest checkpoints, cuts the CSV
 back to the rows written before that checkpoint and purges later TensorBoard
 events, so an interrupted run (even by kill -9) continues without gaps or
-duplicates, losing at most one checkpoint interval. Replay buffers are not
+duplicates, losing at most one checkpoint interval. A run interrupted before its
+first checkpoint restarts from step 0. A checkpoint is committed in two phases:
+every AC's file is written as ``<name>.pending-<step>.pt``, then ``state.json``
+(the commit point) is replaced, then the pending files are renamed; a resume
+rolls forward the pending files of the committed step and deletes any others,
+so an interruption at any moment leaves the agents and state.json consistent.
+One process at a time trains a run folder (``run.lock``); a second is refused
+naming the PID that holds it. Replay buffers are not
 checkpointed (they would be gigabytes of images): an off-policy agent refills its
 buffer after a resume.
 
@@ -29,12 +37,15 @@ from __future__ import annotations
 import csv
 import dataclasses
 import datetime as dt
+import fcntl
 import functools
 import hashlib
 import json
 import logging
 import os
 import platform
+import re
+import shutil
 import subprocess
 import sys
 import time
@@ -47,6 +58,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from cosim.env import EPISODE_EVENTS, EPISODE_INFO
+from cosim.events import REWARD_TERMS
 from cosim.errors import CosimError
 
 log = logging.getLogger(__name__)
@@ -272,11 +285,90 @@ def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
 
 
 def load_run_config(run: Path) -> TrainConfig:
+    """The TrainConfig in a run folder's config.yaml, checked key by key.
+
+    Raises:
+        TrainError: no config.yaml, malformed YAML, unknown or missing keys, values
+            of the wrong type; the message names the file and the key.
+    """
     path = Path(run) / "config.yaml"
     if not path.exists():
         raise TrainError(f"{run} is not a training run folder (no config.yaml); pass runs/<dir>")
-    data = yaml.safe_load(path.read_text())
-    return TrainConfig(**data)
+    fix = "restore it (the values used are also in manifest.json's command) or start a new run"
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        where = getattr(exc, "problem_mark", None)
+        at = f" at line {where.line + 1}" if where is not None else ""
+        raise TrainError(f"{path}: malformed YAML{at}; {fix}") from None
+    if not isinstance(data, dict):
+        raise TrainError(f"{path}: expected a mapping of run settings, got {type(data).__name__}; {fix}")
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise TrainError(f"{path}: unknown key(s) {unknown}; valid keys: {sorted(fields)}")
+    if data.get("algo") not in ALGORITHMS:
+        raise TrainError(f"{path}: 'algo' must be one of {', '.join(ALGORITHMS)}, got {data.get('algo')!r}")
+    for key, f in fields.items():
+        if key not in data or key == "algo":
+            continue
+        kind = {"int": int, "str": str, "dict[str, Any]": dict}.get(str(f.type), object)
+        value = data[key]
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise TrainError(f"{path}: '{key}' must be {kind.__name__}, got {value!r}; {fix}")
+    cfg = TrainConfig(**data)
+    if min(cfg.agents, cfg.steps, cfg.horizon, cfg.checkpoint_every, cfg.workers, cfg.image_size) < 1:
+        raise TrainError(f"{path}: agents, steps, horizon, checkpoint_every, workers and image_size "
+                         f"must be >= 1; {fix}")
+    from agents.registry import get_agent_class
+
+    try:
+        get_agent_class(cfg.algo).config_class.from_dict(cfg.agent_config)
+    except (TypeError, ValueError) as exc:
+        raise TrainError(f"{path}: 'agent_config': {exc}") from None
+    return cfg
+
+
+class RunLock:
+    """Exclusive use of a run folder by one process: ``fcntl.flock`` on ``run.lock``.
+
+    The file holds the owner's PID so a refused process can name it. The kernel
+    releases a flock when its process dies (even by kill -9), so a lock left by a
+    dead process is simply taken over; the file itself stays (unlinking a lock file
+    races with a process that just opened it).
+    """
+
+    def __init__(self, run: Path):
+        self.path = Path(run) / "run.lock"
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = self._holder(fd)
+            os.close(fd)
+            raise TrainError(
+                f"run {run} is in use by process {holder} (see {self.path}); wait for it to "
+                "finish or stop it, then resume"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self.fd: int | None = fd
+
+    @staticmethod
+    def _holder(fd: int) -> str:
+        for _ in range(20):  # the holder writes its PID right after locking
+            pid = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            if pid:
+                return f"PID {pid}"
+            time.sleep(0.05)
+        return "with an unknown PID"
+
+    def release(self) -> None:
+        if self.fd is not None:
+            os.ftruncate(self.fd, 0)
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
 
 
 def manifest(cfg: TrainConfig) -> dict[str, Any]:
@@ -324,10 +416,11 @@ def _atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+# derived from the reward-term and event catalogues (cosim.events), so a new term or event
+# gets its column without an edit here
 EPISODE_FIELDS = [
-    "agent", "episode", "env_step", "return", "length", "r_collision", "r_efficiency", "r_lane",
-    "r_step", "n_collision_vehicle", "n_collision_pedestrian", "n_collision_object", "n_off_road",
-    "n_wrong_lane", "n_lane_violation", "mean_speed_kmh", "DISTANCE", "distance_to_goal",
+    "agent", "episode", "env_step", "return", "length", *(f"r_{t}" for t in REWARD_TERMS),
+    *(f"n_{e}" for e in EPISODE_EVENTS), "mean_speed_kmh", "DISTANCE", "distance_to_goal",
     "goal_reached", "wall_time_s",
 ]
 
@@ -363,8 +456,15 @@ class RunLog:
             return list(csv.DictReader(f))
 
     def _truncate_csv(self, rows: int) -> None:
-        """Keep the header and the first `rows` rows (those covered by the checkpoint)."""
+        """Keep the header and the first `rows` rows (those covered by the checkpoint).
+
+        With no rows covered (a run stopped before its first checkpoint) the file is
+        removed, header and all, and written afresh.
+        """
         if not self.csv_path.exists():
+            return
+        if rows == 0:
+            self.csv_path.unlink()
             return
         with open(self.csv_path, newline="") as f:
             lines = f.readlines()
@@ -410,23 +510,34 @@ class RunLog:
         return float(np.mean(values)) if values else float("nan")
 
     def checkpoint(self, agents: dict, env_step: int, extra_time: dict[str, float] | None = None) -> None:
-        """Save latest (and best) per AC, then the state that makes them resumable."""
+        """Save latest (and best) per AC and the state that makes them resumable.
+
+        Two phases (module docstring): pending files, then state.json, then renames.
+        """
+        best = dict(self.best)
+        staged = []
         for agent_id, agent in agents.items():
             folder = self.run / "checkpoints" / agent_id
             folder.mkdir(parents=True, exist_ok=True)
-            _atomic_save(agent, folder / "latest.pt")
+            names = ["latest.pt"]
             recent = self.recent[agent_id]
             if len(recent) >= 3:
                 score = float(np.mean(recent))
-                if score > self.best.get(agent_id, -np.inf):
-                    self.best[agent_id] = score
-                    _atomic_save(agent, folder / "best.pt")
+                if score > best.get(agent_id, -np.inf):
+                    best[agent_id] = score
+                    names.append("best.pt")
             elif not (folder / "best.pt").exists():
-                _atomic_save(agent, folder / "best.pt")
-        self.env_steps = env_step
-        state = {"env_steps": env_step, "episodes": self.episodes, "best": self.best,
+                names.append("best.pt")
+            for name in names:
+                pending = folder / _pending_name(name, env_step)
+                agent.save(pending)  # itself written to a temporary name and renamed
+                staged.append((pending, folder / name))
+        state = {"env_steps": env_step, "episodes": self.episodes, "best": best,
                  "csv_rows": self.rows, "elapsed_s": self.elapsed, "timing": extra_time or {}}
-        _atomic_write(self.run / "state.json", json.dumps(state, indent=2))
+        _atomic_write(self.run / "state.json", json.dumps(state, indent=2))  # the commit point
+        for pending, final in staged:
+            os.replace(pending, final)
+        self.env_steps, self.best = env_step, best
         for name, value in (extra_time or {}).items():
             self.tb.add_scalar(name, value, env_step)
         self.tb.flush()
@@ -436,10 +547,33 @@ class RunLog:
         self.tb.close()
 
 
-def _atomic_save(agent, path: Path) -> None:
-    tmp = path.with_name(path.stem + ".tmp.pt")
-    agent.save(tmp)
-    os.replace(tmp, path)
+def _pending_name(name: str, env_step: int) -> str:
+    stem, _, ext = name.rpartition(".")
+    return f"{stem}.pending-{env_step}.{ext}"
+
+
+_PENDING = re.compile(r"^(?P<stem>\w+)\.pending-(?P<step>\d+)\.pt$")
+
+
+def recover_checkpoints(run: Path, committed_step: int | None) -> None:
+    """Finish or undo a checkpoint that an interruption cut short.
+
+    Pending files of the committed step (state.json was replaced, the renames were
+    not all done) are renamed into place; pending files of any other step and
+    temporary files are deleted. With no committed checkpoint at all the run
+    restarts, so every checkpoint file goes.
+    """
+    for folder in (Path(run) / "checkpoints").glob("*"):
+        if not folder.is_dir():
+            continue
+        for file in folder.iterdir():
+            match = _PENDING.match(file.name)
+            if committed_step is None:
+                file.unlink()
+            elif match and int(match["step"]) == committed_step:
+                os.replace(file, folder / f"{match['stem']}.pt")
+            elif match or ".tmp" in file.name:
+                file.unlink()
 
 
 # -- environments ---------------------------------------------------------------------
@@ -456,7 +590,7 @@ def make_env(cfg_dict: dict, worker_seed: int | None = None):
 
 
 class _EpisodeTap:
-    """Forwards a ParallelEnv and hands each agent's final ``info["episode"]`` to a callback."""
+    """Forwards a ParallelEnv and hands each agent's final ``info[EPISODE_INFO]`` to a callback."""
 
     def __init__(self, env, on_episode: Callable[[str, dict], None]):
         self.env, self.on_episode = env, on_episode
@@ -467,23 +601,58 @@ class _EpisodeTap:
     def step(self, actions):
         out = self.env.step(actions)
         for agent, info in out[4].items():
-            if "episode" in info:
-                self.on_episode(agent, info["episode"])
+            if EPISODE_INFO in info:
+                self.on_episode(agent, info[EPISODE_INFO])
         return out
 
 
 # -- training -------------------------------------------------------------------------
 def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = None,
           quiet: bool = False, progress: bool = True) -> Path:
-    """Run (or resume) one training run; return its folder."""
+    """Run (or resume) one training run; return its folder.
+
+    Raises:
+        TrainError: the run folder is held by another process (naming its PID), or
+            its config.yaml / state.json is unreadable (naming the file and the key).
+    """
     if resume is not None:
         run = Path(resume)
         cfg = load_run_config(run)
-        state_path = run / "state.json"
-        state = json.loads(state_path.read_text()) if state_path.exists() else None
+        lock = RunLock(run)
+        try:
+            state = _read_state(run)
+            recover_checkpoints(run, None if state is None else int(state["env_steps"]))
+            if state is None:  # stopped before its first checkpoint: start again from step 0
+                log.info("resume: %s has no checkpoint yet; restarting it from step 0", run)
+                shutil.rmtree(run / "tb", ignore_errors=True)
+        except BaseException:
+            lock.release()
+            raise
     else:
         run = new_run_dir(out, cfg)
+        lock = RunLock(run)
         state = None
+    try:
+        _train_locked(cfg, run, state, quiet, progress)
+    finally:
+        lock.release()
+    return run
+
+
+def _read_state(run: Path) -> dict | None:
+    path = run / "state.json"
+    if not path.exists():
+        return None
+    try:
+        state = json.loads(path.read_text())
+        int(state["env_steps"]), int(state["csv_rows"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise TrainError(f"{path} is unreadable ({type(exc).__name__}: {exc}); delete it to restart "
+                         "the run from step 0, or start a new run") from None
+    return state
+
+
+def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, progress: bool) -> None:
     runlog = RunLog(run, cfg, state)
     log.info("training %s on %s with %d ACs for %d steps -> %s", cfg.algo, cfg.env, cfg.agents,
              cfg.steps, run)
@@ -497,7 +666,6 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
     finally:
         runlog.close()
         plot_convergence(run)
-    return run
 
 
 def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space) -> dict:

@@ -1,0 +1,72 @@
+"""Run `cosim train ...` and send this process a signal at an exact moment of a checkpoint.
+
+    python tests/eval/_interrupt.py MOMENT CHECKPOINT SIGNAL -- train --algo ppo ...
+
+MOMENT is where, in the CHECKPOINT-th checkpoint of this process (1-based), the
+signal (KILL or INT) arrives:
+
+    enter      before anything of it is written
+    saving     halfway through writing an AC's checkpoint file (half the bytes on disk)
+    pending    every AC's pending file written, state.json not yet replaced
+    committed  state.json replaced, the pending files not yet renamed
+
+The training code is not changed: the hooks wrap the functions it calls.
+"""
+
+import os
+import signal
+import sys
+
+import torch
+
+import agents.checkpoint
+import eval.train
+from cosim.cli import main
+
+moment, nth, sig = sys.argv[1], int(sys.argv[2]), getattr(signal, f"SIG{sys.argv[3]}")
+argv = sys.argv[sys.argv.index("--") + 1:]
+calls = {"checkpoint": 0}
+
+
+def fire() -> None:
+    os.kill(os.getpid(), sig)
+
+
+real_checkpoint = eval.train.RunLog.checkpoint
+
+
+def checkpoint(self, *args, **kwargs):
+    calls["checkpoint"] += 1
+    if moment == "enter" and calls["checkpoint"] == nth:
+        fire()
+    return real_checkpoint(self, *args, **kwargs)
+
+
+real_write = eval.train._atomic_write
+
+
+def atomic_write(path, text):
+    hit = path.name == "state.json" and calls["checkpoint"] == nth
+    if hit and moment == "pending":
+        fire()
+    real_write(path, text)
+    if hit and moment == "committed":
+        fire()
+
+
+real_save = torch.save
+
+
+def save(obj, f, *args, **kwargs):
+    if moment == "saving" and calls["checkpoint"] == nth:
+        real_save(obj, f, *args, **kwargs)
+        with open(f, "r+b") as fh:  # leave the file half written, as a kill mid-write would
+            fh.truncate(os.path.getsize(f) // 2)
+        fire()
+    return real_save(obj, f, *args, **kwargs)
+
+
+eval.train.RunLog.checkpoint = checkpoint
+eval.train._atomic_write = atomic_write
+agents.checkpoint.torch.save = save
+sys.exit(main(argv))

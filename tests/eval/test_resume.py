@@ -1,0 +1,177 @@
+"""Interrupted training runs resume exactly: kills at chosen moments, then `--resume`.
+
+Each case trains a real smoke-preset run in a subprocess (tests/eval/_interrupt.py
+sends the signal at an exact moment of a checkpoint), resumes it, interrupts it
+again, and so on, then resumes it to the end. After every interruption the run
+must resume: CSV rows covered by the last committed checkpoint are kept as they
+were, later ones are redone once (no gap, no duplicate, one header), the step
+counters continue from the checkpoint, and no partial file is left behind.
+"""
+
+import csv
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import agents
+from cosim.cli import main
+from eval.train import RunLock, TrainError, train
+
+INTERRUPT = [sys.executable, str(Path(__file__).with_name("_interrupt.py"))]
+COSIM = [sys.executable, "-m", "cosim.cli"]
+STEPS = 160  # smoke preset: a checkpoint every 40 steps, episodes of at most 60 steps
+
+
+def _rows(run: Path) -> list[dict]:
+    path = run / "episodes.csv"
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _state(run: Path) -> dict | None:
+    path = run / "state.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _snapshot(run: Path) -> dict:
+    return {"state": _state(run), "rows": _rows(run)}
+
+
+def _train_cmd(run_root: Path, algo: str, steps: int = STEPS) -> list[str]:
+    return ["train", "--algo", algo, "--preset", "smoke", "--steps", str(steps),
+            "--out", str(run_root), "--quiet"]
+
+
+def _interrupted(args: list[str], moment: str, nth: int, sig: str) -> None:
+    proc = subprocess.run(INTERRUPT + [moment, str(nth), sig, "--"] + args,
+                          capture_output=True, text=True, timeout=300)
+    expected = -signal.SIGKILL if sig == "KILL" else 130
+    assert proc.returncode == expected, proc.stderr[-3000:]
+    if sig == "INT":
+        assert proc.stderr.strip().splitlines()[-1] == "cosim: interrupted"
+
+
+def _check_consistent(run: Path, snapshots: list[dict], steps: int = STEPS) -> None:
+    """The invariants of a finished run that was interrupted at `snapshots`."""
+    final = _state(run)
+    assert final["env_steps"] == steps, "the step counter reached the budget"
+    rows = _rows(run)
+    assert all(r["agent"] != "agent" for r in rows), "one header, never a header read as a row"
+    for ac in ("ac_0", "ac_1"):
+        episodes = [int(r["episode"]) for r in rows if r["agent"] == ac]
+        assert episodes == list(range(len(episodes))), f"{ac}: episodes continue, no gap, no repeat"
+        assert final["episodes"][ac] == len(episodes)
+        steps = [int(r["env_step"]) for r in rows if r["agent"] == ac]
+        assert steps == sorted(steps)
+    for snap in snapshots:
+        state = snap["state"]
+        if state is None:
+            continue
+        kept = state["csv_rows"]
+        assert rows[:kept] == snap["rows"][:kept], "rows the checkpoint covered are kept as they were"
+        later = [int(r["env_step"]) for r in rows[kept:]]
+        assert all(s > state["env_steps"] for s in later[: len(snap["rows"]) - kept])
+    leftovers = [p.name for p in (run / "checkpoints").rglob("*") if p.is_file()
+                 and p.name not in ("latest.pt", "best.pt")]
+    assert leftovers == [], "no pending or temporary checkpoint file is left"
+    assert (run / "run.lock").read_text() == "", "the lock was released"
+
+
+def _run_chain(tmp_path: Path, algo: str, kills: list[tuple[str, int, str]], steps: int = STEPS) -> None:
+    """Train, interrupt at each of `kills` (resuming in between), then resume to the end."""
+    _interrupted(_train_cmd(tmp_path, algo, steps), *kills[0])
+    (run,) = tmp_path.iterdir()
+    snapshots = [_snapshot(run)]
+    committed = []
+    for kill in kills[1:]:
+        _interrupted(["train", "--resume", str(run), "--quiet"], *kill)
+        snap = _snapshot(run)
+        if snapshots[-1]["state"] is not None:  # counters never go back
+            assert snap["state"]["env_steps"] >= snapshots[-1]["state"]["env_steps"]
+        snapshots.append(snap)
+        if snap["state"] is not None:
+            committed.append(snap["state"]["env_steps"])
+    if kills[0][1] == 1 and kills[0][0] != "committed":
+        assert snapshots[0]["state"] is None, "the first kill came before any checkpoint"
+    train(None, resume=run, progress=False)
+    _check_consistent(run, snapshots, steps)
+    if committed:  # the agents' own counters continued from the committed checkpoint
+        final_agent = agents.load(run / "checkpoints" / "ac_0" / "latest.pt")
+        assert getattr(final_agent, "steps", 1) > 0
+
+
+def test_kills_before_during_and_after_checkpoints_then_resume(tmp_path):
+    """SIGKILL halfway through writing a file of the first checkpoint (before any is
+    committed), then SIGINT after the first checkpoint (rows written since are redone)."""
+    _run_chain(tmp_path, "ppo", [("saving", 1, "KILL"), ("enter", 2, "INT")], steps=120)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ["ppo", "td3", "a3c"])
+@pytest.mark.parametrize("kills", [
+    [("enter", 1, "INT"), ("pending", 1, "KILL"), ("enter", 3, "INT")],
+    [("saving", 1, "INT"), ("committed", 1, "KILL"), ("pending", 2, "INT")],
+    [("pending", 2, "KILL"), ("saving", 1, "KILL"), ("committed", 1, "INT")],
+], ids=["enter-pending-enter", "saving-committed-pending", "pending-saving-committed"])
+def test_every_moment_and_signal_then_resume(tmp_path, algo, kills):
+    _run_chain(tmp_path, algo, kills)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_kills_at_random_times_then_resume(tmp_path, seed):
+    """SIGKILL or SIGINT from outside at random wall-clock moments, three times, then resume."""
+    rng = random.Random(seed)
+    run = None
+    snapshots = []
+    for _ in range(3):
+        args = _train_cmd(tmp_path, "ppo") if run is None else ["train", "--resume", str(run), "--quiet"]
+        proc = subprocess.Popen(COSIM + args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(4.0, 14.0))
+        proc.send_signal(rng.choice([signal.SIGKILL, signal.SIGINT]))
+        proc.wait(timeout=120)
+        run = run or next(tmp_path.iterdir())
+        snapshots.append(_snapshot(run))
+        if proc.returncode == 0:  # finished before the signal: nothing left to interrupt
+            break
+    train(None, resume=run, progress=False)
+    _check_consistent(run, snapshots)
+
+
+def _hold_lock(run: Path) -> subprocess.Popen:
+    code = ("import sys, time; from pathlib import Path; from eval.train import RunLock; "
+            "RunLock(Path(sys.argv[1])); print('locked', flush=True); time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(run)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    return holder
+
+
+def test_second_concurrent_resume_is_refused_naming_the_pid(tmp_path, capsys):
+    run = tmp_path / "env_1__ppo__0__20260101-000000"
+    run.mkdir()
+    (run / "config.yaml").write_text("algo: ppo\nenv: env_1\nagents: 2\nsteps: 40\npreset: smoke\n")
+    holder = _hold_lock(run)
+    try:
+        assert main(["train", "--resume", str(run), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"in use by process PID {holder.pid}" in err
+        assert not (run / "episodes.csv").exists(), "the refused process touched nothing"
+        with pytest.raises(TrainError, match=f"PID {holder.pid}"):
+            RunLock(run)
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder died without releasing: its lock is taken over, the PID replaced
+    assert (run / "run.lock").read_text().strip() == str(holder.pid)
+    lock = RunLock(run)
+    assert (run / "run.lock").read_text().strip() == str(os.getpid())
+    lock.release()
