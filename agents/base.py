@@ -40,7 +40,7 @@ import torch
 
 from agents.networks import obs_to_tensor
 
-__all__ = ["Agent", "AgentConfig", "check_range", "due", "seeded_init"]
+__all__ = ["Agent", "AgentConfig", "check_range", "due", "resolve_device", "seeded_init"]
 
 logger = logging.getLogger(__name__)
 
@@ -120,6 +120,23 @@ class AgentConfig:
     def to_dict(self) -> dict[str, Any]:
         """Plain-dict view (``dataclasses.asdict``) for logs and checkpoints."""
         return dataclasses.asdict(self)
+
+
+def resolve_device(name: str = "auto") -> str:
+    """``"auto"`` -> ``"cuda"`` when a CUDA device is available, else ``"cpu"``; others are checked.
+
+    Raises:
+        ValueError: For an unknown device name, or ``"cuda"`` without a CUDA device.
+    """
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"unknown device {name!r}; use auto, cpu or cuda") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} asked for, but torch sees no CUDA device; use --device cpu or auto")
+    return name
 
 
 def due(before: int, now: int, every: int, start: int = 0) -> int:

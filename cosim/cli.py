@@ -114,6 +114,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
     t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
                    help="continue an interrupted run from its last checkpoint")
+    t.add_argument("--envs", type=int, default=1,
+                   help="environments stepped together, one process each when > 1 (ppo dqn ddpg td3)")
+    t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="torch device of the learners (auto: cuda when available)")
+    t.add_argument("--torch-threads", type=int, default=0, metavar="K",
+                   help="torch intra-op threads in the trainer (0: torch's default)")
     t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
     t.set_defaults(func=cmd_train)
     e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
@@ -277,7 +283,7 @@ def cmd_train(args) -> int:
     import os
     import subprocess
 
-    from eval.train import ALGORITHMS, TrainError, make_config, parse_set, train
+    from eval.train import ALGORITHMS, ASYNC_ALGOS, TrainError, make_config, parse_set, train
 
     try:
         if args.resume is not None:
@@ -289,7 +295,9 @@ def cmd_train(args) -> int:
         configs = [
             make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
-                        hyper=hyper)
+                        hyper=hyper, envs=1 if a in ASYNC_ALGOS and args.algo == "all" else args.envs,
+                        device=args.device,
+                        torch_threads=args.torch_threads)
             for a in algos
         ]
     except TrainError as exc:
@@ -310,7 +318,8 @@ def cmd_train(args) -> int:
     running: dict[str, subprocess.Popen] = {}
     failed = []
     base = [sys.executable, "-m", "cosim.cli", "train", "--env", args.env, "--preset", args.preset,
-            "--seed", str(args.seed), "--out", str(args.out), "--quiet"]
+            "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
+            "--torch-threads", str(args.torch_threads)]
     if args.agents is not None:
         base += ["--agents", str(args.agents)]
     if args.steps is not None:
@@ -323,7 +332,8 @@ def cmd_train(args) -> int:
         while pending or running:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
-                running[algo] = subprocess.Popen(base + ["--algo", algo])
+                envs = [] if algo in ASYNC_ALGOS else ["--envs", str(args.envs)]
+                running[algo] = subprocess.Popen(base + envs + ["--algo", algo])
             for algo, proc in list(running.items()):
                 try:
                     proc.wait(timeout=0.5)

@@ -27,9 +27,11 @@ naming the PID that holds it. Replay buffers are not
 checkpointed (they would be gigabytes of images): an off-policy agent refills its
 buffer after a resume.
 
-PPO, DQN, DDPG and TD3 step one environment in this process through
-:func:`agents.loop.run_loop`. A3C and IMPALA run worker/actor processes, each
-with its own environment (libsumo allows one simulation per process).
+PPO, DQN, DDPG and TD3 step ``--envs N`` environments through
+:func:`agents.loop.run_vector_loop`: one in this process, or N worker processes
+(``agents/vector.py``), each AC acting in all of them in one forward pass; each
+environment's episodes become CSV rows. A3C and IMPALA run worker/actor
+processes, each with its own environment (libsumo allows one simulation per process).
 """
 
 from __future__ import annotations
@@ -155,6 +157,12 @@ class TrainConfig:
     workers: int = 2
     image_size: int = 84
     agent_config: dict[str, Any] = field(default_factory=dict)
+    envs: int = 1
+    """Environments stepped together, each in its own process when > 1 (PPO, DQN, DDPG, TD3)."""
+    device: str = "auto"
+    """Torch device of the learners: auto (cuda when available), cpu or cuda."""
+    torch_threads: int = 0
+    """torch.set_num_threads in the trainer (0: torch's default)."""
 
     @property
     def action_type(self) -> str:
@@ -167,7 +175,8 @@ class TrainConfig:
 def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents: int | None = None,
                 steps: int | None = None, seed: int = 0, action_type: str | None = None,
                 image_size: int = 84, agent_preset: str | None = None,
-                hyper: Mapping[str, str] | None = None) -> TrainConfig:
+                hyper: Mapping[str, str] | None = None, envs: int = 1, device: str = "auto",
+                torch_threads: int = 0) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
@@ -202,6 +211,13 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     total = p.steps[algo] if steps is None else int(steps)
     if total < 1:
         raise TrainError(f"--steps must be >= 1, got {total}")
+    if int(envs) < 1 or int(torch_threads) < 0:
+        raise TrainError(f"--envs must be >= 1 and --torch-threads >= 0, got {envs} and {torch_threads}")
+    if int(envs) > 1 and algo in ASYNC_ALGOS:
+        raise TrainError(f"--envs applies to ppo, dqn, ddpg and td3; {algo} runs one environment per "
+                         "worker process (the preset's workers)")
+    if device not in ("auto", "cpu", "cuda"):
+        raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
     config_cls = get_agent_class(algo).config_class
     chosen = agent_preset or p.agent_preset
     try:
@@ -212,7 +228,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     return TrainConfig(
         algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
-        image_size=int(image_size), agent_config=agent_config,
+        image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
+        torch_threads=int(torch_threads),
     )
 
 
@@ -600,9 +617,11 @@ class _EpisodeTap:
 
     def step(self, actions):
         out = self.env.step(actions)
-        for agent, info in out[4].items():
-            if EPISODE_INFO in info:
-                self.on_episode(agent, info[EPISODE_INFO])
+        # a vector env (agents/vector.py) gives one info dict per environment
+        for infos in (out.infos if hasattr(out, "env_reset") else [out[4]]):
+            for agent, info in infos.items():
+                if EPISODE_INFO in info:
+                    self.on_episode(agent, info[EPISODE_INFO])
         return out
 
 
@@ -668,7 +687,8 @@ def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, 
         plot_convergence(run)
 
 
-def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space) -> dict:
+def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space,
+                   device: str = "cpu") -> dict:
     import agents as agents_pkg
     from agents.registry import get_agent_class
 
@@ -679,9 +699,9 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
         aid = f"ac_{k}"
         latest = run / "checkpoints" / aid / "latest.pt"
         if resumed and latest.exists():
-            out[aid] = agents_pkg.load(latest)
+            out[aid] = agents_pkg.load(latest, device=device)  # saved from any device, loads on any
         else:
-            out[aid] = cls.from_spaces(obs_space, act_space, config, seed=cfg.seed + k)
+            out[aid] = cls.from_spaces(obs_space, act_space, config, seed=cfg.seed + k, device=device)
     return out
 
 
@@ -704,33 +724,47 @@ def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_
 
 
 def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
-    from agents.loop import run_loop
+    """PPO, DQN, DDPG, TD3: ``cfg.envs`` environments (worker processes when > 1), one
+    batched forward pass per AC per step (agents.loop.run_vector_loop, docs/agents.md)."""
+    import torch
 
+    from agents.base import resolve_device
+    from agents.loop import run_vector_loop
+    from agents.vector import make_vector_env
+
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    try:
+        device = resolve_device(cfg.device)
+    except ValueError as exc:
+        raise TrainError(str(exc)) from None
+    n = cfg.envs
     start_step = runlog.env_steps
-    env = _EpisodeTap(make_env(cfg.to_dict()), lambda a, s: runlog.episode(a, s, step_now[0]))
-    step_now = [start_step]
+    # env i of N: seed + i (env 0 is the one-env run's env)
+    fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(n)]
+    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, step_now[0]))
+    step_now = [start_step + n]  # the env step an episode ending in this vector step is logged at
     bar = _bar(cfg, runlog, quiet, progress)
     last_log = [time.monotonic(), start_step]
     try:
         agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
-                                   env.action_space("ac_0"))
+                                   env.action_space("ac_0"), device)
 
         def callback(step: int, stats, metrics) -> bool:
             now = start_step + step
-            step_now[0] = now + 1
+            step_now[0] = now + n
             for aid, m in metrics.items():
                 runlog.metrics(aid, m, now)
-            bar.update(1)
-            if now % cfg.checkpoint_every == 0 or now >= cfg.steps:
+            bar.update(n)
+            if now // cfg.checkpoint_every > (now - n) // cfg.checkpoint_every or now >= cfg.steps:
                 runlog.checkpoint(agent_map, now, stats.summary())
             _report(bar, runlog, cfg, now, quiet, last_log)
             return now >= cfg.steps
 
         # episodes after a resume get fresh seeds: seed + 100003 * (episodes so far)
         first_seed = cfg.seed + 100_003 * sum(runlog.episodes.values())
-        step_now[0] = start_step + 1
-        run_loop(agent_map, env, total_steps=cfg.steps - start_step, callback=callback,
-                 seed=first_seed)
+        run_vector_loop(agent_map, env, total_steps=cfg.steps - start_step, callback=callback,
+                        seed=first_seed)
     finally:
         bar.close()
         env.close()
