@@ -527,6 +527,11 @@ class RolloutBuilder:
 # --------------------------------------------------------------------------- env runner
 
 
+# The info key of cosim's per-episode summary (cosim.env): not "episode", which
+# Gymnasium's RecordEpisodeStatistics, gym.make_vec and SB3's Monitor write themselves.
+EPISODE_INFO = "cosim_episode"
+
+
 @dataclass
 class EpisodeReport:
     """Per-agent return and length of one finished episode in one worker."""
@@ -535,7 +540,7 @@ class EpisodeReport:
     returns: dict[str, float] = field(default_factory=dict)
     lengths: dict[str, int] = field(default_factory=dict)
     extras: dict[str, dict] = field(default_factory=dict)
-    """Per agent, the env's own episode summary (``info["episode"]``) when it gives one."""
+    """Per agent, the env's own episode summary (``info[EPISODE_INFO]``) when it gives one."""
 
 
 # A policy maps one observation to (action, log mu(action | obs)).
@@ -594,8 +599,8 @@ class EnvRunner:
                 actions[aid], log_probs[aid] = policies[aid](self.obs[aid])
             next_obs, rewards, terminations, truncations, infos = self.env.step(actions)
             for aid, info in infos.items():
-                if isinstance(info, Mapping) and "episode" in info:
-                    self._extras[aid] = info["episode"]
+                if isinstance(info, Mapping) and EPISODE_INFO in info:
+                    self._extras[aid] = info[EPISODE_INFO]
             for aid in actions:
                 builders[aid].add(
                     self.obs[aid], actions[aid], rewards[aid] * self.reward_scale, next_obs[aid],

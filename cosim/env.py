@@ -24,13 +24,20 @@ Infos
     goal_reached, out_of_region), distance_to_goal, progress, speed, x, y,
     heading, reward_terms, n_vehicles and n_pedestrians (others in the region),
     spawn_x/y, goal_x/y, time (simulated seconds); on an agent's last step also
-    ``episode``: its return, length, sum of each reward term (r_*), count of steps
-    with each event (n_*), mean speed, DISTANCE and whether it reached the goal.
+    ``cosim_episode`` (not ``episode``, which Gymnasium's RecordEpisodeStatistics,
+    ``gym.make_vec`` and SB3's Monitor write): its unscaled return, length, sum of
+    each reward term (r_*), count of steps with each event (n_*), mean speed,
+    DISTANCE and whether it reached the goal.
 Arguments
     scenario (name like ``env_3`` or a YAML path), num_agents, action_types
     ("discrete", "continuous", or one per agent), seed, image_size, background,
     pedestrians, terminate_on_collision, horizon, renderer ("tiny", "egl",
-    "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci").
+    "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci"),
+    reward_scale (> 0, default 1.0: multiplies the returned rewards; reward_terms
+    and ``cosim_episode`` stay unscaled).
+Pickling
+    ``pickle`` and ``copy.deepcopy`` rebuild the environment from its constructor
+    arguments (SUMO and PyBullet state cannot be copied): the copy starts un-reset.
 Version history
     v0: first release.
 """
@@ -54,6 +61,7 @@ from cosim.world import World
 log = logging.getLogger(__name__)
 
 ACTION_TYPES = ("discrete", "continuous")
+EPISODE_INFO = "cosim_episode"  # the info key of an agent's per-episode summary
 EPISODE_EVENTS = (
     "collision_vehicle", "collision_pedestrian", "collision_object", "off_road", "wrong_lane",
     "lane_violation",
@@ -80,7 +88,12 @@ class CosimParallelEnv(ParallelEnv):
         renderer: str = "tiny",
         render_mode: str | None = None,
         backend: str = "auto",
+        reward_scale: float = 1.0,
     ):
+        # everything pickle / deepcopy need to rebuild this env (see __getstate__)
+        self._init_kwargs = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
+        if not (isinstance(reward_scale, int | float) and 0.0 < float(reward_scale) < float("inf")):
+            raise ValueError(f"reward_scale must be a finite number > 0, got {reward_scale!r}")
         sc = load_scenario(scenario) if not isinstance(scenario, Scenario) else scenario
         if terminate_on_collision is not None:
             sc = sc.with_overrides(
@@ -93,6 +106,7 @@ class CosimParallelEnv(ParallelEnv):
         if not 8 <= int(image_size) <= 512:
             raise ValueError(f"image_size must be 8..512 pixels, got {image_size}")
         self.scenario = sc
+        self.reward_scale = float(reward_scale)
         self.render_mode = render_mode
         self.image_size = int(image_size)
         self._renderer = renderer
@@ -164,7 +178,7 @@ class CosimParallelEnv(ParallelEnv):
         stepped = list(results)
         obs = self._observe(stepped)
         self.agents = list(self._world.active)
-        rewards = {a: r.reward for a, r in results.items()}
+        rewards = {a: r.reward * self.reward_scale for a, r in results.items()}
         terminations = {a: r.terminated for a, r in results.items()}
         truncations = {a: r.truncated for a, r in results.items()}
         infos = {a: self._info(a, r) for a, r in results.items()}
@@ -191,6 +205,13 @@ class CosimParallelEnv(ParallelEnv):
             self._mirror = None
         self._closed = True
         self.agents = []
+
+    def __getstate__(self) -> dict:
+        """Only the constructor arguments: a copy is a new, un-reset environment."""
+        return {"init_kwargs": dict(self._init_kwargs)}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(**state["init_kwargs"])
 
     def __del__(self):
         try:
@@ -264,7 +285,7 @@ class CosimParallelEnv(ParallelEnv):
         return info
 
     def _accumulate(self, agent: str, result, info: dict) -> None:
-        """Per-episode sums; the agent's last info gets them as ``info["episode"]``."""
+        """Per-episode sums (unscaled); the agent's last info gets them as ``info[EPISODE_INFO]``."""
         ep = self._episode.setdefault(agent, {"return": 0.0, "length": 0, "speed_sum": 0.0})
         ep["return"] += result.reward
         ep["length"] += 1
@@ -280,7 +301,7 @@ class CosimParallelEnv(ParallelEnv):
             ep["distance_to_goal"] = info["distance_to_goal"]
             gx, gy, sx, sy = info["goal_x"], info["goal_y"], info["spawn_x"], info["spawn_y"]
             ep["DISTANCE"] = float(np.hypot(gx - sx, gy - sy) - np.hypot(gx - info["x"], gy - info["y"]))
-            info["episode"] = ep
+            info[EPISODE_INFO] = ep
 
     def _check_agent(self, agent: str) -> None:
         if agent not in self._action_spaces:
