@@ -5,6 +5,17 @@ pedestrians, convex polygons for static road objects. Off-road means a corner
 of the footprint leaves the drivable surface; wrong-lane means the centre leaves
 the lanes of the AC's own travel direction (junction areas it crosses count as
 its own). Both are rasterised once per scenario (:mod:`cosim.roadmap`).
+
+What the world measures, so that only driving pays (docs/scenarios.md):
+
+- the goal is reached only at the goal: within ``goal_radius`` of the goal point
+  and on the road (passing the goal's projection somewhere off the road is not enough);
+- progress (``dD``) and the forward-speed term ``F`` are credited only while the car
+  is on the road and in the lanes of its route: off them, moving towards the goal
+  earns nothing (moving away still costs), and what was skipped is not paid later.
+  A shortcut across an island, a verge or the wrong side of a roundabout never pays;
+- ``red_light``: the step on which the car crosses the stop line of a signalised
+  junction on its route while its signal is red (SUMO's signal state).
 """
 
 from __future__ import annotations
@@ -19,7 +30,13 @@ from cosim.roadmap import RoadMap, Route
 from cosim.scenario import RewardWeights
 from cosim.sumo_bridge import PERSON_RADIUS, Snapshot
 
-REWARD_TERMS = ("collision", "efficiency", "lane", "step")
+REWARD_TERMS = ("collision", "efficiency", "lane", "step", "red_light")
+EVENT_FLAGS = (
+    "collision_vehicle", "collision_pedestrian", "collision_object", "off_road", "wrong_lane",
+    "red_light", "goal_reached", "out_of_region",
+)
+"""The per-step boolean events of one AC, in report order (records, CSV counts, CLI)."""
+RED = "rR"  # SUMO signal states that forbid entering the junction
 # A footprint corner may overhang the drivable surface by this much (metres) before the car
 # counts as off-road: the kerb and the raster's 0.25 m cells make a harder test flag clean turns.
 OFFROAD_TOLERANCE = 0.25
@@ -34,6 +51,8 @@ class Events:
     collision_object: bool = False
     off_road: bool = False
     wrong_lane: bool = False
+    red_light: bool = False
+    """Crossed the stop line of a signalised junction on its route against a red signal."""
     goal_reached: bool = False
     out_of_region: bool = False
     distance_to_goal: float = 0.0
@@ -133,14 +152,28 @@ def detect_all(
         ev.wrong_lane = not route.lane_mask.value_at(x, y)
         ev.out_of_region = not (xmin <= x <= xmax and ymin <= y <= ymax)
         s = route.arc_length(x, y)
+        previous_s = route.goal_s - float(previous_distance[i])
+        on_route = not ev.lane_violation
         ev.route_speed = ev.speed * math.cos(float(heading[i]) - route.path.heading_at(s))
         ev.distance_to_goal = max(route.goal_s - s, 0.0)
         ev.progress = float(previous_distance[i]) - ev.distance_to_goal
+        if not on_route:
+            # off the road or its route's lanes, approaching the goal earns nothing
+            ev.progress = min(ev.progress, 0.0)
+            ev.route_speed = min(ev.route_speed, 0.0)
         gx, gy = route.goal_point
-        ev.goal_reached = bool(
-            (gx - x) ** 2 + (gy - y) ** 2 <= goal_radius**2 or ev.distance_to_goal <= 0.0
+        ev.goal_reached = (not ev.off_road) and (gx - x) ** 2 + (gy - y) ** 2 <= goal_radius**2
+        ev.red_light = on_route and any(
+            previous_s < stop_s <= s and is_red(snapshot.signals, tls, link)
+            for stop_s, tls, link in route.signals
         )
     return events
+
+
+def is_red(signals: dict[str, str], tls: str, link: int) -> bool:
+    """Whether link `link` of traffic light `tls` shows red in SUMO's state strings."""
+    state = signals.get(tls, "")
+    return link < len(state) and state[link] in RED
 
 
 def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float) -> dict[str, float]:
@@ -154,4 +187,5 @@ def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float) -> dict
         "efficiency": weights.efficiency * (ev.progress + forward),
         "lane": weights.lane * float(ev.lane_violation),
         "step": weights.step,
+        "red_light": weights.red_light * float(ev.red_light),
     }

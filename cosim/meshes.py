@@ -28,9 +28,11 @@ MAX_MESH_VERTICES = 30000  # per visual shape; pybullet refuses very large meshe
 # Bodies are drawn in creation order and TinyRenderer depth-tests before shading, so
 # occluders go first: pool boxes, objects, raised sidewalks, markings, then the layers
 # under them.
-STATIC_ORDER = ("building", "pole", "guardrail", "sign", "object", "sidewalk", "white", "yellow",
+STATIC_ORDER = ("building", "wall", "island", "pole", "guardrail", "sign", "object", "sidewalk",
+                "white", "yellow",
                 "road", "walkingarea", "junction")
-OBJECT_HEIGHT = {"pole": 5.0, "guardrail": 0.8, "sign": 2.5, "object": 2.0}
+OBJECT_HEIGHT = {"pole": 5.0, "guardrail": 0.8, "sign": 2.5, "object": 2.0,
+                 "wall": 1.5, "island": 0.8}  # wall: the building line; island: kerb + planting
 OBJECT_KINDS = ("building", *OBJECT_HEIGHT)  # others are drawn as a generic "object"
 BUILDING_HEIGHTS = (8.0, 11.0, 14.0, 17.0, 20.0)  # picked per building by a hash of its id
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +50,8 @@ class Route:
     lane_mask: Raster  # lanes of its own travel direction (+ junctions it crosses)
 
     field: SegmentField | None = None
+    signals: tuple[tuple[float, str, int], ...] = ()
+    """(arc length of the stop line, traffic light id, link index) per signalised junction."""
 
     def arc_length(self, x: float, y: float) -> float:
         """Arc length along the route of the point nearest to (x, y)."""
@@ -143,6 +146,7 @@ class RoadMap:
                 if ln.allows(VEHICLE_CLASS):
                     mask.paint_polyline(np.asarray(ln.getShape()), ln.getWidth() / 2)
         start_len = lane.getLength()
+        stop_lines = []  # (stop-line point, tls id, link index)
         for prev, nxt in zip(edges[:-1], edges[1:], strict=True):
             conns = [c for c in prev.getOutgoing().get(nxt, [])]
             if not conns:
@@ -151,6 +155,9 @@ class RoadMap:
                     f"in {self.scenario.net.name}; list consecutive, connected edges"
                 )
             conn = next((c for c in conns if c.getFromLane() == lane), conns[0])
+            if conn.getTLSID():
+                stop_lines.append((np.asarray(conn.getFromLane().getShape()[-1][:2], dtype=float),
+                                   conn.getTLSID(), conn.getTLLinkIndex()))
             via = conn.getViaLaneID()
             if via:
                 via_lane = self.net.getLane(via)
@@ -179,6 +186,7 @@ class RoadMap:
         goal_s = path.length - (last_len - arrival)
         if goal_s <= depart:
             raise ScenarioError(f"{where}: the goal lies behind the spawn point on the route")
+        signals = tuple((float(path.project(*p)[0]), tls, int(link)) for p, tls, link in stop_lines)
         return Route(
             edges=tuple(ac.route),
             sumo_lane=drivable[ac.lane].getIndex(),
@@ -187,7 +195,31 @@ class RoadMap:
             goal_s=float(goal_s),
             lane_mask=mask,
             field=SegmentField(path, self.bounds),
+            signals=signals,
         )
+
+
+def movement(net, edges) -> str:
+    """What a route does at its junction(s): "straight", "left", "right" or "u-turn".
+
+    Read from the SUMO network's geometry: the heading change between the end of the
+    first edge and the start of the last one (so a roundabout's first / second / third
+    exit reads right / straight / left, whatever SUMO calls each connection).
+    """
+    def heading(shape, at_end: bool) -> float:
+        (x0, y0), (x1, y1) = (shape[-2][:2], shape[-1][:2]) if at_end else (shape[0][:2], shape[1][:2])
+        return math.atan2(y1 - y0, x1 - x0)
+
+    first, last = net.getEdge(edges[0]), net.getEdge(edges[-1])
+    if len(edges) == 1:
+        return "straight"
+    turn = heading(last.getShape(), False) - heading(first.getShape(), True)
+    turn = math.degrees((turn + math.pi) % (2 * math.pi) - math.pi)
+    if abs(turn) < 30:
+        return "straight"
+    if abs(turn) > 150:
+        return "u-turn"
+    return "left" if turn > 0 else "right"
 
 
 @functools.lru_cache(maxsize=8)

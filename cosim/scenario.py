@@ -57,6 +57,9 @@ class RewardWeights:
     """Per step off the road or outside the lanes of the AC's own travel direction."""
     step: float = -1.0
     """Constant per-step penalty (phi) that pushes the car to make progress."""
+    red_light: float = 0.0
+    """Per crossing of a stop line against a red signal. 0 keeps the paper's reward; the
+    event is always measured and reported as the RL metric (docs/scenarios.md)."""
 
 
 @dataclass(frozen=True)
@@ -319,9 +322,16 @@ def _build(cls: type, data: Any, where: str) -> Any:
     kwargs = {}
     for key, value in data.items():
         ftype = str(fields[key].type)
-        if ftype.startswith("tuple[float") and isinstance(value, list):
+        if ftype.startswith(("tuple[float", "tuple[str")) and not isinstance(value, list):
+            example = f"[{value}]" if isinstance(value, str) else "[a, b]"
+            raise ScenarioError(f"{where}: '{key}' must be a list, got {value!r}; write it as {example}")
+        if ftype.startswith("tuple[float"):
+            bad = [v for v in value if isinstance(v, bool) or not isinstance(v, int | float)]
+            if bad:
+                raise ScenarioError(f"{where}: '{key}' must be a list of numbers, got {value!r} "
+                                    f"({bad[0]!r} is not a number)")
             value = tuple(float(v) for v in value)
-        elif ftype.startswith("tuple[str") and isinstance(value, list):
+        elif ftype.startswith("tuple[str"):
             value = tuple(str(v) for v in value)
         elif ftype == "float" and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)

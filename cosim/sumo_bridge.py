@@ -17,7 +17,9 @@ import itertools
 import logging
 import math
 import os
+import tempfile
 import weakref
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,6 +81,8 @@ class Snapshot:
     person_xy: np.ndarray  # (m, 2)
     person_heading: np.ndarray  # (m,)
     person_speed: np.ndarray  # (m,)
+    signals: dict[str, str] = dataclasses.field(default_factory=dict)
+    """Traffic light id -> SUMO state string (one char per link) for the ACs' routes."""
 
     def actors(self) -> list[Actor]:
         """The snapshot as a flat list, for the mirror and for people."""
@@ -126,6 +130,11 @@ class SumoBridge:
         if backend not in ("auto", "libsumo", "traci", "gui"):
             raise ValueError(
                 f"backend must be 'auto', 'libsumo', 'traci' or 'gui' (sumo-gui viewer), got {backend!r}"
+            )
+        if backend == "gui" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise SimulatorUnavailable(
+                "sumo-gui (--gui) needs a display, and neither DISPLAY nor WAYLAND_DISPLAY is set; "
+                "run without --gui, or with a display (ssh -X, xvfb-run)"
             )
         self.scenario = scenario
         self.backend = backend
@@ -177,7 +186,7 @@ class SumoBridge:
                 self._ls.load(self.command(seed)[1:])
                 self._subscribe()
             except self._errors as exc:
-                self._fail(f"SUMO could not restart scenario {self.scenario.name!r}", exc)
+                self._fail(f"SUMO could not restart scenario {self.scenario.name!r}", exc, seed)
             self._acs.clear()
             self._pinned.clear()
             self.time = 0.0
@@ -205,7 +214,7 @@ class SumoBridge:
         except SimulatorUnavailable:
             raise
         except Exception as exc:  # libsumo raises TraCIException, FatalTraCIError, RuntimeError
-            self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc)
+            self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc, seed)
         self._acs.clear()
         self._pinned.clear()
         self.time = 0.0
@@ -276,9 +285,39 @@ class SumoBridge:
         except Exception:  # interpreter shutdown: modules may already be gone
             pass
 
-    def _fail(self, what: str, exc: Exception):
+    def _fail(self, what: str, exc: Exception, seed: int | None = None):
         self.close()
-        raise SumoError(f"{what}: {exc}") from exc
+        reason = " ".join(str(exc).split())
+        if not reason and seed is not None:
+            reason = self._startup_error(seed)
+        raise SumoError(f"{what}: {reason or 'SUMO gave no reason; run it with -v'}") from exc
+
+    def _startup_error(self, seed: int) -> str:
+        """Why SUMO refused to start, from its error log (libsumo's exception is then empty).
+
+        Starts libsumo once more with ``--error-log`` (it fails again at loading, in
+        milliseconds); SUMO writes the log only when it closes. Skipped while another
+        environment of this process holds libsumo.
+        """
+        owner = _owner() if _owner is not None else None
+        if owner is not None and owner._running:
+            return ""
+        fd, name = tempfile.mkstemp(prefix="cosim-sumo-", suffix=".log")
+        os.close(fd)
+        try:
+            ls = _libsumo()
+            try:
+                ls.start(self.command(seed) + ["--error-log", name])
+            except Exception:  # the failure being diagnosed
+                pass
+            try:
+                ls.close()
+            except Exception:  # nothing was started
+                pass
+            lines = [ln.strip() for ln in Path(name).read_text(errors="replace").splitlines()]
+            return next((ln for ln in reversed(lines) if ln), "")
+        finally:
+            os.unlink(name)
 
     def _check(self):
         if not self._running:
@@ -442,6 +481,14 @@ class SumoBridge:
         psp = np.asarray([persons[p][_VAR_SPEED] for p in pids], dtype=float)
         return (ids, xy_a, heading, np.asarray(sp, dtype=float), length, np.asarray(wd, dtype=float),
                 pids, pxy, phd, psp)
+
+    def signal_states(self, tls_ids) -> dict[str, str]:
+        """SUMO's red/yellow/green state string of each traffic light in `tls_ids`."""
+        ls = self._check()
+        try:
+            return {t: ls.trafficlight.getRedYellowGreenState(t) for t in tls_ids}
+        except self._errors as exc:
+            self._fail("SUMO could not read the traffic light states", exc)
 
     def next_tls(self, ac_id: str) -> tuple[str, float] | None:
         """(state char, distance m) of the next traffic light on the AC's route, if any."""

@@ -13,7 +13,8 @@ The order of one step (DESIGN.md), done in :meth:`World.step`:
 5. SUMO: snapshot of every actor through the context subscriptions
 6. events: collisions (vehicle / pedestrian / object), off-road, wrong lane, goal
 7. reward: named terms + weighted sum
-8. termination / truncation; finished ACs leave SUMO
+8. termination / truncation; finished ACs leave SUMO. Static road objects are solid:
+   an AC that hit one is put back where it was before the step, standing (no reverse)
 (the env then syncs the PyBullet mirror to the snapshot and renders one camera per AC)
 """
 
@@ -102,6 +103,7 @@ class World:
         self.bridge = SumoBridge(
             self.scenario, background=background, pedestrians=pedestrians, backend=backend
         )
+        self.signal_ids = sorted({tls for r in self.routes for _, tls, _ in r.signals})
         self.times = StepTimes()
         self.snapshot: Snapshot | None = None
         self.active: list[str] = []
@@ -168,7 +170,7 @@ class World:
         idx = np.array([self.index[a] for a in self.active])
         tb = np.array([controls[a][0] for a in self.active], dtype=float)
         steer = np.array([controls[a][1] for a in self.active], dtype=float)
-        s = self._state[idx]
+        s = self._state[idx].copy()
         # 2. ego dynamics
         nx, ny, nh, nv = bicycle_step(
             s[:, 0], s[:, 1], s[:, 2], s[:, 3], tb, steer, self.vehicle, self.scenario.dt
@@ -187,6 +189,10 @@ class World:
         # 6-8. events, reward, termination
         self.step_count += 1
         results = self._results(idx)
+        for k, i in enumerate(idx):
+            if results[self.ac_ids[i]].events.collision_object:
+                # static objects are solid: the car stops where it was before it hit
+                self._state[i] = (*s[k, :3], 0.0)
         for ac, res in results.items():
             if res.terminated or res.truncated:
                 self.active.remove(ac)
@@ -218,6 +224,7 @@ class World:
             person_xy=pxy,
             person_heading=phd,
             person_speed=psp,
+            signals=self.bridge.signal_states(self.signal_ids) if self.signal_ids else {},
         )
 
     def _results(self, idx: np.ndarray, initial: bool = False) -> dict[str, ACResult]:

@@ -8,6 +8,7 @@ Per AC per episode:
 | CO | fraction of steps in collision with a static road object |
 | CP | fraction of steps in collision with a pedestrian; NaN ("-") when no pedestrian existed |
 | OS | fraction of steps off the road or outside the lanes of its own direction |
+| RL | fraction of steps on which it crossed a stop line against a red signal (beyond the paper) |
 | TTFC | simulated seconds until the first collision of any kind; NaN ("--") when none |
 | SPEED | mean forward speed, km/h |
 | DISTANCE | abs(goal - spawn) - abs(goal - final position), metres (Euclidean) |
@@ -21,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-METRICS = ("CV", "CO", "CP", "OS", "TTFC", "SPEED", "DISTANCE")
+METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
 KEYS = ["episode", "agent", "algorithm"]
 
 
@@ -47,6 +48,7 @@ def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
             "CO": g["collision_object"].mean(),
             "CP": g["collision_pedestrian"].mean() if peds else np.nan,
             "OS": g["lane_violation"].mean(),
+            "RL": g["red_light"].mean() if "red_light" in g else 0.0,
             "TTFC": (hits[0] + 1) * dt if len(hits) else np.nan,
             "SPEED": g["speed"].mean() * 3.6,
             "DISTANCE": spawn_to_goal - final_to_goal,

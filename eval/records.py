@@ -12,10 +12,9 @@ from pathlib import Path
 
 import pandas as pd
 
-EVENT_COLUMNS = (
-    "collision_vehicle", "collision_pedestrian", "collision_object", "collision",
-    "off_road", "wrong_lane", "lane_violation", "goal_reached", "out_of_region",
-)
+from cosim.events import EVENT_FLAGS
+
+EVENT_COLUMNS = (*EVENT_FLAGS, "collision", "lane_violation")
 INFO_COLUMNS = (
     "x", "y", "heading", "speed", "distance_to_goal", "progress", "n_vehicles",
     "n_pedestrians", "spawn_x", "spawn_y", "goal_x", "goal_y", "time",
