@@ -6,6 +6,7 @@
     cosim nets build | check                rebuild / check the SUMO networks
     cosim train --algo ppo --env env_1      train N ACs of one algorithm together
     cosim test --agents 6                   the test protocol (Scenario 1 and 2) and its report
+    cosim check-scenarios env_4             degenerate-policy suite: does a scenario measure driving?
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pathlib import Path
 
 EVENT_KEYS = (
     "collision_vehicle", "collision_pedestrian", "collision_object",
-    "off_road", "wrong_lane", "goal_reached",
+    "off_road", "wrong_lane", "red_light", "goal_reached",
 )
 
 
@@ -85,8 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_args(v, steps=200)
     v.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
     v.add_argument("--out", type=Path, default=Path("view"), help="output folder")
-    v.add_argument("--image-size", type=int, default=84)
-    v.add_argument("--moments", type=int, default=3, help="mosaics taken along the run")
+    v.add_argument("--image-size", type=_int_in(8, 512), default=84, help="camera pixels (8-512)")
+    v.add_argument("--moments", type=_int_in(1), default=3, help="mosaics taken along the run")
     v.add_argument("--extent", type=float, default=100.0,
                    help="metres across the top-down view beside the mosaic")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -127,25 +128,72 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ACs in Scenario 1, one per algorithm in the order ppo a3c impala dqn ddpg td3")
     e.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
     e.add_argument("--scenario", choices=["1", "2", "both"], default="both")
-    e.add_argument("--episodes", type=int, default=3, help="episodes per environment and scenario")
-    e.add_argument("--steps", type=int, default=500, help="steps per episode")
+    e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
+    e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
                    help="trained checkpoints from --runs, or a reference driver")
     e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")
+    e.add_argument("--checkpoint", action="append", default=[], metavar="ALGO=PATH",
+                   help="the checkpoint of one algorithm's AC instead of the newest under --runs "
+                        "(repeatable), e.g. --checkpoint ppo=runs/x/checkpoints/ac_0/best.pt")
     e.add_argument("--out", type=Path, default=Path("reports"), help="report folder")
+    e.add_argument("--references", default="all",
+                   help="reference rows added to the report: 'all' (autopilot, random and the "
+                        "degenerate suite of `cosim check-scenarios`), 'none', or a comma list")
     e.add_argument("--quiet", action="store_true")
     e.set_defaults(func=cmd_test)
+
+    c = sub.add_parser("check-scenarios",
+                       help="run the degenerate-policy suite: does a scenario measure driving?")
+    c.add_argument("scenarios", nargs="*", default=["env_1", "env_2", "env_3", "env_4", "env_5"],
+                   help="env_1..env_5 or scenario .yaml files (default: the five)")
+    c.add_argument("--agents", type=int, nargs="+", default=[3, 6], help="AC counts to check")
+    c.add_argument("--episodes", type=int, default=5, help="held-out episodes per policy")
+    c.add_argument("--steps", type=int, default=None, help="steps per episode (default: horizon)")
+    c.add_argument("--out", type=Path, default=None, help="also write the per-episode rows (CSV)")
+    c.set_defaults(func=cmd_check_scenarios)
     return p
 
 
 def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
     p.add_argument("scenario", nargs="?", default="env_3", help="env_1..env_5 or a scenario .yaml")
-    p.add_argument("--agents", type=int, default=6, help="learning cars (1-6)")
-    p.add_argument("--steps", type=int, default=steps)
+    p.add_argument("--agents", type=_int_in(1, 6), default=None,
+                   help="learning cars (default: every spawn point of the scenario)")
+    p.add_argument("--steps", type=_int_in(1), default=steps)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-background", action="store_true", help="no background cars")
     p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
+
+
+def _int_in(low: int, high: int | None = None):
+    """An argparse type: an int in [low, high]; the error names the value and the range."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            span = f"{low}..{high}" if high is not None else f">= {low}"
+            raise argparse.ArgumentTypeError(f"must be {span}, got {value}")
+        return value
+
+    return parse
+
+
+def _output_folder(path: Path, flag: str) -> Path:
+    """Create `path` (a folder for results) now, so a bad --out fails before any work."""
+    from cosim.errors import OptionError
+
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".write-test-{os.getpid()}"
+        probe.write_text("ok")
+        probe.unlink()
+    except OSError as exc:
+        raise OptionError(f"{flag} {path}: cannot write there ({exc.strerror or exc}); "
+                          f"choose another {flag}") from None
+    return path
 
 
 # -- commands -----------------------------------------------------------------
@@ -205,14 +253,14 @@ def _outcome(goal: bool, terminated: bool, truncated: bool) -> str:
 
 def _print_summary(ac_ids, final, counts) -> None:
     """`final`: AC -> (steps, metres to goal, outcome); `counts`: (AC, event) -> steps."""
-    cols = ["vehicle", "pedestrian", "object", "off-road", "wrong lane"]
+    cols = ["vehicle", "pedestrian", "object", "off-road", "wrong lane", "red light"]
     print(f"\n{'AC':6s} {'steps':>5s} " + " ".join(f"{c:>10s}" for c in cols)
           + f" {'to goal m':>9s}  outcome")
     for ac in ac_ids:
         if ac not in final:
             continue
         steps, to_goal, outcome = final[ac]
-        row = [counts[(ac, k)] for k in EVENT_KEYS[:5]]
+        row = [counts[(ac, k)] for k in EVENT_KEYS[:6]]
         print(f"{ac:6s} {steps:5d} " + " ".join(f"{v:10d}" for v in row)
               + f" {to_goal:9.1f}  {outcome}")
     print("(event columns count the steps with that event)")
@@ -226,13 +274,13 @@ def cmd_view(args) -> int:
     from cosim.env import CosimParallelEnv
     from cosim.viz import mosaic, save_gif, save_png, side_by_side
 
+    _output_folder(args.out, "--out")
     env = CosimParallelEnv(
         args.scenario, num_agents=args.agents, action_types="continuous", seed=args.seed,
         image_size=args.image_size, background=not args.no_background,
         pedestrians=not args.no_pedestrians, terminate_on_collision=False,
         render_mode="rgb_array",
     )
-    args.out.mkdir(parents=True, exist_ok=True)
     counts: Counter = Counter()
     final = {}
     rng = np.random.default_rng(args.seed)
@@ -368,27 +416,110 @@ def cmd_test(args) -> int:
     if not 1 <= args.agents <= 6:
         print("cosim test: error: --agents must be 1..6 (one AC per algorithm)", file=sys.stderr)
         return 2
+    from eval.protocol import reference_rows
+    from eval.validity import POLICIES
+
+    refs_wanted = (list(POLICIES) if args.references == "all" else []
+                   if args.references == "none" else args.references.split(","))
+    unknown = sorted(set(refs_wanted) - set(POLICIES))
+    if unknown:
+        print(f"cosim test: error: --references {','.join(unknown)}: unknown; valid: all, none, "
+              f"or a comma list of {', '.join(POLICIES)}", file=sys.stderr)
+        return 2
     scenarios = (1, 2) if args.scenario == "both" else (int(args.scenario),)
     plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes,
                     steps=args.steps, seed=args.seed, agents=args.agents)
     algos = list(ALGO_ORDER[: args.agents])
     try:
-        ckpts = find_checkpoints(args.runs, algos) if args.policy == "trained" else None
+        given = _checkpoint_slots(args.checkpoint, algos)
+        if given and args.policy != "trained":
+            raise ProtocolError(f"--checkpoint is for --policy trained, not --policy {args.policy}")
+        ckpts = None
+        if args.policy == "trained":
+            ckpts = {**find_checkpoints(args.runs, [a for a in algos if a not in given]), **given}
+            ckpts = {a: ckpts[a] for a in algos}
         factory = policy_factory(args.policy, ckpts)
     except ProtocolError as exc:
         print(f"cosim test: error: {exc}", file=sys.stderr)
         return 2
+    from cosim.scenario import load_scenario
+
+    for env_name in plan.envs:  # a bad name fails now, not after the first environments ran
+        load_scenario(env_name)
+    out = _output_folder(args.out / dt.datetime.now().strftime("%Y%m%d-%H%M%S"), "--out")
     for algo, path in (ckpts or {}).items():
         print(f"{algo:7s} {path}")
     units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
     bar = tqdm(total=units, disable=args.quiet, unit="run", desc="test")
     records = run_protocol(plan, factory, algos, progress=lambda name: bar.update(1))
     bar.close()
-    out = args.out / dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    written = write_report(records, out)
+    refs = None
+    if refs_wanted:
+        refs = reference_rows(plan, refs_wanted)
+    written = write_report(records, out, references=refs)
     print((out / "report.md").read_text())
     print("wrote:\n" + "\n".join(f"  {p}" for p in written))
     return 0
+
+
+def cmd_check_scenarios(args) -> int:
+    from tqdm import tqdm
+
+    from cosim.errors import CosimError
+    from cosim.scenario import load_scenario
+    from eval import validity
+
+    if args.episodes < 1 or (args.steps is not None and args.steps < 1):
+        raise CosimError("--episodes and --steps must be >= 1")
+    scenarios = [load_scenario(s) for s in args.scenarios]  # fail on a bad name before running
+    for sc in scenarios:
+        if any(not 1 <= n <= sc.max_agents for n in args.agents):
+            raise CosimError(f"--agents {args.agents}: scenario {sc.name!r} has 1..{sc.max_agents} "
+                             "spawn points; pass counts in that range")
+    failed, frames = [], []
+    for sc in scenarios:
+        for n in args.agents:
+            bar = tqdm(total=len(validity.POLICIES), desc=f"{sc.name} x{n}", leave=False,
+                       disable=None)
+            rows = validity.check_scenario(
+                sc, n, args.episodes, args.steps,
+                progress=lambda p, bar=bar: (bar.set_postfix_str(p), bar.update(0)),
+            )
+            bar.close()
+            table = validity.summarize(rows)
+            problems = validity.failures(table)
+            title = f"{sc.name} ({sc.title or sc.description}), {n} ACs, {args.episodes} episodes"
+            print(f"\n### {title}\n\n{validity.format_table(table)}\n")
+            print("valid" if not problems else "NOT VALID:\n  " + "\n  ".join(problems))
+            failed += [f"{sc.name} x{n}: {p}" for p in problems]
+            frames.append(rows.assign(scenario=sc.name, agents=n))
+    if args.out:
+        import pandas as pd
+
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        pd.concat(frames).to_csv(args.out, index=False)
+        print(f"wrote {args.out}")
+    if failed:
+        print(f"\n{len(failed)} validity criteria failed", file=sys.stderr)
+        return 1
+    print("\nevery scenario passed the validity criteria")
+    return 0
+
+
+def _checkpoint_slots(items: list[str], algos: list[str]) -> dict[str, Path]:
+    """``["ppo=path.pt", ...]`` (``--checkpoint``) -> ``{"ppo": Path("path.pt")}``."""
+    from eval.protocol import ProtocolError
+
+    out = {}
+    for item in items:
+        algo, sep, path = item.partition("=")
+        if not sep or not path:
+            raise ProtocolError(f"--checkpoint {item!r}: write ALGO=PATH, e.g. ppo=runs/x/best.pt")
+        if algo not in algos:
+            raise ProtocolError(f"--checkpoint {item!r}: {algo!r} is not one of the ACs tested "
+                                f"({', '.join(algos)}; --agents sets how many)")
+        out[algo] = Path(path)
+    return out
 
 
 def cmd_nets(args) -> int:

@@ -87,7 +87,17 @@ def action_to_control(action, discrete: bool, agent: str) -> tuple[float, float]
             raise ActionError(f"agent {agent!r}: discrete action {action} is outside Discrete(9) (0..8)")
         tb, steer = DISCRETE_ACTIONS[int(action)]
         return float(tb), float(steer)
-    arr = np.asarray(action, dtype=np.float64) if not isinstance(action, int | bool) else None
+    try:
+        arr = None if isinstance(action, int | bool) else np.asarray(action)
+    except ValueError:  # ragged nested lists
+        arr = np.asarray(None)
+    if arr is not None and arr.dtype.kind not in "biuf":  # strings, dicts, None, objects
+        raise ActionError(
+            f"agent {agent!r}: expected two numbers (throttle/brake, steer) for its Box(-1, 1, (2,)) "
+            f"action space, got {action!r}"
+        )
+    if arr is not None:
+        arr = arr.astype(np.float64)
     if arr is None or arr.shape != (2,):
         shape = getattr(arr, "shape", type(action).__name__)
         raise ActionError(

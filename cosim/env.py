@@ -54,7 +54,8 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from cosim.dynamics import action_to_control
-from cosim.errors import ActionError, EnvStateError, ScenarioError
+from cosim.events import EVENT_FLAGS
+from cosim.errors import ActionError, EnvStateError, OptionError, ScenarioError
 from cosim.scenario import Scenario, load_scenario
 from cosim.world import World
 
@@ -62,10 +63,9 @@ log = logging.getLogger(__name__)
 
 ACTION_TYPES = ("discrete", "continuous")
 EPISODE_INFO = "cosim_episode"  # the info key of an agent's per-episode summary
-EPISODE_EVENTS = (
-    "collision_vehicle", "collision_pedestrian", "collision_object", "off_road", "wrong_lane",
-    "lane_violation",
-)
+# the events counted in an agent's per-episode summary (steps with that event)
+EPISODE_EVENTS = (*(e for e in EVENT_FLAGS if e not in ("goal_reached", "out_of_region")),
+                  "lane_violation")
 
 
 class CosimParallelEnv(ParallelEnv):
@@ -143,6 +143,11 @@ class CosimParallelEnv(ParallelEnv):
         if self._closed:
             raise EnvStateError("the environment is closed; create a new one")
         options = options or {}
+        valid = ("background", "pedestrians")
+        unknown = sorted(map(str, set(options) - set(valid))) if isinstance(options, Mapping) else None
+        if unknown is None or unknown:
+            raise OptionError(f"reset(options=...): unknown option(s) {unknown or options!r}; "
+                              f"valid keys: {list(valid)}")
         # these two take effect at this reset and stay until changed again
         bridge = self._world.bridge
         if "background" in options:

@@ -11,6 +11,7 @@ __all__ = [
     "CosimError",
     "EnvStateError",
     "NetError",
+    "OptionError",
     "ScenarioError",
     "SimulatorUnavailable",
     "SumoError",
@@ -31,6 +32,10 @@ class SumoError(CosimError):
 
 class ActionError(CosimError, ValueError):
     """An action has the wrong type, shape or a non-finite value."""
+
+
+class OptionError(CosimError, ValueError):
+    """An option or argument has an unknown name (the message lists the valid ones) or a bad value."""
 
 
 class EnvStateError(CosimError, RuntimeError):

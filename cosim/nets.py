@@ -44,6 +44,9 @@ def netconvert_binary() -> Path:
 
 
 def _read_config(cfg: Path) -> tuple[list[Path], Path]:
+    if not Path(cfg).is_file():
+        raise NetError(f"netconvert configuration {cfg} does not exist; pass an existing .netccfg "
+                       "to --config (or none for the bundled networks)")
     try:
         root = ET.parse(cfg).getroot()
     except ET.ParseError as exc:

@@ -17,12 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim.dynamics import VehicleParams
 from cosim.errors import NetError, ScenarioError
 from cosim.geometry import Polyline, Raster, SegmentField
 from cosim.scenario import ACSpec, Scenario
 
 log = logging.getLogger(__name__)
 
+SPAWN_GAP = 1.0  # metres kept free between two ACs' spawn footprints
 RASTER_RESOLUTION = 0.25  # metres per cell: a fraction of the 0.6-0.7 m lane margin
 VEHICLE_CLASS = "passenger"
 
@@ -114,6 +116,7 @@ class RoadMap:
         )
         self._object_radii = np.array([o.radius for o in self.objects])
         self.routes = tuple(self._build_route(i, ac) for i, ac in enumerate(scenario.acs))
+        self._check_spawns_and_goals()
 
     # -- queries ---------------------------------------------------------------
     def objects_near_many(self, xy: np.ndarray, reach: float) -> list[tuple[int, int]]:
@@ -125,6 +128,38 @@ class RoadMap:
         return list(zip(*np.nonzero(d <= self._object_radii[None, :] + reach), strict=True))
 
     # -- construction ----------------------------------------------------------
+    def _check_spawns_and_goals(self) -> None:
+        """Refuse spawns or goals outside the region and spawn poses that overlap.
+
+        Two ACs overlap when, in the first one's frame, they are closer than a car
+        length + SPAWN_GAP along it and a car width + SPAWN_GAP / 2 across it (cars
+        side by side in adjacent lanes are fine); they would collide at step 1.
+        """
+        where = self.scenario.source or self.scenario.name
+        region = self.scenario.region
+        for i, route in enumerate(self.routes):
+            for what, key, (x, y) in (("spawn", "depart_pos", route.spawn_xy),
+                                      ("goal", "arrival_pos", route.goal_xy)):
+                if not region.contains(x, y):
+                    raise ScenarioError(
+                        f"{where}: acs[{i}].{key}: the {what} point ({x:.1f}, {y:.1f}) is outside the "
+                        f"region (center {list(region.center)}, size {list(region.size)}); move "
+                        f"{key} or enlarge region.size"
+                    )
+        car = VehicleParams()
+        for i, a in enumerate(self.routes):
+            h = a.spawn_heading
+            for j in range(i + 1, len(self.routes)):
+                dx, dy = self.routes[j].spawn_xy - a.spawn_xy
+                along = abs(dx * math.cos(h) + dy * math.sin(h))
+                across = abs(-dx * math.sin(h) + dy * math.cos(h))
+                if along < car.length + SPAWN_GAP and across < car.width + SPAWN_GAP / 2:
+                    raise ScenarioError(
+                        f"{where}: acs[{i}] and acs[{j}] spawn {math.hypot(dx, dy):.1f} m apart, closer "
+                        f"than a car ({car.length} m + {SPAWN_GAP} m gap): they would collide at "
+                        f"the first step; change acs[{j}].depart_pos or lane"
+                    )
+
     def _build_route(self, index: int, ac: ACSpec) -> Route:
         where = f"{self.scenario.source or self.scenario.name}: acs[{index}]"
         edges = []

@@ -290,7 +290,7 @@ class SumoBridge:
         reason = " ".join(str(exc).split())
         if not reason and seed is not None:
             reason = self._startup_error(seed)
-        raise SumoError(f"{what}: {reason or 'SUMO gave no reason; run it with -v'}") from exc
+        raise SumoError(f"{what}: {reason or 'SUMO gave no reason (its own messages are above)'}") from exc
 
     def _startup_error(self, seed: int) -> str:
         """Why SUMO refused to start, from its error log (libsumo's exception is then empty).
@@ -315,7 +315,8 @@ class SumoBridge:
             except Exception:  # nothing was started
                 pass
             lines = [ln.strip() for ln in Path(name).read_text(errors="replace").splitlines()]
-            return next((ln for ln in reversed(lines) if ln), "")
+            last = next((ln for ln in reversed(lines) if ln), "")
+            return last.removeprefix("Error: ")
         finally:
             os.unlink(name)
 

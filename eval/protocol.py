@@ -75,12 +75,45 @@ def find_checkpoints(runs: Path, algos: Sequence[str]) -> dict[str, Path]:
 PolicyFactory = Callable[[object, str, str], object]  # (env, agent id, algorithm) -> policy
 
 
+def load_for_slot(path: Path, algo: str, image_size: int = 84):
+    """Load the checkpoint given for `algo`'s AC, refusing one that cannot drive it.
+
+    Raises:
+        agents.CheckpointError: the file is missing or corrupt.
+        ProtocolError: it holds another algorithm, an action space of the other kind
+            (a continuous actor in a discrete slot) or another camera size; the
+            message names the file.
+    """
+    import gymnasium
+
+    import agents
+
+    agent = agents.load(path)
+    if agent.algo != algo:
+        raise ProtocolError(
+            f"checkpoint {path} holds a {agent.algo} agent, but it was given for the {algo} AC; "
+            f"give it as {agent.algo}, or a {algo} checkpoint for {algo}"
+        )
+    discrete = isinstance(agent.action_space, gymnasium.spaces.Discrete)
+    if discrete != (algo not in CONTINUOUS):
+        want = "continuous Box(-1, 1, (2,))" if algo in CONTINUOUS else "discrete Discrete(9)"
+        raise ProtocolError(
+            f"checkpoint {path} acts in {agent.action_space}, but the {algo} AC needs a {want} "
+            "action space; give a checkpoint trained with that action type"
+        )
+    expected = (image_size, image_size, 3)
+    if tuple(agent.observation_space.shape) != expected:
+        raise ProtocolError(
+            f"checkpoint {path} sees observations of shape {agent.observation_space.shape}, the "
+            f"test environments give {expected} camera images; give a checkpoint trained on them"
+        )
+    return agent
+
+
 def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None) -> PolicyFactory:
     """How each AC gets its policy: trained checkpoints, the autopilot, or random."""
     if kind == "trained":
-        import agents
-
-        loaded = {algo: agents.load(path) for algo, path in (checkpoints or {}).items()}
+        loaded = {algo: load_for_slot(path, algo) for algo, path in (checkpoints or {}).items()}
         return lambda env, agent, algo: loaded[algo]
     if kind == "autopilot":
         return lambda env, agent, algo: AutopilotPolicy(env, agent)
@@ -182,7 +215,35 @@ def to_csv(header, rows, path: Path) -> None:
 
 
 # -- report ---------------------------------------------------------------------
-def write_report(records: pd.DataFrame, out: Path, dt: float = 0.1) -> list[Path]:
+def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
+                   progress: Callable[[str], None] | None = None) -> pd.DataFrame:
+    """The reference policies of eval.validity (autopilot, random, degenerate) under the
+    plan's Scenario 1 conditions: same environments, AC count, steps and episodes."""
+    from eval import validity
+
+    frames = []
+    for env_name in plan.envs:
+        rows = validity.check_scenario(env_name, plan.agents, plan.episodes, plan.steps,
+                                       policies=tuple(policies))
+        frames.append(validity.summarize(rows).reset_index().assign(env=env_name))
+        if progress:
+            progress(f"{env_name} references")
+    return pd.concat(frames, ignore_index=True)
+
+
+def references_markdown(refs: pd.DataFrame) -> str:
+    from eval import validity
+
+    parts = ["## Reference rows (Scenario 1 conditions, scripted policies)\n",
+             "Fixed policies on the same environments, AC count, steps and episodes "
+             "(docs/scenarios.md): a trained AC should beat every degenerate row.\n"]
+    for env, g in refs.groupby("env", sort=False):
+        parts.append(f"\n### {env}\n\n" + validity.format_table(g.set_index("policy")) + "\n")
+    return "\n".join(parts)
+
+
+def write_report(records: pd.DataFrame, out: Path, dt: float = 0.1,
+                 references: pd.DataFrame | None = None) -> list[Path]:
     """Records (Parquet), metric tables (Markdown, CSV, LaTeX) and figures in one folder."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -203,6 +264,10 @@ def write_report(records: pd.DataFrame, out: Path, dt: float = 0.1) -> list[Path
         written += [out / f"{name}.csv", out / f"{name}.tex"]
         eff_header, eff_rows = rq1_table(table, scenario, metrics=("SPEED", "DISTANCE"))
         md.append("\nEfficiency (SPEED km/h, DISTANCE m):\n\n" + to_markdown(eff_header, eff_rows))
+    if references is not None and not references.empty:
+        references.to_csv(out / "references.csv", index=False)
+        written.append(out / "references.csv")
+        md.append(references_markdown(references))
     (out / "report.md").write_text("\n".join(md))
     written.append(out / "report.md")
     written += _plots(records, table, out)

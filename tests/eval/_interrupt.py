@@ -23,9 +23,8 @@ import agents.checkpoint
 import eval.train
 from cosim.cli import main
 
-moment, nth, sig = sys.argv[1], int(sys.argv[2]), getattr(signal, f"SIG{sys.argv[3]}")
-argv = sys.argv[sys.argv.index("--") + 1:]
 calls = {"checkpoint": 0}
+moment, nth, sig = "", 0, signal.SIGKILL
 
 
 def fire() -> None:
@@ -66,7 +65,9 @@ def save(obj, f, *args, **kwargs):
     return real_save(obj, f, *args, **kwargs)
 
 
-eval.train.RunLog.checkpoint = checkpoint
-eval.train._atomic_write = atomic_write
-agents.checkpoint.torch.save = save
-sys.exit(main(argv))
+if __name__ == "__main__":  # worker processes (spawn) import this module again
+    moment, nth, sig = sys.argv[1], int(sys.argv[2]), getattr(signal, f"SIG{sys.argv[3]}")
+    eval.train.RunLog.checkpoint = checkpoint
+    eval.train._atomic_write = atomic_write
+    agents.checkpoint.torch.save = save
+    sys.exit(main(sys.argv[sys.argv.index("--") + 1:]))

@@ -1,0 +1,216 @@
+"""Every input a user can get wrong ends in one line that names it and the fix.
+
+The CLI cases run `cosim.cli.main` in this process with the file descriptors
+captured (SUMO's own C++ messages included): the exit is non-zero, the last line
+of stderr names the offending input, and no traceback is printed. API cases (an
+environment's actions and reset options) raise a CosimError naming the input.
+Scenario-validation cases (issue 10 item 3) are here too: each names the file and
+the key.
+"""
+
+import time
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+import yaml
+
+from agents.a3c import A3C
+from agents.td3 import TD3
+from cosim.cli import main
+from cosim.errors import ActionError, CosimError, OptionError, ScenarioError
+from cosim.scenario import load_scenario, scenarios_dir
+
+OBS = gymnasium.spaces.Box(0, 255, (84, 84, 3), np.uint8)
+
+
+def scenario_yaml(tmp_path: Path, name: str = "bad", base: str = "env_1", **changes) -> Path:
+    """A copy of a bundled scenario with `changes`, its file paths made absolute."""
+    src = scenarios_dir() / f"{base}.yaml"
+    data = yaml.safe_load(src.read_text())
+    for key in ("net", "demand", "pedestrian_demand", "additional"):
+        if key in data:
+            value = data[key]
+            data[key] = ([str((src.parent / v).resolve()) for v in value] if isinstance(value, list)
+                         else str((src.parent / value).resolve()))
+    data.pop("name", None)
+    data.update(changes)
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def run_cli(argv: list[str], capfd) -> tuple[int, str]:
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's own errors
+        code = exc.code
+    return code, capfd.readouterr().err
+
+
+def _lots_yaml(tmp_path: Path) -> Path:
+    demand = (scenarios_dir() / "../demand/env_3.rou.xml").resolve()
+    text = demand.read_text()
+    bad = tmp_path / "lots.rou.xml"
+    bad.write_text(text.replace('probability="', 'probability="lots" x="', 1))
+    return scenario_yaml(tmp_path, "lots", base="env_3", demand=[str(bad)])
+
+
+def _checkpoint(tmp_path: Path, algo: str) -> Path:
+    cls, space = {"a3c": (A3C, gymnasium.spaces.Discrete(9)),
+                  "td3": (TD3, gymnasium.spaces.Box(-1, 1, (2,), np.float32))}[algo]
+    path = tmp_path / f"{algo}.pt"
+    cls.from_spaces(OBS, space, seed=0).save(path)
+    return path
+
+
+def _run_folder(tmp_path: Path, config_text: str) -> Path:
+    run = tmp_path / "env_1__ppo__0__20260101-000000"
+    run.mkdir()
+    (run / "config.yaml").write_text(config_text)
+    return run
+
+
+def _acs(route, depart_pos=15) -> list[dict]:
+    return [{"route": route, "depart_pos": depart_pos, "arrival_pos": -15, "lane": 0}]
+
+
+# (id, argv builder (tmp_path -> argv), substrings the last stderr line must hold)
+CASES = [
+    ("view-steps-0", lambda t: ["view", "env_1", "--steps", "0"], ["--steps", "must be >= 1, got 0"]),
+    ("view-image-size-0", lambda t: ["view", "--image-size", "0"], ["--image-size", "8..512, got 0"]),
+    ("test-episodes-0", lambda t: ["test", "--policy", "random", "--episodes", "0"],
+     ["--episodes", "got 0"]),
+    ("test-steps-negative", lambda t: ["test", "--steps", "-5"], ["--steps", "got -5"]),
+    ("test-out-under-a-file", lambda t: ["test", "--policy", "random", "--envs", "env_1",
+                                         "--episodes", "1", "--steps", "5", "--quiet",
+                                         "--out", str(_file(t) / "reports")],
+     ["--out", "a_file", "cannot write"]),
+    ("nets-check-missing-config", lambda t: ["nets", "check", "--config", "missing.netccfg"],
+     ["missing.netccfg", "does not exist"]),
+    ("resume-corrupt-config", lambda t: ["train", "--resume", str(_run_folder(t, "algo: [ppo\n"))],
+     ["config.yaml", "malformed YAML"]),
+    ("resume-unknown-config-key", lambda t: ["train", "--resume",
+                                             str(_run_folder(t, "algo: ppo\nlearnin_rate: 3\n"))],
+     ["config.yaml", "unknown key(s) ['learnin_rate']", "valid keys"]),
+    ("checkpoint-starting-with-h", lambda t: ["test", "--agents", "1", "--envs", "env_1",
+                                              "--checkpoint", f"ppo={_h_file(t)}"],
+     ["h.pt", "truncated or corrupt"]),
+    ("region-center-not-a-number", lambda t: ["drive", str(scenario_yaml(
+        t, region={"center": ["zero", 0], "size": [290.0, 90.0]}))],
+     ["bad.yaml", "'region'", "'center'", "'zero' is not a number"]),
+    ("drive-steps-negative", lambda t: ["drive", "--steps", "-5"], ["--steps", "got -5"]),
+    ("drive-agents-7", lambda t: ["drive", "--agents", "7"], ["--agents", "1..6, got 7"]),
+    ("demand-probability-lots", lambda t: ["drive", str(_lots_yaml(t)), "--steps", "1", "--quiet"],
+     ["scenario 'lots'", "probability", "lots"]),
+    ("gui-without-display", lambda t: ["drive", "env_1", "--gui", "--steps", "1"],
+     ["--gui", "DISPLAY", "WAYLAND_DISPLAY"]),
+    # scenario validation at load (item 3): the file and the key named
+    ("route-a-string", lambda t: ["drive", str(scenario_yaml(t, acs=_acs("st_e")))],
+     ["bad.yaml", "acs[0]", "'route' must be a list", "[st_e]"]),
+    ("overlapping-spawns", lambda t: ["drive", str(scenario_yaml(t, acs=_acs(["st_e"]) * 2))],
+     ["bad.yaml", "acs[0] and acs[1]", "0.0 m apart", "depart_pos"]),
+    ("spawn-outside-region", lambda t: ["drive", str(scenario_yaml(
+        t, acs=_acs(["st_e"]), region={"center": [-125.0, 150.0], "size": [100.0, 90.0]}))],
+     ["bad.yaml", "acs[0].depart_pos", "outside the region"]),
+    ("goal-outside-region", lambda t: ["drive", str(scenario_yaml(
+        t, acs=_acs(["st_e"]), region={"center": [-200.0, 150.0], "size": [150.0, 90.0]}))],
+     ["bad.yaml", "acs[0].arrival_pos", "outside the region"]),
+    ("a3c-checkpoint-in-ppo-slot", lambda t: ["test", "--agents", "1", "--envs", "env_1",
+                                              "--checkpoint", f"ppo={_checkpoint(t, 'a3c')}"],
+     ["a3c.pt", "holds a a3c agent", "ppo AC"]),
+    ("td3-checkpoint-in-discrete-slot", lambda t: ["test", "--agents", "1", "--envs", "env_1",
+                                                   "--checkpoint", f"ppo={_checkpoint(t, 'td3')}"],
+     ["td3.pt", "holds a td3 agent", "ppo AC"]),
+]
+
+
+def _file(tmp_path: Path) -> Path:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    return blocker
+
+
+def _h_file(tmp_path: Path) -> Path:
+    path = tmp_path / "h.pt"
+    path.write_text("hello, not a checkpoint")
+    return path
+
+
+@pytest.mark.parametrize("make_argv, expected", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_cli_input_is_one_line_naming_it(make_argv, expected, tmp_path, capfd, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.chdir(tmp_path)
+    argv = make_argv(tmp_path)
+    started = time.monotonic()
+    code, err = run_cli(argv, capfd)
+    assert code not in (0, None), f"exit {code}"
+    assert "Traceback" not in err and "unexpected error" not in err, err
+    last = err.strip().splitlines()[-1]
+    for text in expected:
+        assert text in last, f"{text!r} not in the last line: {last!r}"
+    assert time.monotonic() - started < 60, "refused before doing the work"
+
+
+def test_out_under_a_file_fails_before_the_protocol_runs(tmp_path, capfd, monkeypatch):
+    import eval.protocol
+
+    ran = []
+    monkeypatch.setattr(eval.protocol, "run_protocol", lambda *a, **k: ran.append(1))
+    code, err = run_cli(["test", "--policy", "random", "--envs", "env_1", "--quiet",
+                         "--out", str(_file(tmp_path) / "reports")], capfd)
+    assert code != 0 and not ran and "--out" in err
+
+
+def test_drive_and_view_default_to_the_scenarios_ac_count(tmp_path, capfd):
+    two = scenario_yaml(tmp_path, "two", acs=[
+        {"route": ["st_e"], "depart_pos": 15, "arrival_pos": -15, "lane": 0},
+        {"route": ["st_w"], "depart_pos": 15, "arrival_pos": -15, "lane": 0},
+    ])
+    assert load_scenario(two).max_agents == 2
+    code, _ = run_cli(["drive", str(two), "--steps", "3", "--quiet"], capfd)
+    assert code == 0
+    code, err = run_cli(["view", str(two), "--steps", "2", "--moments", "1", "--quiet",
+                         "--out", str(tmp_path / "view")], capfd)
+    assert code == 0, err
+    assert len(list((tmp_path / "view").glob("mosaic_*.png"))) == 1
+
+
+@pytest.fixture(scope="module")
+def mixed_env():
+    from cosim.env import CosimParallelEnv
+
+    env = CosimParallelEnv("env_1", num_agents=2, action_types=["discrete", "continuous"],
+                           background=False)
+    env.reset(seed=0)
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize("action", [["fast", "left"], {"throttle": 1.0, "steer": 0.0}, "ab", None],
+                         ids=["strings", "dict", "string", "none"])
+def test_box_action_of_the_wrong_kind_names_the_agent_and_its_space(mixed_env, action):
+    with pytest.raises(ActionError) as info:
+        mixed_env.step({"ac_0": 0, "ac_1": action})
+    text = str(info.value)
+    assert "'ac_1'" in text and "Box(-1" in text and "\n" not in text
+
+
+def test_reset_option_typo_is_refused_naming_the_valid_keys(mixed_env):
+    with pytest.raises(OptionError, match=r"unknown option\(s\) \['backgrund'\].*'background', 'pedestrians'"):
+        mixed_env.reset(seed=1, options={"backgrund": False})
+    obs, _ = mixed_env.reset(seed=1, options={"background": False})  # the valid key still works
+    assert set(obs) == {"ac_0", "ac_1"}
+
+
+def test_every_deliberate_error_shares_one_root():
+    from agents.checkpoint import CheckpointError
+    from agents.workers import WorkerError
+    from eval.protocol import ProtocolError
+    from eval.train import TrainError
+
+    for cls in (ScenarioError, ActionError, OptionError, CheckpointError, WorkerError,
+                TrainError, ProtocolError):
+        assert issubclass(cls, CosimError), cls
