@@ -18,6 +18,11 @@ where it is alive in ONE batched forward pass (``act_batch``), records that
 slot's transitions with their environment index (``observe_batch``), and
 ``update()`` runs once per vector step, doing the learning those transitions
 made due. Environments reset themselves when all their agents have finished.
+Learning overlaps stepping: the transitions of step t are observed and learnt
+from while the environments (worker processes) take step t + 1, so actions at
+t + 1 come from the weights before that learning (a lag of one step, as in
+Sample Factory; PPO stores the acting policy's log-probabilities, so its ratio
+stays exact). The order of calls is fixed, so runs are reproducible.
 
 Every agent has its own networks (any mix of algorithms and of Discrete/Box
 action spaces). The loop times ``env.step`` separately from the agents'
@@ -78,6 +83,7 @@ class LoopStats:
         total = max(self.wall_time_s, 1e-9)
         return {
             "time/env_steps_per_s": self.env_steps / total,
+            "time/agent_steps_per_s": self.agent_steps / total,
             "time/env_fraction": self.env_time_s / total,
             "time/act_fraction": self.act_time_s / total,
             "time/learn_fraction": self.learn_time_s / total,
@@ -232,9 +238,22 @@ def run_vector_loop(
     returns = {a: np.zeros(n) for a in ids}
     lengths = {a: np.zeros(n, np.int64) for a in ids}
 
+    def learn_from(acted, result) -> dict[str, dict[str, float]]:
+        step_metrics: dict[str, dict[str, float]] = {}
+        for a, (envs, obs, actions) in acted.items():
+            next_obs, rewards, terminated, truncated = result[a]
+            agents[a].observe_batch(obs, actions, rewards, next_obs, terminated, truncated, envs)
+            metrics = agents[a].update()
+            if metrics:
+                step_metrics[a] = metrics
+                stats.last_metrics[a] = metrics
+                stats.updates += 1
+        return step_metrics
+
     start = clock()
     state = venv.reset(seed=seed)
     stats.env_time_s += clock() - start
+    pending = None  # the last step's transitions, learnt from while the envs take the next step
     while stats.env_steps < total_steps:
         start = clock()
         acted: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # id -> (envs, obs copy, actions)
@@ -252,27 +271,30 @@ def run_vector_loop(
         stats.act_time_s += clock() - start
 
         start = clock()
-        state = venv.step(full_actions)
+        venv.step_async(full_actions)
+        stats.env_time_s += clock() - start
+        start = clock()
+        step_metrics = learn_from(*pending) if pending is not None else {}
+        pending = None
+        stats.learn_time_s += clock() - start
+        start = clock()
+        state = venv.step_wait()
         stats.env_time_s += clock() - start
         stats.env_steps += n
 
         start = clock()
-        step_metrics: dict[str, dict[str, float]] = {}
-        for a, (envs, obs, actions) in acted.items():
+        result = {}
+        for a, (envs, _, _) in acted.items():
             if not state.active[a][envs].all():
                 raise RuntimeError(f"agent {a} was alive in envs {envs.tolist()} but not all of them stepped it")
             rewards = state.rewards[a][envs]
             returns[a][envs] += rewards
             lengths[a][envs] += 1
             stats.agent_steps += envs.size
-            if learn:
-                agents[a].observe_batch(obs, actions, rewards, state.next_obs[a][envs], state.terminated[a][envs],
-                                        state.truncated[a][envs], envs)
-                metrics = agents[a].update()
-                if metrics:
-                    step_metrics[a] = metrics
-                    stats.last_metrics[a] = metrics
-                    stats.updates += 1
+            # copies (fancy indexing): the shared arrays change during the next step
+            result[a] = (state.next_obs[a][envs], rewards, state.terminated[a][envs], state.truncated[a][envs])
+        if learn:
+            pending = (acted, result)
         for i in np.flatnonzero(state.env_reset):
             for a in ids:
                 stats.episode_returns.setdefault(a, []).append(float(returns[a][i]))
@@ -284,4 +306,8 @@ def run_vector_loop(
         if callback is not None and callback(stats.env_steps, stats, step_metrics):
             logger.info("run_vector_loop stopped by callback at env step %d", stats.env_steps)
             break
+    if pending is not None:  # the last step's transitions
+        start = clock()
+        learn_from(*pending)
+        stats.learn_time_s += clock() - start
     return stats

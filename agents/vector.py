@@ -21,7 +21,9 @@ Both return, per agent id ``a`` (an AC slot ``ac_k``), arrays of shape
 Observations travel through ``multiprocessing.shared_memory`` (one block per
 agent and kind, each worker writes its own row); only actions, rewards, flags
 and infos are pickled. The arrays in a :class:`VecStep` are views of that
-memory, valid until the next ``step``/``reset``: copy what you keep.
+memory, valid until the next ``step``/``step_async``/``reset``: copy what you keep.
+``step_async(actions)`` + ``step_wait()`` (what ``step`` does) let the caller
+learn while the workers step (:func:`agents.loop.run_vector_loop` does).
 
 Seeding: ``reset(seed)`` gives env ``i`` its episodes ``k = 0, 1, ...`` the seeds
 ``seed + i + k * N``, so one environment resets with ``seed, seed + 1, ...``
@@ -230,9 +232,16 @@ class InProcessVectorEnv(_VectorBase):
     def reset(self, seed: int | None = None) -> VecStep:
         return self._assemble_reset([self._call(i, slot.reset, seed) for i, slot in enumerate(self.slots)])
 
-    def step(self, actions: Mapping[str, np.ndarray]) -> VecStep:
-        per_env = self._split_actions(actions)
+    def step_async(self, actions: Mapping[str, np.ndarray]) -> None:
+        self._pending = self._split_actions(actions)
+
+    def step_wait(self) -> VecStep:
+        per_env, self._pending = self._pending, None
         return self._assemble([self._call(i, slot.step, per_env[i]) for i, slot in enumerate(self.slots)])
+
+    def step(self, actions: Mapping[str, np.ndarray]) -> VecStep:
+        self.step_async(actions)
+        return self.step_wait()
 
     @staticmethod
     def _call(index: int, fn, arg):
@@ -385,20 +394,31 @@ class VectorEnv(_VectorBase):
         self.processes[index].join(timeout=1.0)
         return self.processes[index].exitcode
 
-    def _broadcast(self, messages: Sequence[tuple], doing: str) -> list:
+    def _send(self, messages: Sequence[tuple]) -> None:
         for i, (conn, message) in enumerate(zip(self.conns, messages, strict=True)):
             try:
                 conn.send(message)
             except (BrokenPipeError, OSError):
                 raise VectorEnvError(i, f"worker is gone (exit code {self._exitcode(i)})") from None
+
+    def _broadcast(self, messages: Sequence[tuple], doing: str) -> list:
+        self._send(messages)
         return self._gather(doing)
 
     def reset(self, seed: int | None = None) -> VecStep:
         return self._assemble_reset(self._broadcast([("reset", seed)] * self.num_envs, "resetting"))
 
+    def step_async(self, actions: Mapping[str, np.ndarray]) -> None:
+        """Send the actions; the workers step while the caller does something else (e.g. learn)."""
+        self._send([("step", a) for a in self._split_actions(actions)])
+
+    def step_wait(self) -> VecStep:
+        """The result of the last :meth:`step_async`."""
+        return self._assemble(self._gather("stepping"))
+
     def step(self, actions: Mapping[str, np.ndarray]) -> VecStep:
-        messages = [("step", a) for a in self._split_actions(actions)]
-        return self._assemble(self._broadcast(messages, "stepping"))
+        self.step_async(actions)
+        return self.step_wait()
 
     def close(self, join_timeout: float = 5.0) -> None:
         """Stop, join, terminate, then kill every worker; free the shared memory. Idempotent."""

@@ -1,51 +1,111 @@
-"""Training throughput per algorithm on env_1 with 3 ACs: env steps/s and env vs learner time.
+"""Training throughput on env_1 with 3 ACs: env steps/s and AC-frames/s, 1 vs N environments.
 
-Each algorithm trains for --steps environment steps with its quick-preset
-hyperparameters, learning_starts lowered so learning happens inside the window.
-For PPO, DQN, DDPG and TD3 (one process) the loop's own clocks split the time
-between the environment (SUMO + cameras), acting and learning. A3C and IMPALA
-step their environments in worker processes, so only their overall rate is given.
+For each --envs value, in the same run on the same cores:
 
-    python bench/train_throughput.py [--steps 1500]
+* the raw environment rate: the same vector runner (agents/vector.py) stepping
+  N env_1 copies with uniform random actions, no learning, no networks;
+* each algorithm training --steps environment steps with its quick-preset
+  hyperparameters (learning_starts lowered to 200 so learning happens inside the
+  window), through `eval.train.train` exactly as `cosim train --envs N` runs it.
+
+Rates: "steady" counts env steps (summed over the N environments) over the time
+inside the loop (reset, step, act, learn: the loop's own clocks; process and
+simulator start-up excluded); "wall" is steps over the whole train() call,
+start-up included. AC-frames are agent transitions (one camera frame each).
+A3C and IMPALA have no --envs (one environment per worker process, 2 workers
+in the quick preset): only their wall rate is given, the same in both blocks.
+
+    python bench/train_throughput.py [--steps 1500] [--envs 1 2] [--algos ppo dqn td3 a3c impala]
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import tempfile
 import time
 from pathlib import Path
 
-from eval.train import ALGORITHMS, make_config, train
+import numpy as np
+
+from eval.train import ASYNC_ALGOS, make_config, make_env, train
+
+AGENTS = 3
+
+
+def raw_env_rate(n: int, steps: int, seed: int = 3) -> dict[str, float]:
+    """Random actions through the vector runner: env steps/s and AC-frames/s, start-up excluded."""
+    from agents.vector import make_vector_env
+
+    cfg = make_config("ppo", "env_1", "quick", agents=AGENTS, steps=steps, seed=seed, envs=n)
+    venv = make_vector_env([functools.partial(make_env, cfg.to_dict(), seed + i) for i in range(n)])
+    rng = np.random.default_rng(seed)
+    try:
+        t0 = time.perf_counter()
+        state = venv.reset(seed=seed)
+        done = frames = 0
+        while done < steps:
+            acts = {a: rng.integers(venv.action_space(a).n, size=n) for a in venv.possible_agents}
+            state = venv.step(acts)
+            done += n
+            frames += int(sum(state.active[a].sum() for a in venv.possible_agents))
+        dt = time.perf_counter() - t0
+    finally:
+        venv.close()
+    return {"steps_s": done / dt, "frames_s": frames / dt}
+
+
+def train_rate(algo: str, n: int, steps: int, out: str) -> dict[str, float]:
+    cfg = make_config(algo, "env_1", "quick", agents=AGENTS, steps=steps, seed=3,
+                      envs=1 if algo in ASYNC_ALGOS else n, device="cpu")
+    if "learning_starts" in cfg.agent_config:
+        cfg.agent_config["learning_starts"] = 200
+    t0 = time.monotonic()
+    run = train(cfg, Path(out), quiet=True, progress=False)
+    wall = time.monotonic() - t0
+    state = json.loads((run / "state.json").read_text())
+    timing = state.get("timing", {})
+    done = int(state["env_steps"])
+    return {"wall_s": done / wall, "steps_s": timing.get("time/env_steps_per_s", float("nan")),
+            "frames_s": timing.get("time/agent_steps_per_s", float("nan"))}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1500)
-    parser.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
+    parser.add_argument("--envs", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--algos", nargs="+", default=["ppo", "dqn", "td3", "a3c", "impala"])
     args = parser.parse_args()
-    rows = []
+    raw: dict[int, dict] = {}
+    rows: dict[tuple[str, int], dict] = {}
     with tempfile.TemporaryDirectory() as out:
+        for n in args.envs:
+            raw[n] = raw_env_rate(n, args.steps)
+            print(f"raw env, {n} env(s): {raw[n]}", flush=True)
+            for algo in args.algos:
+                if algo in ASYNC_ALGOS and n != args.envs[0]:
+                    rows[(algo, n)] = rows[(algo, args.envs[0])]
+                    continue
+                rows[(algo, n)] = train_rate(algo, n, args.steps, out)
+                print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
+    print(f"\n{args.steps} env steps per row, env_1, {AGENTS} ACs, quick preset, CPU\n")
+    print("| what | envs | env steps/s (steady) | AC-frames/s (steady) | env steps/s (wall) "
+          "| training / raw env (steady) |")
+    print("|---|---|---|---|---|---|")
+    for n in args.envs:
+        r = raw[n]
+        print(f"| raw env (random actions) | {n} | {r['steps_s']:.1f} | {r['frames_s']:.1f} | | 1.00 |")
         for algo in args.algos:
-            cfg = make_config(algo, "env_1", "quick", steps=args.steps, seed=3)
-            if "learning_starts" in cfg.agent_config:
-                cfg.agent_config["learning_starts"] = 200
-            t0 = time.monotonic()
-            run = train(cfg, Path(out), quiet=True, progress=False)
-            wall = time.monotonic() - t0
-            state = json.loads((run / "state.json").read_text())
-            timing = state.get("timing", {})
-            rows.append((algo, args.steps / wall, timing))
-            print(algo, round(args.steps / wall, 1), timing, flush=True)
-    print("\n| algorithm | env steps/s (3 ACs, wall) | env share | act share | learn share |")
-    print("|---|---|---|---|---|")
-    for algo, rate, t in rows:
-        if t:
-            print(f"| {algo} | {rate:.1f} | {t['time/env_fraction']:.0%} | {t['time/act_fraction']:.0%} "
-                  f"| {t['time/learn_fraction']:.0%} |")
-        else:
-            print(f"| {algo} | {rate:.1f} | (in workers) | (in workers) | (learner in parent) |")
+            t = rows[(algo, n)]
+            if algo in ASYNC_ALGOS:
+                print(f"| {algo} (2 workers) | - | | | {t['wall_s']:.1f} | {t['wall_s'] / r['steps_s']:.2f} (wall) |")
+            else:
+                print(f"| {algo} | {n} | {t['steps_s']:.1f} | {t['frames_s']:.1f} | {t['wall_s']:.1f} "
+                      f"| {t['steps_s'] / r['steps_s']:.2f} |")
+    if len(args.envs) > 1 and "ppo" in args.algos:
+        lo, hi = args.envs[0], args.envs[-1]
+        print(f"\nPPO --envs {hi} / --envs {lo} (steady): {rows[('ppo', hi)]['steps_s'] / rows[('ppo', lo)]['steps_s']:.2f}x")
 
 
 if __name__ == "__main__":

@@ -616,8 +616,13 @@ class _EpisodeTap:
         return getattr(self.env, name)
 
     def step(self, actions):
-        out = self.env.step(actions)
-        # a vector env (agents/vector.py) gives one info dict per environment
+        return self._tap(self.env.step(actions))
+
+    def step_wait(self):  # a vector env's second half of step (agents/vector.py)
+        return self._tap(self.env.step_wait())
+
+    def _tap(self, out):
+        # a vector env gives one info dict per environment
         for infos in (out.infos if hasattr(out, "env_reset") else [out[4]]):
             for agent, info in infos.items():
                 if EPISODE_INFO in info:
