@@ -45,6 +45,7 @@ Version history
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import logging
 import time
 from collections.abc import Mapping, Sequence
@@ -54,8 +55,8 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from cosim.dynamics import action_to_control
-from cosim.events import EVENT_FLAGS
 from cosim.errors import ActionError, EnvStateError, OptionError, ScenarioError
+from cosim.events import EVENT_FLAGS
 from cosim.scenario import Scenario, load_scenario
 from cosim.world import World
 
@@ -143,11 +144,7 @@ class CosimParallelEnv(ParallelEnv):
         if self._closed:
             raise EnvStateError("the environment is closed; create a new one")
         options = options or {}
-        valid = ("background", "pedestrians")
-        unknown = sorted(map(str, set(options) - set(valid))) if isinstance(options, Mapping) else None
-        if unknown is None or unknown:
-            raise OptionError(f"reset(options=...): unknown option(s) {unknown or options!r}; "
-                              f"valid keys: {list(valid)}")
+        _check_reset_options(options)
         # these two take effect at this reset and stay until changed again
         bridge = self._world.bridge
         if "background" in options:
@@ -311,6 +308,29 @@ class CosimParallelEnv(ParallelEnv):
     def _check_agent(self, agent: str) -> None:
         if agent not in self._action_spaces:
             raise KeyError(f"unknown agent {agent!r}; the agents are {self.possible_agents}")
+
+
+RESET_OPTIONS = ("background", "pedestrians")
+
+
+def _check_reset_options(options) -> None:
+    """Refuse a misspelt reset option (``backgrund``) naming the valid keys.
+
+    A key close to no valid one is ignored with a warning rather than refused:
+    PettingZoo's own API test resets with ``options={"options": 1}``.
+    """
+    if not isinstance(options, Mapping):
+        raise OptionError(f"reset(options=...) must be a dict, got {options!r}; valid keys: "
+                          f"{list(RESET_OPTIONS)}")
+    for key in options:
+        if key in RESET_OPTIONS:
+            continue
+        close = difflib.get_close_matches(str(key).lower(), RESET_OPTIONS, n=1, cutoff=0.6)
+        if close:
+            raise OptionError(f"reset(options=...): unknown option {key!r}, did you mean {close[0]!r}? "
+                              f"valid keys: {list(RESET_OPTIONS)}")
+        log.warning("reset(options=...): ignoring unknown option %r; valid keys: %s", key,
+                    list(RESET_OPTIONS))
 
 
 def _resolve_action_types(action_types, agents: list[str]) -> dict[str, str]:

@@ -198,9 +198,15 @@ def test_box_action_of_the_wrong_kind_names_the_agent_and_its_space(mixed_env, a
     assert "'ac_1'" in text and "Box(-1" in text and "\n" not in text
 
 
-def test_reset_option_typo_is_refused_naming_the_valid_keys(mixed_env):
-    with pytest.raises(OptionError, match=r"unknown option\(s\) \['backgrund'\].*'background', 'pedestrians'"):
+def test_reset_option_typo_is_refused_naming_the_valid_keys(mixed_env, caplog):
+    with pytest.raises(OptionError, match=r"unknown option 'backgrund', did you mean 'background'\? "
+                                          r"valid keys: \['background', 'pedestrians'\]"):
         mixed_env.reset(seed=1, options={"backgrund": False})
+    with pytest.raises(OptionError, match="must be a dict"):
+        mixed_env.reset(seed=1, options=["background"])
+    # a key like no valid one (PettingZoo's API test sends {"options": 1}) is ignored, with a warning
+    mixed_env.reset(seed=1, options={"options": 1})
+    assert "ignoring unknown option 'options'" in caplog.text
     obs, _ = mixed_env.reset(seed=1, options={"background": False})  # the valid key still works
     assert set(obs) == {"ac_0", "ac_1"}
 
