@@ -220,3 +220,34 @@ def test_every_deliberate_error_shares_one_root():
     for cls in (ScenarioError, ActionError, OptionError, CheckpointError, WorkerError,
                 TrainError, ProtocolError):
         assert issubclass(cls, CosimError), cls
+
+
+def test_a_bug_prints_one_line_and_the_log_holding_its_traceback(capfd, monkeypatch):
+    import cosim.cli
+
+    def broken(args):
+        raise RuntimeError("something deep inside\nwith a second line")
+
+    monkeypatch.setattr(cosim.cli, "cmd_scenarios", broken)
+    code, err = run_cli(["scenarios"], capfd)
+    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
+    assert "unexpected error RuntimeError: something deep inside" in err
+    log = Path(err.split("traceback in ")[1].split(";")[0])
+    assert "Traceback" in log.read_text() and "broken" in log.read_text()
+    log.unlink()
+
+
+def test_a_multi_line_error_prints_its_first_line_and_keeps_the_rest_in_a_log(capfd, monkeypatch):
+    import cosim.cli
+    from agents.workers import WorkerError
+
+    def worker_died(args):
+        raise WorkerError(1, "exited with code 1", "Traceback (most recent call last):\n  boom")
+
+    monkeypatch.setattr(cosim.cli, "cmd_scenarios", worker_died)
+    code, err = run_cli(["scenarios"], capfd)
+    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith("cosim: error: worker 1 failed: exited with code 1 (details in ")
+    log = Path(err.split("details in ")[1].rstrip(")\n"))
+    assert "boom" in log.read_text()
+    log.unlink()
