@@ -156,9 +156,7 @@ def _hold_lock(run: Path) -> subprocess.Popen:
 
 
 def test_second_concurrent_resume_is_refused_naming_the_pid(tmp_path, capsys):
-    run = tmp_path / "env_1__ppo__0__20260101-000000"
-    run.mkdir()
-    (run / "config.yaml").write_text("algo: ppo\nenv: env_1\nagents: 2\nsteps: 40\npreset: smoke\n")
+    run = _run_folder_with_config(tmp_path)
     holder = _hold_lock(run)
     try:
         assert main(["train", "--resume", str(run), "--quiet"]) == 2
@@ -175,3 +173,34 @@ def test_second_concurrent_resume_is_refused_naming_the_pid(tmp_path, capsys):
     lock = RunLock(run)
     assert (run / "run.lock").read_text().strip() == str(os.getpid())
     lock.release()
+
+
+def test_recover_checkpoints_rolls_the_committed_step_forward_and_drops_the_rest(tmp_path):
+    from eval.train import recover_checkpoints
+
+    folder = tmp_path / "checkpoints" / "ac_0"
+    folder.mkdir(parents=True)
+    for name, text in [("latest.pt", "old"), ("latest.pending-80.pt", "new"), ("best.pending-80.pt", "b"),
+                       ("latest.pending-120.pt", "uncommitted"), ("latest.pending-120.pt.tmp", "half")]:
+        (folder / name).write_text(text)
+    recover_checkpoints(tmp_path, committed_step=80)
+    assert sorted(p.name for p in folder.iterdir()) == ["best.pt", "latest.pt"]
+    assert (folder / "latest.pt").read_text() == "new" and (folder / "best.pt").read_text() == "b"
+    recover_checkpoints(tmp_path, committed_step=None)  # no checkpoint committed: the run restarts
+    assert list(folder.iterdir()) == []
+
+
+def test_unreadable_state_json_is_named(tmp_path, capsys):
+    run = _run_folder_with_config(tmp_path)
+    (run / "state.json").write_text('{"env_steps": ')
+    assert main(["train", "--resume", str(run), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "state.json is unreadable" in err
+    assert (run / "run.lock").read_text() == "", "the lock was released"
+
+
+def _run_folder_with_config(tmp_path: Path) -> Path:
+    run = tmp_path / "env_1__ppo__0__20260101-000000"
+    run.mkdir()
+    (run / "config.yaml").write_text("algo: ppo\nenv: env_1\nagents: 2\nsteps: 40\npreset: smoke\n")
+    return run
