@@ -3,8 +3,9 @@
 This package sees only Gymnasium spaces and numpy arrays; it never imports the
 simulator. ``agents/base.py`` defines the interface, ``agents/loop.py`` the
 environment loop that documents the contract, ``agents/checkpoint.py`` the
-self-describing checkpoint format and ``agents/registry.py`` the name -> class
-table that :func:`load` uses.
+self-describing checkpoint format, ``agents/registry.py`` the name -> class
+table that :func:`load` uses and ``agents/errors.py`` the root of every error the
+project raises on purpose (imported by ``cosim`` too, hence the lazy imports below).
 """
 
 import importlib
