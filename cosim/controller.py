@@ -14,13 +14,43 @@ import math
 import numpy as np
 
 from cosim.dynamics import DISCRETE_ACTIONS
-from cosim.geometry import rect_corners
+from cosim.sumo_bridge import PERSON_RADIUS
+from cosim.geometry import Polyline, rect_corners
 from cosim.world import World
 
 COMFORT_DECEL = 3.0  # m/s^2 used to plan stops
 STOP_MARGIN = 2.5  # metres kept to what it stops behind
 LATERAL_ACCEL = 2.0  # m/s^2 allowed in curves
 WAIT_BEFORE_CREEP = 80  # steps stopped (not at a red light) before it creeps past crossing cars
+CREEP_STEPS = 40  # steps a creep lasts once started, moving or not
+CREEP_MARGIN = 0.1  # metres of lateral clearance it accepts while creeping (0.5 otherwise)
+CREEP_SPEED = 1.5  # m/s at most while creeping
+STANDING_MARGIN = 0.2  # metres of clearance to pass a car standing across or against us
+
+
+def _crossing_spans(world: World, path) -> list[tuple[float, float]]:
+    """(start, end) arc lengths where the path runs over a zebra crossing."""
+    crossings = world.roadmap.crossings
+    if not crossings:
+        return []
+    s = np.arange(0.0, path.length, 0.5)
+    pts = np.array([path.point_at(t) for t in s])
+    on = np.zeros(len(s), dtype=bool)
+    for c in crossings:
+        seg = Polyline.from_points(np.asarray(c.shape)[:, :2])
+        _, lat = seg.project_many(pts)
+        along, _ = seg.project_many(pts)
+        on |= (np.abs(lat) <= c.width / 2) & (along > 0.0) & (along < seg.length)
+    spans, start = [], None
+    for t, flag in zip(s, on, strict=True):
+        if flag and start is None:
+            start = t
+        elif not flag and start is not None:
+            spans.append((float(start), float(t)))
+            start = None
+    if start is not None:
+        spans.append((float(start), float(path.length)))
+    return spans
 
 
 class Autopilot:
@@ -33,7 +63,9 @@ class Autopilot:
         self.target_speed = target_speed or world.scenario.speed_limit * 0.9
         self.horizon = horizon
         self._waited = 0
+        self._creep = 0  # steps of creeping left (a gridlock breaker, see _respects)
         self._conflicts: dict[str, tuple[float, float] | None] = {}
+        self._crossings = _crossing_spans(world, world.route(ac).path)
 
     def act(self) -> np.ndarray:
         """Continuous action (throttle(+)/brake(-), steer) for the AC's current state."""
@@ -45,12 +77,19 @@ class Autopilot:
         steer = self._steer(x, y, heading, v, path, s)
         v_target = min(self.target_speed, self._curve_speed(path, s))
         for gap in self._stops(x, y, heading, v, path, s):
+            gap = self._off_crossings(s, gap)
             v_target = min(v_target, math.sqrt(2 * COMFORT_DECEL * max(gap - STOP_MARGIN, 0.0)))
         tls = w.next_tls(self.ac)
         at_red = tls is not None and tls[0] in "rRyYu" and tls[1] < 15.0
-        self._waited = self._waited + 1 if (v < 0.2 and not at_red) else 0
-        if self._waited > WAIT_BEFORE_CREEP + 30:
-            self._waited = 0
+        if self._creep > 0:
+            v_target = min(v_target, CREEP_SPEED)
+            # a creep runs its course even once the car moves: stopping it at the first
+            # metre (as a speed-based reset would) leaves every gridlock in place
+            self._creep -= 1
+        else:
+            self._waited = self._waited + 1 if (v < 0.2 and not at_red) else 0
+            if self._waited > WAIT_BEFORE_CREEP:
+                self._creep, self._waited = CREEP_STEPS, 0
         a = 1.5 * (v_target - v)
         if v_target < 0.3 and v < 1.0:
             tb = -1.0
@@ -66,6 +105,16 @@ class Autopilot:
         return int(np.argmin(np.sum((DISCRETE_ACTIONS - a) ** 2 * [1.0, 4.0], axis=1)))
 
     # -- pieces --------------------------------------------------------------
+    def _off_crossings(self, s: float, gap: float) -> float:
+        """Never wait on a zebra crossing: SUMO's pedestrians walk into a car standing there.
+        A stop that would leave the body on a crossing moves back to before it."""
+        half = self.world.vehicle.length / 2
+        stop = s + gap - STOP_MARGIN  # where the centre comes to rest
+        for c0, c1 in self._crossings:
+            if c0 - half < stop < c1 + half and s < c0 - half:
+                return min(gap, c0 - half - 0.5 - s + STOP_MARGIN)
+        return gap
+
     def _steer(self, x, y, heading, v, path, s) -> float:
         """Pure pursuit from the rear axle, which tracks arcs of the path exactly."""
         wb = self.world.vehicle.wheelbase
@@ -95,11 +144,17 @@ class Autopilot:
         half = self.world.vehicle.length / 2
         half_w = self.world.vehicle.width / 2
         gaps = []
-        others = [j for j, vid in enumerate(snap.vehicle_ids) if self._respects(vid, j, heading)]
+        # whatever stands on our path blocks us, whoever has priority (a car in the way is
+        # in the way); priority only decides whom we yield to before they get there
+        others = [j for j, vid in enumerate(snap.vehicle_ids) if vid != self.ac]
+        # creeping: squeeze past SUMO's cars (never into them); other ACs keep the full margin
+        # (they follow the same rules, so index priority resolves them, not squeezing)
+        margins = np.array([self._margin(j, heading) for j in others])
         if others:
             oxy = snap.vehicle_xy[others]
             near = np.hypot(oxy[:, 0] - x, oxy[:, 1] - y) < 50.0
             idx = np.array(others)[near]
+            margin = margins[near][:, None]
             if len(idx):
                 # a car blocks us when any corner of it is within our half width (+ margin)
                 # of our path ahead; corners, not centres, so a car half-way through a turn counts
@@ -108,12 +163,17 @@ class Autopilot:
                                  snap.vehicle_length[j], snap.vehicle_width[j]) for j in idx
                 ])
                 sc, lat = path.project_many(corners)
-                sc, lat = sc.reshape(-1, 4), np.abs(lat).reshape(-1, 4)
-                inside = (sc > s) & (sc - s < 45.0) & (lat < self.world.vehicle.width / 2 + 0.5)
+                sc, lat = sc.reshape(-1, 4), lat.reshape(-1, 4)
+                ahead = (sc > s) & (sc - s < 45.0)
+                inside = ahead & (np.abs(lat) < self.world.vehicle.width / 2 + margin)
+                # a car across our path (corners on both sides of it) blocks us as well
+                across = ahead.all(axis=1) & (lat.min(axis=1) < 0) & (lat.max(axis=1) > 0)
+                inside |= across[:, None] & ahead
                 blocking = inside.any(axis=1)
                 for row in np.flatnonzero(blocking):
                     gaps.append(float(sc[row][inside[row]].min()) - s - half)
-                gaps += self._crossing_gaps(x, y, v, path, s, idx[~blocking])
+                rest = [j for j in idx[~blocking] if self._respects(snap.vehicle_ids[j], j, heading)]
+                gaps += self._crossing_gaps(x, y, v, path, s, np.array(rest, dtype=int))
         if len(snap.person_xy):
             near = np.hypot(snap.person_xy[:, 0] - x, snap.person_xy[:, 1] - y) < 35.0
             if near.any():
@@ -124,6 +184,8 @@ class Autopilot:
                 pts = np.concatenate([snap.person_xy[near] + t * step for t in (0.0, 1.0, 2.0, 3.0)])
                 # people standing still (waiting at the kerb for us) block only right in front
                 reach = np.tile(np.where(pv > 0.2, 1.8, half_w + 0.3), 4)
+                if self._creep > 0:  # squeezing past: only what the body would touch
+                    reach = np.full(len(pts), half_w + PERSON_RADIUS + CREEP_MARGIN)
                 on_road = self.world.roadmap.drivable.lookup(pts)
                 pts, reach = pts[on_road], reach[on_road]
                 sp, lat = path.project_many(pts) if len(pts) else (np.zeros(0), np.zeros(0))
@@ -178,20 +240,35 @@ class Autopilot:
         return self._conflicts[other]
 
     def _respects(self, vid: str, j: int, heading: float) -> bool:
-        """Whether to stop for vehicle j. Same-direction leaders always count; among ACs
-        crossing or facing each other the lower index goes first (so ACs never gridlock);
-        after waiting too long it creeps past crossing traffic (a gridlock breaker)."""
+        """Whether to yield to vehicle j before it reaches our path. Same-direction cars
+        always count; among ACs crossing or facing each other the lower index goes first
+        (so ACs never gridlock). Anything already on our path blocks us regardless.
+
+        After WAIT_BEFORE_CREEP steps standing (not at a red light) it creeps, a gridlock
+        breaker (SUMO's cars and pedestrians also wait for the ACs): for CREEP_STEPS steps,
+        at most CREEP_SPEED, it passes anything standing that leaves CREEP_MARGIN of room,
+        still yielding to moving crossing traffic."""
         if vid == self.ac:
             return False
         snap = self.world.snapshot
         diff = abs((snap.vehicle_heading[j] - heading + math.pi) % (2 * math.pi) - math.pi)
         if diff < math.pi / 4:
             return True
-        if self._waited > WAIT_BEFORE_CREEP:
-            return False
         if snap.vehicle_is_ac[j]:
             return self.world.index[vid] < self.world.index[self.ac]
         return True
+
+    def _margin(self, j: int, heading: float) -> float:
+        """Lateral clearance (metres) it wants from vehicle j before passing it."""
+        snap = self.world.snapshot
+        if snap.vehicle_is_ac[j]:
+            return 0.5
+        if self._creep > 0:
+            return CREEP_MARGIN
+        diff = abs((snap.vehicle_heading[j] - heading + math.pi) % (2 * math.pi) - math.pi)
+        # a car standing across or against our direction (a left-turner waiting in the
+        # junction for us) is passed at STANDING_MARGIN, as a driver would; a leader never
+        return STANDING_MARGIN if diff >= math.pi / 4 and snap.vehicle_speed[j] < 0.5 else 0.5
 
     def _crossing_gaps(self, x, y, v, path, s, idx) -> list[float]:
         """Yield to cars whose straight-line paths meet ours within the horizon."""

@@ -79,6 +79,8 @@ COLORS = {
     "pole": (0.40, 0.43, 0.36, 1.0),  # olive grey: never mistaken for asphalt
     "guardrail": (0.80, 0.82, 0.86, 1.0),
     "building": (0.72, 0.52, 0.40, 1.0),
+    "wall": (0.55, 0.32, 0.26, 1.0),  # brick red, darker than buildings
+    "island": (0.25, 0.50, 0.22, 1.0),  # planted roundabout island: green, above the grass
     "sign": (0.55, 0.20, 0.65, 1.0),
     "object": (0.60, 0.60, 0.60, 1.0),  # an unknown kind of road object
     "ac": (0.90, 0.08, 0.08, 1.0),

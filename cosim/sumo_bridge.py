@@ -36,6 +36,8 @@ _labels = itertools.count()  # unique TraCI connection labels
 
 PERSON_RADIUS = 0.3  # metres; a person's footprint is a circle
 _VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE = 0x42, 0x43, 0x40, 0x4F
+GRIDLOCK_WAIT = 15.0  # seconds a background car may stand inside a junction (see _clear_gridlock)
+GRIDLOCK_CHECK_EVERY = 10  # steps between checks
 _CMD_GET_VEHICLE_VARIABLE, _CMD_GET_PERSON_VARIABLE = 0xA4, 0xAE
 
 
@@ -146,6 +148,9 @@ class SumoBridge:
         self._type_size: dict[str, tuple[float, float]] = {}
         self._acs: dict[str, tuple[str, int, float]] = {}  # id -> (route id, lane, pos)
         self._pinned: dict[str, tuple[float, float, str]] = {}  # person id -> (x, y, edge)
+        self._steps = 0
+        self.gridlock_removals = 0
+        """Background cars removed by the gridlock breaker since the last start."""
         self.time = 0.0
 
     # -- lifecycle -----------------------------------------------------------
@@ -190,6 +195,7 @@ class SumoBridge:
             self._acs.clear()
             self._pinned.clear()
             self.time = 0.0
+            self._steps = self.gridlock_removals = 0
             return
         global _owner
         owner = _owner() if _owner is not None else None
@@ -218,6 +224,7 @@ class SumoBridge:
         self._acs.clear()
         self._pinned.clear()
         self.time = 0.0
+        self._steps = self.gridlock_removals = 0
 
     def _start_traci(self, seed: int) -> None:
         _libsumo()  # sets SUMO_HOME from the wheel, reports a missing install
@@ -445,9 +452,29 @@ class SumoBridge:
             for pid, (x, y, edge) in self._pinned.items():
                 ls.person.moveToXY(pid, edge, x, y, keepRoute=2)
             ls.simulationStep()
+            self._steps += 1
+            if self._steps % GRIDLOCK_CHECK_EVERY == 0:
+                self._clear_gridlock()
         except self._errors as exc:
             self._fail("SUMO failed during simulationStep", exc)
         self.time += self.scenario.dt
+
+    def _clear_gridlock(self) -> None:
+        """Remove background cars that have stood inside a junction for GRIDLOCK_WAIT s.
+
+        SUMO's own gridlock breaker (--time-to-teleport) is off because it would teleport
+        the ACs, whose poses we set; SUMO's cars and pedestrians yield to an AC standing
+        in a junction while it waits for them, so without this a junction can lock for good.
+        """
+        ls = self._ls
+        cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
+        for vid, var in cars.items():
+            if vid in self._acs or var[_VAR_SPEED] > 0.1:
+                continue
+            if (ls.vehicle.getRoadID(vid).startswith(":")
+                    and ls.vehicle.getWaitingTime(vid) > GRIDLOCK_WAIT):
+                ls.vehicle.remove(vid)
+                self.gridlock_removals += 1
 
     def background_actors(self) -> tuple:
         """(car ids, centres, headings, speeds, lengths, widths, person ids, xy, headings, speeds)."""
