@@ -14,8 +14,8 @@ import math
 import numpy as np
 
 from cosim.dynamics import DISCRETE_ACTIONS
-from cosim.sumo_bridge import PERSON_RADIUS
 from cosim.geometry import Polyline, rect_corners
+from cosim.sumo_bridge import PERSON_RADIUS
 from cosim.world import World
 
 COMFORT_DECEL = 3.0  # m/s^2 used to plan stops

@@ -13,13 +13,13 @@ from east, the convention of the rest of cosim.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
 import os
 import tempfile
 import weakref
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from cosim.events import EVENT_FLAGS
 from eval.metrics import episode_metrics, success_rates, summarize
 from eval.records import record_row, to_frame
 
@@ -16,9 +17,7 @@ def _info(x, speed=10.0, n_veh=3, n_ped=0, **events):
         "spawn_x": 0.0, "spawn_y": 0.0, "goal_x": 100.0, "goal_y": 0.0, "time": 0.0,
         "reward_terms": {"collision": 0.0, "efficiency": 1.0, "lane": 0.0, "step": -1.0},
     }
-    flags = dict.fromkeys(
-        ["collision_vehicle", "collision_pedestrian", "collision_object", "off_road",
-         "wrong_lane", "goal_reached", "out_of_region"], False)
+    flags = dict.fromkeys(EVENT_FLAGS, False)
     flags.update(events)
     flags["collision"] = flags["collision_vehicle"] or flags["collision_pedestrian"] or flags["collision_object"]
     flags["lane_violation"] = flags["off_road"] or flags["wrong_lane"]
