@@ -25,6 +25,7 @@ WAIT_BEFORE_CREEP = 80  # steps stopped (not at a red light) before it creeps pa
 CREEP_STEPS = 40  # steps a creep lasts once started, moving or not
 CREEP_MARGIN = 0.1  # metres of lateral clearance it accepts while creeping (0.5 otherwise)
 CREEP_SPEED = 1.5  # m/s at most while creeping
+JUNCTION_SPAN = 20.0  # metres: crossings closer than this along a path belong to one junction
 STANDING_MARGIN = 0.2  # metres of clearance to pass a car standing across or against us
 
 
@@ -50,7 +51,15 @@ def _crossing_spans(world: World, path) -> list[tuple[float, float]]:
             start = None
     if start is not None:
         spans.append((float(start), float(path.length)))
-    return spans
+    # the entry and exit crossings of one junction make one span: waiting between them
+    # leaves the car's side on the kerb's corner, where the people of both crossings walk
+    merged: list[tuple[float, float]] = []
+    for c0, c1 in spans:
+        if merged and c0 - merged[-1][1] < JUNCTION_SPAN:
+            merged[-1] = (merged[-1][0], c1)
+        else:
+            merged.append((c0, c1))
+    return merged
 
 
 class Autopilot:
@@ -106,8 +115,9 @@ class Autopilot:
 
     # -- pieces --------------------------------------------------------------
     def _off_crossings(self, s: float, gap: float) -> float:
-        """Never wait on a zebra crossing: SUMO's pedestrians walk into a car standing there.
-        A stop that would leave the body on a crossing moves back to before it."""
+        """Never wait on a zebra crossing, nor between a junction's entry and exit crossings:
+        SUMO's pedestrians walk into a car standing there. Such a stop moves back to before
+        the first crossing."""
         half = self.world.vehicle.length / 2
         stop = s + gap - STOP_MARGIN  # where the centre comes to rest
         for c0, c1 in self._crossings:
@@ -186,11 +196,23 @@ class Autopilot:
                 reach = np.tile(np.where(pv > 0.2, 1.8, half_w + 0.3), 4)
                 if self._creep > 0:  # squeezing past: only what the body would touch
                     reach = np.full(len(pts), half_w + PERSON_RADIUS + CREEP_MARGIN)
+                sp, lat = path.project_many(pts)
+                # people on the sidewalk beside the road do not stop us, unless our body
+                # would brush them (a right turn sweeps over the kerb's corner)
                 on_road = self.world.roadmap.drivable.lookup(pts)
-                pts, reach = pts[on_road], reach[on_road]
-                sp, lat = path.project_many(pts) if len(pts) else (np.zeros(0), np.zeros(0))
-                ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < reach)
+                near_body = np.abs(lat) < half_w + PERSON_RADIUS + 0.4
+                ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < reach) & (on_road | near_body)
                 gaps += list(sp[ahead] - s - half - 1.5)
+                # someone walking right beside the car (they walk into its side): stand still
+                now = len(pv)  # the first rows of pts are where they are now
+                along = np.abs(sp[:now] - s) <= half + 0.5
+                walking = (pv > 0.2) & (np.abs(lat[:now]) < half_w + 0.8)
+                # one standing against the car: wait, even when creeping (a car never drives
+                # into a person, even one that stepped into its side and waits for it)
+                touching = np.abs(lat[:now]) < half_w + PERSON_RADIUS + 0.2
+                beside = along & (walking | touching)
+                if beside.any():
+                    gaps.append(0.0)
         gaps += self._ac_conflict_gaps(s)
         tls = self.world.next_tls(self.ac)
         if tls is not None:

@@ -40,6 +40,9 @@ RED = "rR"  # SUMO signal states that forbid entering the junction
 # A footprint corner may overhang the drivable surface by this much (metres) before the car
 # counts as off-road: the kerb and the raster's 0.25 m cells make a harder test flag clean turns.
 OFFROAD_TOLERANCE = 0.25
+# m/s: below it a car touching a pedestrian is being walked into (SUMO's pedestrians do not
+# avoid cars), which is not counted as the car's pedestrian collision
+PEDESTRIAN_MIN_SPEED = 0.5
 
 
 @dataclass
@@ -125,9 +128,13 @@ def detect_all(
                 ev.hit = snapshot.vehicle_ids[j]
     pxy = snapshot.person_xy
     if len(pxy):
+        # SUMO's pedestrians do not avoid cars: one that walks into a standing car is not
+        # the car's collision (docs/scenarios.md); a moving car that touches one is
         d = np.hypot(xy[:, None, 0] - pxy[None, :, 0], xy[:, None, 1] - pxy[None, :, 1])
         for i, j in zip(*np.nonzero(d <= reach + PERSON_RADIUS), strict=True):
             ev = events[i]
+            if speed[i] < PEDESTRIAN_MIN_SPEED:
+                continue
             if not ev.collision_pedestrian and rect_circle_overlap(
                 corners[i], pxy[j, 0], pxy[j, 1], PERSON_RADIUS
             ):
