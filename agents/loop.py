@@ -19,10 +19,12 @@ slot's transitions with their environment index (``observe_batch``), and
 ``update()`` runs once per vector step, doing the learning those transitions
 made due. Environments reset themselves when all their agents have finished.
 Learning overlaps stepping: the transitions of step t are observed and learnt
-from while the environments (worker processes) take step t + 1, so actions at
-t + 1 come from the weights before that learning (a lag of one step, as in
+from after the actions of step t + 1 were sent, while the environments (worker
+processes) take that step, so actions lag the weights by one step (as in
 Sample Factory; PPO stores the acting policy's log-probabilities, so its ratio
-stays exact). The order of calls is fixed, so runs are reproducible.
+stays exact). With worker processes the envs form two groups (double
+buffering): one half steps while this process acts and learns for the other.
+The order of calls is fixed, so runs are reproducible for the same N and seed.
 
 Every agent has its own networks (any mix of algorithms and of Discrete/Box
 action spaces). The loop times ``env.step`` separately from the agents'
@@ -250,37 +252,50 @@ def run_vector_loop(
                 stats.updates += 1
         return step_metrics
 
-    start = clock()
-    state = venv.reset(seed=seed)
-    stats.env_time_s += clock() - start
-    pending = None  # the last step's transitions, learnt from while the envs take the next step
-    while stats.env_steps < total_steps:
+    def act_and_send(group: np.ndarray, obs_rows, alive) -> dict:
+        """Act for every agent alive in the envs of ``group`` (one forward pass per agent) and send."""
         start = clock()
         acted: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # id -> (envs, obs copy, actions)
         full_actions = {}
         for a in ids:
-            envs = np.flatnonzero(state.alive[a])
+            envs = group[alive[a][group]]
             if envs.size == 0:
                 continue
-            obs = state.obs[a][envs]  # a copy: the vector env overwrites its arrays on step
+            obs = obs_rows[a][envs]  # a copy: the vector env overwrites its arrays on step
             actions = np.asarray(agents[a].act_batch(obs, envs, deterministic=deterministic))
             batch = np.zeros((n, *actions.shape[1:]), actions.dtype)
             batch[envs] = actions
             full_actions[a] = batch
             acted[a] = (envs, obs, actions)
         stats.act_time_s += clock() - start
+        start = clock()
+        venv.step_async(full_actions, group)
+        stats.env_time_s += clock() - start
+        return acted
 
+    start = clock()
+    state = venv.reset(seed=seed)
+    stats.env_time_s += clock() - start
+    # Double buffering (Sample Factory): with two groups of envs, one steps in its worker
+    # processes while this process acts and learns for the other.
+    groups = [np.asarray(g) for g in getattr(venv, "groups", [np.arange(n)])]
+    in_flight: dict[int, dict] = {}
+    sent = 0
+    for gi, group in enumerate(groups):
+        if sent < total_steps:
+            in_flight[gi] = act_and_send(group, state.obs, state.alive)
+            sent += group.size
+    stopping = False
+    gi = 0
+    while in_flight:
+        if gi not in in_flight:
+            gi = (gi + 1) % len(groups)
+            continue
+        group, acted = groups[gi], in_flight.pop(gi)
         start = clock()
-        venv.step_async(full_actions)
+        state = venv.step_wait(group)
         stats.env_time_s += clock() - start
-        start = clock()
-        step_metrics = learn_from(*pending) if pending is not None else {}
-        pending = None
-        stats.learn_time_s += clock() - start
-        start = clock()
-        state = venv.step_wait()
-        stats.env_time_s += clock() - start
-        stats.env_steps += n
+        stats.env_steps += group.size
 
         start = clock()
         result = {}
@@ -293,8 +308,6 @@ def run_vector_loop(
             stats.agent_steps += envs.size
             # copies (fancy indexing): the shared arrays change during the next step
             result[a] = (state.next_obs[a][envs], rewards, state.terminated[a][envs], state.truncated[a][envs])
-        if learn:
-            pending = (acted, result)
         for i in np.flatnonzero(state.env_reset):
             for a in ids:
                 stats.episode_returns.setdefault(a, []).append(float(returns[a][i]))
@@ -303,11 +316,15 @@ def run_vector_loop(
             stats.episodes += 1
         stats.learn_time_s += clock() - start
 
-        if callback is not None and callback(stats.env_steps, stats, step_metrics):
-            logger.info("run_vector_loop stopped by callback at env step %d", stats.env_steps)
-            break
-    if pending is not None:  # the last step's transitions
+        if not stopping and sent < total_steps:
+            in_flight[gi] = act_and_send(group, state.obs, state.alive)
+            sent += group.size
         start = clock()
-        learn_from(*pending)
+        step_metrics = learn_from(acted, result) if learn else {}
         stats.learn_time_s += clock() - start
+
+        if callback is not None and callback(stats.env_steps, stats, step_metrics) and not stopping:
+            logger.info("run_vector_loop stopped by callback at env step %d", stats.env_steps)
+            stopping = True
+        gi = (gi + 1) % len(groups)
     return stats

@@ -13,6 +13,7 @@ change with N), and GAE runs over each environment's column separately.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 from typing import Any, ClassVar
@@ -117,7 +118,9 @@ class PPO(Agent):
         self.iterations = 0
         self.steps = 0
         self._cache: tuple[int, float, float, np.ndarray] | None = None
-        self._column_cache: dict[int, tuple[int, float, float, np.ndarray]] = {}  # act_batch, per env
+        # act_batch's (action, log prob, value, logits) per env, oldest first: the vector loop acts
+        # at t + 1 before it observes t, so up to two are pending (bounded for evaluation-only use)
+        self._column_cache: dict[int, collections.deque] = {}
         self._column_next: dict[int, np.ndarray] = {}  # env -> next_obs of its last transition, if it went on
 
     # ---- acting -----------------------------------------------------------------------
@@ -133,6 +136,9 @@ class PPO(Agent):
         self._cache = (action, log_prob, value.item(), logits[0].cpu().numpy())
         return action
 
+    def prepare_envs(self, num_envs: int) -> None:
+        self._column_cache.clear()  # nothing acted before (e.g. an evaluation) is waiting for observe
+
     @torch.no_grad()
     def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
         logits, values = self.net(obs_to_tensor(np.asarray(obs), self.device))
@@ -144,13 +150,14 @@ class PPO(Agent):
         actions_np, log_probs, values = actions.cpu().numpy(), log_probs.cpu().numpy(), values.cpu().numpy()
         logits = logits.cpu().numpy()
         for j, column in enumerate(np.asarray(columns).tolist()):
-            self._column_cache[column] = (int(actions_np[j]), float(log_probs[j]), float(values[j]), logits[j])
+            pending = self._column_cache.setdefault(column, collections.deque(maxlen=2))
+            pending.append((int(actions_np[j]), float(log_probs[j]), float(values[j]), logits[j]))
         return actions_np
 
     def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
         columns = np.asarray(columns).tolist()
         self.buffer.ensure_capacity(self.buffer.pos + len(columns))
-        cached = [self._column_cache.pop(c, None) for c in columns]
+        cached = [self._column_cache[c].popleft() if self._column_cache.get(c) else None for c in columns]
         missing = [j for j, (c, a) in enumerate(zip(cached, actions, strict=True)) if c is None or c[0] != int(a)]
         if missing:  # not from our last act_batch: score them now
             with torch.no_grad():

@@ -92,6 +92,8 @@ class VecStep:
     """(N,) bool: env i finished its episode and was reset after this step."""
     infos: list[dict[str, dict]]
     """Per env, agent id -> that env's info for this step (reset infos after a reset)."""
+    stepped: np.ndarray
+    """(N,) bool: env i took this step (``step_async``/``step_wait`` may step a subset)."""
 
 
 class _EnvSlot:
@@ -169,14 +171,24 @@ class _VectorBase:
     def _per_agent(self, table: np.ndarray) -> dict[str, np.ndarray]:
         return {a: table[:, k] for k, a in enumerate(self.agent_ids)}
 
-    def _assemble(self, results: Sequence[tuple]) -> VecStep:
-        active, reward, term, trunc, alive, reset, infos = zip(*results, strict=True)
-        return VecStep(
-            obs=self.arrays["obs"], alive=self._per_agent(np.stack(alive)),
-            next_obs=self.arrays["next_obs"], active=self._per_agent(np.stack(active)),
-            rewards=self._per_agent(np.stack(reward)), terminated=self._per_agent(np.stack(term)),
-            truncated=self._per_agent(np.stack(trunc)), env_reset=np.array(reset, bool), infos=list(infos),
-        )
+    def _assemble(self, results: Sequence[tuple], envs: Sequence[int]) -> VecStep:
+        """A VecStep of (N, ...) arrays whose rows ``envs`` hold ``results`` (the others: zeros, {})."""
+        n, k = self.num_envs, len(self.agent_ids)
+        tables = [np.zeros((n, k), np.float32 if j == 1 else bool) for j in range(5)]
+        reset, infos = np.zeros(n, bool), [{} for _ in range(n)]
+        for i, result in zip(envs, results, strict=True):
+            for j in range(5):
+                tables[j][i] = result[j]
+            reset[i], infos[i] = result[5], result[6]
+        active, reward, term, trunc, alive = (self._per_agent(t) for t in tables)
+        stepped = np.zeros(n, bool)
+        stepped[list(envs)] = True
+        return VecStep(obs=self.arrays["obs"], alive=alive, next_obs=self.arrays["next_obs"], active=active,
+                       rewards=reward, terminated=term, truncated=trunc, env_reset=reset, infos=infos,
+                       stepped=stepped)
+
+    def _envs(self, envs) -> list[int]:
+        return list(range(self.num_envs)) if envs is None else [int(i) for i in envs]
 
     def _assemble_reset(self, results: Sequence[tuple]) -> VecStep:
         alive = self._per_agent(np.stack([r[0] for r in results]))
@@ -185,7 +197,7 @@ class _VectorBase:
         return VecStep(
             obs=self.arrays["obs"], alive=alive, next_obs=self.arrays["next_obs"], active=zeros,
             rewards={a: np.zeros(n, np.float32) for a in self.agent_ids}, terminated=zeros, truncated=zeros,
-            env_reset=np.ones(n, bool), infos=[r[1] for r in results],
+            env_reset=np.ones(n, bool), infos=[r[1] for r in results], stepped=np.zeros(n, bool),
         )
 
     def _split_actions(self, actions: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
@@ -228,16 +240,22 @@ class InProcessVectorEnv(_VectorBase):
             for i, env in enumerate(self.envs)
         ]
         self.pids: list[int] = []
+        self.groups = [np.arange(self.num_envs)]
 
     def reset(self, seed: int | None = None) -> VecStep:
         return self._assemble_reset([self._call(i, slot.reset, seed) for i, slot in enumerate(self.slots)])
 
-    def step_async(self, actions: Mapping[str, np.ndarray]) -> None:
-        self._pending = self._split_actions(actions)
+    groups: list[np.ndarray]
+    """Env indices stepped as one group by run_vector_loop: in process, all at once."""
 
-    def step_wait(self) -> VecStep:
-        per_env, self._pending = self._pending, None
-        return self._assemble([self._call(i, slot.step, per_env[i]) for i, slot in enumerate(self.slots)])
+    def step_async(self, actions: Mapping[str, np.ndarray], envs=None) -> None:
+        self._pending = (self._split_actions(actions), self._envs(envs))
+
+    def step_wait(self, envs=None) -> VecStep:
+        (per_env, sent), self._pending = self._pending, None
+        if envs is not None and self._envs(envs) != sent:
+            raise RuntimeError(f"step_wait({list(envs)}) after step_async for envs {sent}")
+        return self._assemble([self._call(i, self.slots[i].step, per_env[i]) for i in sent], sent)
 
     def step(self, actions: Mapping[str, np.ndarray]) -> VecStep:
         self.step_async(actions)
@@ -361,15 +379,23 @@ class VectorEnv(_VectorBase):
             raise
 
     @property
+    def groups(self) -> list[np.ndarray]:
+        """Env indices stepped as one group by run_vector_loop: two halves (double buffering:
+        one half steps while the trainer acts and learns for the other), or all for N = 1."""
+        envs = np.arange(self.num_envs)
+        return [envs] if self.num_envs == 1 else [envs[: self.num_envs // 2], envs[self.num_envs // 2:]]
+
+    @property
     def pids(self) -> list[int]:
         """Pids of the env worker processes."""
         return [p.pid for p in self.processes]
 
-    def _gather(self, doing: str) -> list:
-        """One reply from every worker, in env order; a worker's error is raised here."""
+    def _gather(self, doing: str, envs: Sequence[int] | None = None) -> list:
+        """One reply from each worker of ``envs`` (default all), in env order; a worker's error is raised here."""
+        envs = self._envs(envs)
         replies: dict[int, Any] = {}
         deadline = time.monotonic() + self.timeout_s
-        waiting = dict(enumerate(self.conns))
+        waiting = {i: self.conns[i] for i in envs}
         while waiting:
             ready = connection.wait(list(waiting.values()), timeout=1.0)
             for i, conn in list(waiting.items()):
@@ -388,16 +414,16 @@ class VectorEnv(_VectorBase):
                     raise VectorEnvError(i, f"worker died while {doing} (exit code {self._exitcode(i)})")
             if waiting and time.monotonic() > deadline:
                 raise VectorEnvError(min(waiting), f"no answer after {self.timeout_s:.0f} s while {doing}")
-        return [replies[i] for i in range(self.num_envs)]
+        return [replies[i] for i in envs]
 
     def _exitcode(self, index: int):
         self.processes[index].join(timeout=1.0)
         return self.processes[index].exitcode
 
-    def _send(self, messages: Sequence[tuple]) -> None:
-        for i, (conn, message) in enumerate(zip(self.conns, messages, strict=True)):
+    def _send(self, messages: Sequence[tuple], envs: Sequence[int] | None = None) -> None:
+        for i, message in zip(self._envs(envs), messages, strict=True):
             try:
-                conn.send(message)
+                self.conns[i].send(message)
             except (BrokenPipeError, OSError):
                 raise VectorEnvError(i, f"worker is gone (exit code {self._exitcode(i)})") from None
 
@@ -408,13 +434,16 @@ class VectorEnv(_VectorBase):
     def reset(self, seed: int | None = None) -> VecStep:
         return self._assemble_reset(self._broadcast([("reset", seed)] * self.num_envs, "resetting"))
 
-    def step_async(self, actions: Mapping[str, np.ndarray]) -> None:
-        """Send the actions; the workers step while the caller does something else (e.g. learn)."""
-        self._send([("step", a) for a in self._split_actions(actions)])
+    def step_async(self, actions: Mapping[str, np.ndarray], envs=None) -> None:
+        """Send the actions to ``envs`` (default all); they step while the caller acts or learns."""
+        envs = self._envs(envs)
+        per_env = self._split_actions(actions)
+        self._send([("step", per_env[i]) for i in envs], envs)
 
-    def step_wait(self) -> VecStep:
-        """The result of the last :meth:`step_async`."""
-        return self._assemble(self._gather("stepping"))
+    def step_wait(self, envs=None) -> VecStep:
+        """The result of :meth:`step_async` for ``envs`` (default all): only their rows are filled."""
+        envs = self._envs(envs)
+        return self._assemble(self._gather("stepping", envs), envs)
 
     def step(self, actions: Mapping[str, np.ndarray]) -> VecStep:
         self.step_async(actions)

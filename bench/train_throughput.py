@@ -12,6 +12,8 @@ Rates: "steady" counts env steps (summed over the N environments) over the time
 inside the loop (reset, step, act, learn: the loop's own clocks; process and
 simulator start-up excluded); "wall" is steps over the whole train() call,
 start-up included. AC-frames are agent transitions (one camera frame each).
+Every row uses the same torch thread count (--torch-threads, default 1): on a
+busy 2-core machine two OpenMP threads made one CNN forward 20x slower.
 A3C and IMPALA have no --envs (one environment per worker process, 2 workers
 in the quick preset): only their wall rate is given, the same in both blocks.
 
@@ -56,9 +58,9 @@ def raw_env_rate(n: int, steps: int, seed: int = 3) -> dict[str, float]:
     return {"steps_s": done / dt, "frames_s": frames / dt}
 
 
-def train_rate(algo: str, n: int, steps: int, out: str) -> dict[str, float]:
+def train_rate(algo: str, n: int, steps: int, out: str, threads: int) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=AGENTS, steps=steps, seed=3,
-                      envs=1 if algo in ASYNC_ALGOS else n, device="cpu")
+                      envs=1 if algo in ASYNC_ALGOS else n, device="cpu", torch_threads=threads)
     if "learning_starts" in cfg.agent_config:
         cfg.agent_config["learning_starts"] = 200
     t0 = time.monotonic()
@@ -76,6 +78,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--algos", nargs="+", default=["ppo", "dqn", "td3", "a3c", "impala"])
+    parser.add_argument("--torch-threads", type=int, default=1,
+                        help="the trainer's torch threads for every row (0: cosim train's default)")
     args = parser.parse_args()
     raw: dict[int, dict] = {}
     rows: dict[tuple[str, int], dict] = {}
@@ -87,9 +91,10 @@ def main() -> None:
                 if algo in ASYNC_ALGOS and n != args.envs[0]:
                     rows[(algo, n)] = rows[(algo, args.envs[0])]
                     continue
-                rows[(algo, n)] = train_rate(algo, n, args.steps, out)
+                rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads)
                 print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
-    print(f"\n{args.steps} env steps per row, env_1, {AGENTS} ACs, quick preset, CPU\n")
+    print(f"\n{args.steps} env steps per row, env_1, {AGENTS} ACs, quick preset, CPU, "
+          f"torch threads {args.torch_threads or 'default'}\n")
     print("| what | envs | env steps/s (steady) | AC-frames/s (steady) | env steps/s (wall) "
           "| training / raw env (steady) |")
     print("|---|---|---|---|---|---|")

@@ -120,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",
-                   help="torch intra-op threads in the trainer (0: torch's default)")
+                   help="torch threads in the trainer (0: the CPUs the env workers leave, or torch's default)")
     t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
     t.set_defaults(func=cmd_train)
     e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")

@@ -162,7 +162,8 @@ class TrainConfig:
     device: str = "auto"
     """Torch device of the learners: auto (cuda when available), cpu or cuda."""
     torch_threads: int = 0
-    """torch.set_num_threads in the trainer (0: torch's default)."""
+    """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers
+    (cpu_count - envs, at least 1) when envs > 1, else torch's default."""
 
     @property
     def action_type(self) -> str:
@@ -611,6 +612,7 @@ class _EpisodeTap:
 
     def __init__(self, env, on_episode: Callable[[str, dict], None]):
         self.env, self.on_episode = env, on_episode
+        self.env_step = 0  # env steps so far (a vector env: summed over the envs it stepped)
 
     def __getattr__(self, name):  # reset, agents, spaces, close: the env's own
         return getattr(self.env, name)
@@ -618,11 +620,12 @@ class _EpisodeTap:
     def step(self, actions):
         return self._tap(self.env.step(actions))
 
-    def step_wait(self):  # a vector env's second half of step (agents/vector.py)
-        return self._tap(self.env.step_wait())
+    def step_wait(self, *envs):  # a vector env's second half of step (agents/vector.py)
+        return self._tap(self.env.step_wait(*envs))
 
     def _tap(self, out):
         # a vector env gives one info dict per environment
+        self.env_step += int(out.stepped.sum()) if hasattr(out, "stepped") else 1
         for infos in (out.infos if hasattr(out, "env_reset") else [out[4]]):
             for agent, info in infos.items():
                 if EPISODE_INFO in info:
@@ -737,18 +740,21 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     from agents.loop import run_vector_loop
     from agents.vector import make_vector_env
 
-    if cfg.torch_threads:
-        torch.set_num_threads(cfg.torch_threads)
+    n = cfg.envs
+    # N env workers keep N cores busy; more torch threads than the cores left only contend
+    threads = cfg.torch_threads or (max(1, (os.cpu_count() or 1) - n) if n > 1 else 0)
+    if threads:
+        torch.set_num_threads(threads)
     try:
         device = resolve_device(cfg.device)
     except ValueError as exc:
         raise TrainError(str(exc)) from None
-    n = cfg.envs
     start_step = runlog.env_steps
     # env i of N: seed + i (env 0 is the one-env run's env)
     fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(n)]
-    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, step_now[0]))
-    step_now = [start_step + n]  # the env step an episode ending in this vector step is logged at
+    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, env.env_step))
+    env.env_step = start_step
+    last = [start_step]
     bar = _bar(cfg, runlog, quiet, progress)
     last_log = [time.monotonic(), start_step]
     try:
@@ -757,11 +763,11 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
 
         def callback(step: int, stats, metrics) -> bool:
             now = start_step + step
-            step_now[0] = now + n
+            before, last[0] = last[0], now
             for aid, m in metrics.items():
                 runlog.metrics(aid, m, now)
-            bar.update(n)
-            if now // cfg.checkpoint_every > (now - n) // cfg.checkpoint_every or now >= cfg.steps:
+            bar.update(now - before)
+            if now // cfg.checkpoint_every > before // cfg.checkpoint_every or now >= cfg.steps:
                 runlog.checkpoint(agent_map, now, stats.summary())
             _report(bar, runlog, cfg, now, quiet, last_log)
             return now >= cfg.steps

@@ -154,6 +154,31 @@ def test_same_seed_and_n_give_identical_runs_and_ppo_learns_per_env_columns():
     assert any(not torch.equal(w1[a], w3[a]) for a in w1)
 
 
+def test_worker_processes_with_double_buffering_are_reproducible():
+    s1, w1, _ = _ppo_run(2, seed=4, processes=True)
+    s2, w2, _ = _ppo_run(2, seed=4, processes=True)
+    assert s1.episode_returns == s2.episode_returns and s1.env_steps == s2.env_steps == 60
+    for a in w1:
+        torch.testing.assert_close(w1[a], w2[a], rtol=0, atol=0)
+
+
+def test_ppo_stores_the_acting_policys_log_prob_and_value_for_each_transition():
+    # The loop acts at t + 1 before it observes t: each transition must keep what act_batch gave for IT.
+    space = gym.spaces.Box(-np.inf, np.inf, (5,), np.float32)
+    ppo = {a: agents.PPO(space, gym.spaces.Discrete(3), agents.PPOConfig(rollout_steps=200, batch_size=10, hidden=(8,)),
+                         seed=k) for k, a in enumerate(["agent_0", "agent_1", "agent_2"])}
+    with InProcessVectorEnv(env_fns(2)) as venv:
+        run_vector_loop(ppo, venv, total_steps=60, seed=0)
+    for agent in ppo.values():
+        buf, n = agent.buffer, agent.buffer.pos
+        assert n > 20 and agent.iterations == 0
+        with torch.no_grad():
+            logits, values = agent.net(torch.as_tensor(buf.obs[:n]))
+        log_probs = torch.log_softmax(logits, -1).gather(1, torch.as_tensor(buf.actions[:n])[:, None])[:, 0]
+        np.testing.assert_allclose(buf.log_probs[:n], log_probs.numpy(), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(buf.values[:n], values.numpy(), rtol=1e-5, atol=1e-6)
+
+
 def test_ppo_bootstraps_each_env_column_from_its_own_next_observation():
     space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
     ppo = agents.PPO(space, gym.spaces.Discrete(2), agents.PPOConfig(rollout_steps=4, batch_size=2, gamma=0.5,
