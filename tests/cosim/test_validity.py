@@ -192,3 +192,22 @@ def test_the_criteria_catch_a_scenario_that_an_open_loop_policy_solves():
                           policies=("autopilot", "always-forward"))
     problems = failures(summarize(rows))
     assert any(p.startswith("always-forward reaches") for p in problems), problems
+
+
+@pytest.mark.parametrize("speed,expected", [(0.0, False), (0.3, False), (0.6, True), (8.0, True)])
+def test_a_pedestrian_walking_into_a_standing_car_is_not_its_collision(speed, expected):
+    with World(_quiet("env_1"), 1, background=False) as w:
+        w.reset(seed=0)
+        route = w.routes[0]
+        s0 = route.spawn_s + 30.0
+        x, y = route.path.point_at(s0)
+        h = route.path.heading_at(s0)
+        # a person right at the car's front-left corner, inside its footprint
+        px, py = x + 1.8 * math.cos(h) - 0.6 * math.sin(h), y + 1.8 * math.sin(h) + 0.6 * math.cos(h)
+        w.snapshot = dataclasses.replace(
+            w.snapshot, person_ids=["walker"], person_xy=np.array([[px, py]]),
+            person_heading=np.zeros(1), person_speed=np.zeros(1))
+        state = np.array([[x, y, h, speed]])
+        ev = detect_all(["ac_0"], state, w.vehicle.length, w.vehicle.width, w.snapshot,
+                        w.roadmap, [route], np.array([route.goal_s - s0]), 3.0)[0]
+    assert ev.collision_pedestrian is expected
