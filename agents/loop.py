@@ -215,10 +215,12 @@ def run_vector_loop(
         agents: Agent id -> agent; must cover ``venv.possible_agents``.
         venv: An :class:`agents.vector.VectorEnv` or ``InProcessVectorEnv``.
         total_steps: Environment steps to make, summed over the environments
-            (each vector step makes ``venv.num_envs``; the last one may overshoot).
-        callback: Called after every vector step as ``callback(env_steps, stats, metrics)``
-            (``env_steps`` counted over all environments; ``metrics`` holds this
-            step's non-empty ``update()`` results by agent); True stops the loop.
+            (each group of envs that steps adds its size; the last may overshoot).
+        callback: Called each time a group of envs (all N, or one half with
+            double buffering) has stepped and been learnt from, as
+            ``callback(env_steps, stats, metrics)`` (``env_steps`` counted over all
+            environments; ``metrics`` holds the non-empty ``update()`` results by
+            agent); True stops the loop (envs already stepping finish their step).
         seed: Reset seed (env ``i``, episode ``k`` gets ``seed + i + k * N``).
         learn: If False, agents only act: evaluation.
         deterministic: Passed to ``act_batch``.

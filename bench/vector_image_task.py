@@ -5,7 +5,7 @@ trained through agents.loop.run_vector_loop on N ColourBar copies (worker
 processes when N > 1), evaluated every 1,000 env steps (summed over the envs)
 on the 18-episode grid; target 90% of the optimum (7.0).
 
-    python bench/vector_image_task.py [--algos ppo dqn] [--envs 1 2] [--seed 0]
+    python bench/vector_image_task.py [--algos ppo dqn td3] [--envs 1 2] [--seed 0]
 """
 
 from __future__ import annotations
@@ -36,8 +36,11 @@ def run(algo: str, n: int, seed: int, budget: int) -> dict:
     curve: list[tuple[int, float]] = []
     eval_time = [0.0]
 
+    last = [0]
+
     def callback(step: int, stats, metrics) -> bool:
-        if step // 1000 > (step - n) // 1000:
+        before, last[0] = last[0], step
+        if step // 1000 > before // 1000:
             t0 = time.perf_counter()
             curve.append((step, grid_score(agent, continuous)))
             eval_time[0] += time.perf_counter() - t0
@@ -58,7 +61,7 @@ def run(algo: str, n: int, seed: int, budget: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algos", nargs="+", default=["ppo", "dqn"])
+    parser.add_argument("--algos", nargs="+", default=["ppo", "dqn", "td3"])
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--budget", type=int, default=None, help="env steps (default: the image bench's)")
