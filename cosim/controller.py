@@ -26,6 +26,7 @@ CREEP_STEPS = 40  # steps a creep lasts once started, moving or not
 CREEP_MARGIN = 0.1  # metres of lateral clearance it accepts while creeping (0.5 otherwise)
 CREEP_SPEED = 1.5  # m/s at most while creeping
 JUNCTION_SPAN = 20.0  # metres: crossings closer than this along a path belong to one junction
+JUNCTION_LOOKAHEAD = 6.0  # seconds of walking a junction's crossings must stay clear to enter
 STANDING_MARGIN = 0.2  # metres of clearance to pass a car standing across or against us
 
 
@@ -194,7 +195,11 @@ class Autopilot:
                 pts = np.concatenate([snap.person_xy[near] + t * step for t in (0.0, 1.0, 2.0, 3.0)])
                 # people standing still (waiting at the kerb for us) block only right in front
                 reach = np.tile(np.where(pv > 0.2, 1.8, half_w + 0.3), 4)
-                if self._creep > 0:  # squeezing past: only what the body would touch
+                half_len = self.world.vehicle.length / 2
+                if self._creep > 0 or any(c0 - half_len <= s <= c1 + half_len
+                                          for c0, c1 in self._crossings):
+                    # squeezing past, or inside a junction's crossings (where it must not
+                    # wait, see _off_crossings): only what the body would touch
                     reach = np.full(len(pts), half_w + PERSON_RADIUS + CREEP_MARGIN)
                 sp, lat = path.project_many(pts)
                 # people on the sidewalk beside the road do not stop us, unless our body
@@ -203,6 +208,17 @@ class Autopilot:
                 near_body = np.abs(lat) < half_w + PERSON_RADIUS + 0.4
                 ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < reach) & (on_road | near_body)
                 gaps += list(sp[ahead] - s - half - 1.5)
+                # before entering a junction's crossings, the whole span must stay clear of
+                # people for the next JUNCTION_LOOKAHEAD s: once inside it does not stop
+                # for them there (see _off_crossings), so it must not enter to wait
+                for c0, c1 in self._crossings:
+                    entry = c0 - half - 0.5
+                    if 0.0 <= entry - s < 15.0:
+                        later = np.concatenate([snap.person_xy[near] + t * step
+                                                for t in np.arange(0.0, JUNCTION_LOOKAHEAD, 0.5)])
+                        ls, ll = path.project_many(later)
+                        if np.any((ls > c0 - 1.0) & (ls < c1 + 1.0) & (np.abs(ll) < 1.8)):
+                            gaps.append(entry - s + STOP_MARGIN)
                 # someone walking right beside the car (they walk into its side): stand still
                 now = len(pv)  # the first rows of pts are where they are now
                 along = np.abs(sp[:now] - s) <= half + 0.5
