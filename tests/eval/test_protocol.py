@@ -72,3 +72,19 @@ def test_corrupt_checkpoint_is_a_one_line_error(tmp_path, capsys):
 def test_resume_of_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert main(["train", "--resume", str(tmp_path)]) == 2
     assert "not a training run folder" in capsys.readouterr().err
+
+
+def test_cli_test_adds_the_reference_rows_to_the_report(tmp_path, capsys):
+    code = main(["test", "--policy", "autopilot", "--agents", "2", "--envs", "env_4",
+                 "--scenario", "1", "--episodes", "1", "--steps", "30", "--quiet",
+                 "--references", "autopilot,always-forward", "--out", str(tmp_path)])
+    assert code == 0
+    (report,) = tmp_path.glob("*/report.md")
+    text = report.read_text()
+    assert "Reference rows" in text and "| always-forward |" in text and "| autopilot |" in text
+    refs = pd.read_csv(report.parent / "references.csv")
+    assert set(refs.policy) == {"autopilot", "always-forward"} and set(refs.env) == {"env_4"}
+    # a name outside the suite is refused with the valid ones
+    assert main(["test", "--policy", "autopilot", "--references", "backwards", "--quiet",
+                 "--out", str(tmp_path)]) == 2
+    assert "always-forward" in capsys.readouterr().err
