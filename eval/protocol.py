@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 
 from cosim.errors import CosimError
+from eval import selection
 from eval.metrics import METRICS, episode_metrics, speed_curve, success_rates, summarize
 from eval.records import save
 from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
@@ -47,7 +48,8 @@ class ProtocolPlan:
 
 
 def find_checkpoints(runs: Path, algos: Sequence[str]) -> dict[str, Path]:
-    """The newest run of each algorithm under `runs`; its ac_0 best (else latest) checkpoint."""
+    """The newest run of each algorithm under `runs`; the checkpoint of the AC that represents
+    it (eval/selection.py: best training score, best.pt else latest.pt)."""
     found: dict[str, Path] = {}
     runs = Path(runs)
     folders = sorted(runs.glob("*__*__*__*"), key=lambda p: p.stat().st_mtime, reverse=True) if runs.exists() else []
@@ -55,12 +57,9 @@ def find_checkpoints(runs: Path, algos: Sequence[str]) -> dict[str, Path]:
         for run in folders:
             if run.name.split("__")[1] != algo:
                 continue
-            for name in ("best.pt", "latest.pt"):
-                ckpt = run / "checkpoints" / "ac_0" / name
-                if ckpt.exists():
-                    found[algo] = ckpt
-                    break
-            if algo in found:
+            chosen = selection.choose(run)  # which AC represents the run: eval/selection.py
+            if chosen is not None:
+                found[algo] = chosen.path
                 break
     missing = [a for a in algos if a not in found]
     if missing:
