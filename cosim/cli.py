@@ -410,7 +410,6 @@ def cmd_test(args) -> int:
         find_checkpoints,
         policy_factory,
         run_protocol,
-        write_report,
     )
 
     if not 1 <= args.agents <= 6:
@@ -456,10 +455,31 @@ def cmd_test(args) -> int:
     refs = None
     if refs_wanted:
         refs = reference_rows(plan, refs_wanted)
-    written = write_report(records, out, references=refs)
-    print((out / "report.md").read_text())
+    from eval import selection
+    from eval.report import provenance, write_paper_report
+
+    picked = {a: selection.describe(p) if a in given else
+              (selection.choose(p.parent.parent.parent) or selection.describe(p))
+              for a, p in (ckpts or {}).items()}
+    prov = provenance(policy=args.policy, plan=plan, algos=algos, checkpoints=ckpts,
+                      selections=picked, command=_test_command(args))
+    written = write_paper_report(records, out, prov=prov, references=refs)
+    print((out / "rq1.md").read_text())
+    print(f"index: {out / 'index.html'}")
     print("wrote:\n" + "\n".join(f"  {p}" for p in written))
     return 0
+
+
+def _test_command(args) -> list[str]:
+    """The `cosim test` command line the parsed options stand for (for the report)."""
+    cmd = ["test", "--agents", str(args.agents), "--envs", *args.envs, "--scenario", args.scenario,
+           "--episodes", str(args.episodes), "--steps", str(args.steps), "--seed", str(args.seed),
+           "--policy", args.policy]
+    if args.policy == "trained":
+        cmd += ["--runs", str(args.runs)]
+    for item in args.checkpoint:
+        cmd += ["--checkpoint", item]
+    return cmd + ["--references", args.references, "--out", str(args.out)]
 
 
 def cmd_check_scenarios(args) -> int:

@@ -273,9 +273,16 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
     """The combined Table RQ1 (md, csv long/wide, tex), figures, index.md/html, provenance."""
     from eval import figures as figs
 
+    from eval.protocol import metrics_table
+    from eval.records import save
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     prov = prov or {"policy": "trained", "tested": []}
+    save(records, out / "records.parquet")
+    metrics_table(records, dt).to_csv(out / "metrics.csv", index=False)
+    if references is not None and not references.empty:
+        references.to_csv(out / "references.csv", index=False)
     labels = {t["algorithm"]: t["label"] for t in prov.get("tested", [])}
     per = per_episode(records, dt)
     per.to_csv(out / "episodes.csv", index=False)
@@ -287,11 +294,15 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
     (out / "rq1.md").write_text(md)
     (out / "rq1.tex").write_text(rq1_latex(header, rows, groups, scenarios, algos, labels))
     (out / "provenance.json").write_text(json.dumps(prov, indent=2, default=str))
-    written = [out / n for n in ("episodes.csv", "rq1_long.csv", "rq1_wide.csv", "rq1.md",
+    written = [out / n for n in ("records.parquet", "metrics.csv", "episodes.csv", "rq1_long.csv", "rq1_wide.csv", "rq1.md",
                                  "rq1.tex", "provenance.json")]
     figures_written = figs.write_all(records, per, long, out, labels) if figures else []
     written += figures_written
     written += write_index(out, md, prov, figures_written, references, replays)
+    (out / "report.md").write_text((out / "index.md").read_text())
+    written.append(out / "report.md")
+    if references is not None and not references.empty:
+        written.append(out / "references.csv")
     return written
 
 
@@ -305,7 +316,7 @@ FILE_NOTES = {
     "rq1.tex": "Table RQ1, LaTeX (booktabs, multirow)",
     "provenance.json": "what was tested: checkpoints, hashes, versions, seeds, command",
     "references.csv": "reference rows (scripted policies)",
-    "report.md": "the report as printed by cosim test",
+    "report.md": "this page as printed by cosim test",
 }
 
 
@@ -363,7 +374,8 @@ def write_index(out: Path, rq1_md: str, prov: dict, figures: Sequence[Path],
                   f"{t.get('sha256', '-')} | {t.get('ac') or '-'} | {t.get('chosen_by') or '-'} | "
                   f"{t.get('scores') or '-'} |")
     md.append("\n## Files\n")
-    listed = sorted(p for p in out.rglob("*") if p.is_file() and p.name not in ("index.md", "index.html"))
+    listed = sorted(p for p in out.rglob("*")
+                    if p.is_file() and p.name not in ("index.md", "index.html", "report.md"))
     for p in listed:
         rel = p.relative_to(out).as_posix()
         md.append(f"- [{rel}]({rel}){': ' + FILE_NOTES[p.name] if p.name in FILE_NOTES else ''}")
