@@ -280,7 +280,7 @@ def _env_worker(index: int, num_envs: int, env_fn: Callable[[], Any], conn, owne
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the owner handles Ctrl-C and tells us to stop
     _die_with_owner(owner_pid)
     blocks: list[shared_memory.SharedMemory] = []
-    env = None
+    env = slot = None
     try:
         env = env_fn()
         ids, obs_spaces, act_spaces = _spaces(env)
@@ -309,7 +309,7 @@ def _env_worker(index: int, num_envs: int, env_fn: Callable[[], Any], conn, owne
         except (OSError, ValueError):
             pass
     finally:
-        rows = {}
+        rows = slot = None  # drop the views before closing the blocks under them
         for block in blocks:
             block.close()
         if env is not None:
