@@ -6,6 +6,7 @@
     cosim nets build | check                rebuild / check the SUMO networks
     cosim train --algo ppo --env env_1      train N ACs of one algorithm together
     cosim test --agents 6                   the test protocol (Scenario 1 and 2) and its report
+    cosim replay REPORT/replays/X/state.json  reopen a failure replay's SUMO state
     cosim check-scenarios env_4             degenerate-policy suite: does a scenario measure driving?
 """
 
@@ -141,8 +142,16 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--references", default="all",
                    help="reference rows added to the report: 'all' (autopilot, random and the "
                         "degenerate suite of `cosim check-scenarios`), 'none', or a comma list")
+    e.add_argument("--no-replays", action="store_true",
+                   help="skip the failure replays (clips and SUMO state of each first collision)")
     e.add_argument("--quiet", action="store_true")
     e.set_defaults(func=cmd_test)
+
+    rp = sub.add_parser("replay", help="reopen a failure replay's SUMO state (from a cosim test report)")
+    rp.add_argument("state", type=Path, help="replays/<...>/state.json (or state.xml) of a report")
+    rp.add_argument("--plot", type=Path, default=None, metavar="PNG",
+                    help="also draw the reloaded positions into this PNG")
+    rp.set_defaults(func=cmd_replay)
 
     c = sub.add_parser("check-scenarios",
                        help="run the degenerate-policy suite: does a scenario measure driving?")
@@ -463,10 +472,42 @@ def cmd_test(args) -> int:
               for a, p in (ckpts or {}).items()}
     prov = provenance(policy=args.policy, plan=plan, algos=algos, checkpoints=ckpts,
                       selections=picked, command=_test_command(args))
-    written = write_paper_report(records, out, prov=prov, references=refs)
+    replays = []
+    if not args.no_replays:
+        from eval import replay
+
+        labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
+        replays = replay.capture(plan, factory, algos, records, out, labels)
+    written = write_paper_report(records, out, prov=prov, references=refs, replays=replays)
     print((out / "rq1.md").read_text())
     print(f"index: {out / 'index.html'}")
     print("wrote:\n" + "\n".join(f"  {p}" for p in written))
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from eval import replay
+
+    path = args.state
+    if not path.exists() or not path.with_suffix(".json").exists():
+        print(f"cosim replay: error: {path}: not a failure replay (give the state.json of a "
+              "report's replays/ folder)", file=sys.stderr)
+        return 2
+    result = replay.reload(path)
+    meta = result["meta"]
+    print(f"{meta['title']} ({meta['env']}), scenario {meta['scenario']}, {meta['label']} "
+          f"({meta['agent']}), episode {meta['episode']} seed {meta['seed']}, step {meta['step']} "
+          f"(t = {meta['ttfc']:.1f} s), first collision with a {meta['kind']} {meta['hit']}")
+    pos = result["positions"]
+    print(f"SUMO time {pos['time']:.1f} s: {len(pos['vehicles'])} vehicles, {len(pos['persons'])} persons")
+    for vid, (x, y, angle) in sorted(pos["vehicles"].items()):
+        mark = "  <- collided" if vid == meta["agent"] else ""
+        print(f"  {vid:24s} x={x:9.2f} y={y:9.2f} angle={angle:6.1f}{mark}")
+    for pid, (x, y, _) in sorted(pos["persons"].items()):
+        print(f"  {pid:24s} x={x:9.2f} y={y:9.2f} (person)")
+    print(f"largest distance from the saved positions: {result['max_deviation_m']:.3f} m")
+    if args.plot:
+        print(f"wrote {replay.plot(result, args.plot)}")
     return 0
 
 
@@ -479,6 +520,7 @@ def _test_command(args) -> list[str]:
         cmd += ["--runs", str(args.runs)]
     for item in args.checkpoint:
         cmd += ["--checkpoint", item]
+    cmd += ["--no-replays"] if args.no_replays else []
     return cmd + ["--references", args.references, "--out", str(args.out)]
 
 

@@ -345,12 +345,17 @@ def write_index(out: Path, rq1_md: str, prov: dict, figures: Sequence[Path],
             md.append(f"![{f.stem}]({f.name}) ([PDF]({f.with_suffix('.pdf').name}))\n")
     if replays:
         md.append("\n## Failure replays (first collision per algorithm and environment)\n")
-        md.append("| scenario | environment | algorithm | episode | step | TTFC (s) | kind | "
-                  "camera | overview | SUMO state | reproduced |")
-        md.append("|---|---|---|---|---|---|---|---|---|---|---|")
+        md.append("The moment TTFC measures, and the first step counted by the metric named: "
+                  "the AC's camera and a top-down view from 3 s before to 1 s after, and the "
+                  "SUMO state at the collision step.\n")
+        md.append("| scenario | environment | algorithm | episode | step | TTFC (s) | metric | "
+                  "frames | camera | overview | SUMO state | reproduced |")
+        md.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
+        metric = {"vehicle": "CV", "object": "CO", "pedestrian": "CP"}
         for r in replays:
             md.append(f"| {r['scenario']} | {r['title']} | {r['label']} | {r['episode']} | "
-                      f"{r['step']} | {r['ttfc']:.1f} | {r['kind']} | [gif]({r['camera']}) | "
+                      f"{r['step']} | {r['ttfc']:.1f} | {metric.get(r['kind'], r['kind'])} | "
+                      f"[strip]({r['strip']}) | [gif]({r['camera']}) | "
                       f"[gif]({r['overview']}) | [xml]({r['state']}) ([json]({r['meta']})) | "
                       f"{'yes' if r['reproduced'] else 'NO'} |")
         md.append("\nReopen a state with `cosim replay <state.json>` (prints the positions, "
