@@ -7,7 +7,8 @@ deterministic) and, around the collision step (the TTFC moment), keeps
 - ``camera.gif``: that AC's camera from ``BEFORE`` steps (3 s) before to ``AFTER``
   steps (1 s) after the collision;
 - ``overview.gif``: a top-down view centred on the AC over the same window;
-- ``strip.png``: six moments of both, side by side (for papers and READMEs);
+- ``strip.png``: up to six moments of both (camera above overview), the step
+  before the collision and the collision step among them (for papers and READMEs);
 - ``state.xml``: the SUMO state at the collision step (``simulation.saveState``);
 - ``state.json``: what the state holds (every vehicle and person position), the
   scenario, seed, episode and step, and whether the re-run reproduced the record.
@@ -152,20 +153,21 @@ def _rerun(env, policies, want, seed, scenario, env_name, title, agent_algo, lab
                 (folder / "state.json").write_text(json.dumps(meta, indent=1))
                 saved[a] = {"folder": folder, "meta": meta, "index": len(cams[a]) - 1}
     rows = []
-    for a, s in saved.items():
+    for a, s in saved.items():  # index: the collision's frame in the clip
         folder, meta, k = s["folder"], s["meta"], s["index"]
         save_gif(folder / "camera.gif", list(cams[a]))
         save_gif(folder / "overview.gif", list(tops[a]))
-        picks = sorted(set(np.linspace(0, len(cams[a]) - 1, 6).round().astype(int).tolist()) | {k})[-6:]
+        # four moments spread over the clip, plus the step before the collision and its step
+        spread = np.linspace(0, len(cams[a]) - 1, 4).round().astype(int).tolist()
+        picks = sorted(set(spread) | {max(k - 1, 0), k})
         pairs = [np.concatenate([cams[a][i], tops[a][i]], axis=0) for i in picks]
         save_png(folder / "strip.png", mosaic(pairs, cols=len(pairs)))
-        np.save(folder / "collision_frame.npy", cams[a][k])
         rel = folder.relative_to(out).as_posix()
         rows.append({**{key: meta[key] for key in ("scenario", "env", "title", "algorithm", "label",
                                                    "agent", "episode", "step", "ttfc", "kind",
                                                    "reproduced")},
                      "camera": f"{rel}/camera.gif", "overview": f"{rel}/overview.gif",
-                     "strip": f"{rel}/strip.png", "state": f"{rel}/state.xml",
+                     "strip": f"{rel}/strip.png", "state": f"{rel}/state.xml", "frame": k,
                      "meta": f"{rel}/state.json"})
     return rows
 

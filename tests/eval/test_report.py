@@ -1,0 +1,229 @@
+"""The paper-ready report of `cosim test` (issue 13): combined Table RQ1, figures,
+index with provenance, the AC selection rule, failure replays, determinism."""
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from gymnasium import spaces
+
+from cosim.cli import main
+from eval import replay, selection
+from eval.protocol import ProtocolPlan, run_protocol
+from eval.report import TABLE_METRICS, bootstrap_ci, cell, provenance, sha256, write_paper_report
+
+ARGS = ["test", "--policy", "random", "--agents", "2", "--envs", "env_1", "env_3",
+        "--episodes", "2", "--steps", "30", "--quiet", "--references", "none"]
+FIGURES = ("rq2_safety", "rq2_efficiency", "rq2_lane_keeping", "speed_per_timestep", "ttfc_survival")
+NUMBER = re.compile(r"^-?\d+\.\d+ ± \d+\.\d+( \(n=\d+\))?$")
+
+
+@pytest.fixture(scope="module")
+def reports(tmp_path_factory):
+    """The same `cosim test` command run twice: the two report folders."""
+    folders = []
+    for k in range(2):
+        out = tmp_path_factory.mktemp(f"run{k}")
+        assert main([*ARGS, "--out", str(out)]) == 0
+        (folder,) = out.iterdir()
+        folders.append(folder)
+    return folders
+
+
+def test_combined_rq1_has_every_cell_and_dash_where_a_metric_does_not_apply(reports):
+    folder = reports[0]
+    long = pd.read_csv(folder / "rq1_long.csv", keep_default_na=False)
+    labels = ["random (ppo slot)", "random (a3c slot)"]
+    for s in (1, 2):
+        for env in ("env_1", "env_3"):
+            for label in labels:
+                for m in TABLE_METRICS:
+                    (row,) = long[(long.scenario == s) & (long.env == env) & (long.label == label)
+                                  & (long.metric == m)].itertuples()
+                    if s == 2 and m in ("CV", "CP") or (env == "env_1" and m == "CP"):
+                        assert row.cell == "-", (s, env, label, m)   # no car / no pedestrian
+                    elif m == "TTFC" and row.n == 0:
+                        assert row.cell == "--"
+                    else:
+                        assert NUMBER.match(row.cell), (s, env, label, m, row.cell)
+                        assert row.ci_low <= row.mean <= row.ci_high
+                        assert row.episodes == 2
+    assert set(long.title) == {"Straight", "Four-way"}
+    wide = pd.read_csv(folder / "rq1_wide.csv", keep_default_na=False)
+    assert list(wide.columns) == ["Environment", "Metric", *(f"S{s} {lab}" for s in (1, 2) for lab in labels)]
+    assert list(wide.Metric[:9]) == ["n (episodes)", *TABLE_METRICS]
+    md = (folder / "rq1.md").read_text()
+    assert md.count("**Straight**") == 1 and md.count("**Four-way**") == 1
+
+
+def _balanced(tex: str) -> None:
+    envs = re.findall(r"\\(begin|end)\{(\w+\*?)\}", tex)
+    stack = []
+    for kind, name in envs:
+        if kind == "begin":
+            stack.append(name)
+        else:
+            assert stack.pop() == name
+    assert not stack
+    assert tex.count("{") == tex.count("}")
+    body = tex.split(r"\midrule", 1)[1].split(r"\bottomrule")[0]
+    rows = [r for r in body.split(r"\\") if "&" in r]
+    assert len({r.count("&") for r in rows}) == 1 and rows[0].count("&") == 2 + 2 * 2 - 1
+    assert all(c.count("$") % 2 == 0 for c in rows)
+
+
+def test_latex_is_booktabs_multirow_and_compiles_or_is_balanced(reports, tmp_path):
+    tex = (reports[0] / "rq1.tex").read_text()
+    assert r"\multirow{9}{*}{Straight}" in tex and r"\toprule" in tex and r"\cmidrule" in tex
+    _balanced(tex)
+    engine = shutil.which("pdflatex")
+    if engine:
+        doc = tmp_path / "t.tex"
+        doc.write_text("\\documentclass{article}\\usepackage{booktabs,multirow}\\begin{document}\n"
+                       + tex + "\\end{document}\n")
+        done = subprocess.run([engine, "-interaction=nonstopmode", doc.name], cwd=tmp_path,
+                              capture_output=True, timeout=120)
+        assert done.returncode == 0, done.stdout[-2000:]
+
+
+def test_every_figure_as_pdf_and_png_and_the_index_links_every_file(reports):
+    folder = reports[0]
+    for stem in FIGURES:
+        assert (folder / f"{stem}.pdf").read_bytes()[:4] == b"%PDF"
+        assert (folder / f"{stem}.png").read_bytes()[:4] == b"\x89PNG"
+    html = (folder / "index.html").read_text()
+    for path in folder.rglob("*"):
+        rel = path.relative_to(folder).as_posix()
+        if path.is_file() and path.name not in ("index.html", "index.md", "report.md"):
+            assert f'href="{rel}"' in html, rel
+    assert "Policy: random" in html and "random (ppo slot)" in html
+    prov = json.loads((folder / "provenance.json").read_text())
+    assert prov["policy"] == "random" and prov["plan"]["episode_seeds"] == [0, 1]
+    assert prov["command"].startswith("cosim test --agents 2 --envs env_1 env_3")
+
+
+def test_same_command_twice_gives_identical_records_and_tables(reports):
+    a, b = reports
+    pd.testing.assert_frame_equal(pd.read_parquet(a / "records.parquet"),
+                                  pd.read_parquet(b / "records.parquet"))
+    for name in ("rq1.md", "rq1.tex", "rq1_long.csv", "rq1_wide.csv", "episodes.csv", "metrics.csv"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
+def test_bootstrap_is_deterministic_and_cells_say_when_nothing_applies():
+    assert bootstrap_ci([1.0, 2.0, 3.0]) == bootstrap_ci([1.0, 2.0, 3.0])
+    mean, lo, hi, n = bootstrap_ci([1.0, np.nan, 3.0])
+    assert (mean, n) == (2.0, 2) and 1.0 <= lo <= mean <= hi <= 3.0
+    assert cell("CV", *bootstrap_ci([np.nan]), 1) == "-"
+    assert cell("TTFC", *bootstrap_ci([]), 2) == "--"
+    assert cell("TTFC", 1.5, 1.5, 1.5, 1, 2) == "1.50 ± 0.00 (n=1)"
+
+
+_SAVED: dict[str, Path] = {}
+
+
+def _run(root: Path, algo: str, best: dict | None, returns: dict | None) -> Path:
+    from agents.registry import get_agent_class
+
+    run = root / f"env_1__{algo}__0__20260101-000000"
+    obs = spaces.Box(0, 255, (84, 84, 3), np.uint8)
+    if algo not in _SAVED:  # one smoke agent per algorithm, copied (making one is slow)
+        _SAVED[algo] = root.parent / f"{algo}.pt"
+        get_agent_class(algo).from_spaces(obs, spaces.Discrete(9)).save(_SAVED[algo])
+    for ac in ("ac_0", "ac_1", "ac_2"):
+        (run / "checkpoints" / ac).mkdir(parents=True)
+        shutil.copy(_SAVED[algo], run / "checkpoints" / ac / "best.pt")
+    if best is not None:
+        (run / "state.json").write_text(json.dumps({"best": best}))
+    if returns is not None:
+        pd.DataFrame([{"agent": a, "return": r} for a, rs in returns.items() for r in rs]).to_csv(
+            run / "episodes.csv", index=False)
+    return run
+
+
+def test_the_ac_that_trained_best_represents_the_run(tmp_path):
+    run = _run(tmp_path / "a", "ppo", {"ac_0": -5.0, "ac_1": 3.0, "ac_2": 1.0}, None)
+    chosen = selection.choose(run)
+    assert (chosen.ac, chosen.basis, chosen.path.name) == ("ac_1", "state.json best", "best.pt")
+    run = _run(tmp_path / "b", "ppo", None, {"ac_0": [1, 1], "ac_1": [0, 0], "ac_2": [-9] * 30 + [5] * 20})
+    assert selection.choose(run).ac == "ac_2"  # the last 20 episodes count
+    run = _run(tmp_path / "c", "ppo", None, None)
+    assert selection.choose(run).ac == "ac_0"
+
+
+def test_report_names_the_checkpoints_tested_with_hashes(tmp_path):
+    _SAVED.clear()
+    run = _run(tmp_path / "runs", "ppo", {"ac_0": -5.0, "ac_1": -1.0, "ac_2": -3.0}, None)
+    out = tmp_path / "out"
+    given = ["--checkpoint", f"a3c={_run(tmp_path / 'a3c', 'a3c', None, None)}/checkpoints/ac_2/best.pt"]
+    assert main(["test", "--agents", "2", "--runs", str(tmp_path / "runs"), *given, "--envs", "env_1",
+                 "--scenario", "2", "--episodes", "1", "--steps", "5", "--quiet", "--references",
+                 "none", "--no-replays", "--out", str(out)]) == 0
+    (folder,) = out.iterdir()
+    html = (folder / "index.html").read_text()
+    ckpt = run / "checkpoints" / "ac_1" / "best.pt"
+    assert str(ckpt) in html and sha256(ckpt) in html and "state.json best" in html
+    assert "given (--checkpoint)" in html and "Policy:" not in html
+    prov = json.loads((folder / "provenance.json").read_text())
+    assert [t["label"] for t in prov["tested"]] == ["ppo", "a3c"]
+    assert [t["ac"] for t in prov["tested"]] == ["ac_1", "ac_2"]
+    assert prov["tested"][0]["scores"] == {"ac_0": -5.0, "ac_1": -1.0, "ac_2": -3.0}
+    assert "S2 ppo" in (folder / "rq1.md").read_text()
+
+
+class Rammer:
+    """Puts a standing car 14 m ahead of its AC at the first step, then drives into it."""
+
+    def __init__(self, env, agent):
+        self.env, self.agent, self.placed = env, agent, False
+
+    def reset(self):
+        self.placed = False
+
+    def act(self, obs, deterministic=True):
+        if not self.placed:
+            x, y, h, _ = self.env.world.ac_state(self.agent)
+            self.env.world.bridge.place_car("target", x + 14 * np.cos(h), y + 14 * np.sin(h), h, "st_e")
+            self.placed = True
+        return np.array([1.0, 0.0], np.float32)
+
+
+def _car_blue(image) -> float:
+    """Share of pixels of the background cars' blue (cosim/mirror.py COLORS["car"]), not sky."""
+    im = np.asarray(image)[..., :3].astype(int)
+    r, g, b = im[..., 0], im[..., 1], im[..., 2]
+    return float(((b > 120) & (b > r + 90) & (b > g + 80)).mean())
+
+
+def test_failure_replay_of_a_real_collision(tmp_path, capsys):
+    plan = ProtocolPlan(envs=("env_1",), scenarios=(1,), episodes=1, steps=30, agents=1)
+    make = lambda env, agent, algo: Rammer(env, agent)  # noqa: E731
+    records = run_protocol(plan, make, ["ddpg"])
+    rows = replay.capture(plan, make, ["ddpg"], records, tmp_path)
+    (row,) = rows
+    assert row["kind"] == "vehicle" and row["reproduced"] and row["step"] == int(
+        records[records.collision].step.min())
+    write_paper_report(records, tmp_path, prov=provenance(policy="trained", plan=plan, algos=["ddpg"]),
+                       replays=rows)
+    html = (tmp_path / "index.html").read_text()
+    for key in ("camera", "overview", "strip", "state", "meta"):
+        assert f'href="{row[key]}"' in html
+    import imageio.v3 as iio
+
+    frames = iio.imread(tmp_path / row["camera"])
+    assert 10 <= len(frames) <= replay.BEFORE + replay.AFTER + 1
+    # the camera just before the collision: the car ahead (blue) fills much of the picture
+    ahead = max(_car_blue(f) for f in frames[max(0, row["frame"] - 3): row["frame"] + 1])
+    assert ahead > 0.1
+    assert _car_blue(frames[0]) < ahead / 2  # 14 m away at the start
+    # the SUMO state reloads to the same positions
+    again = replay.reload(tmp_path / row["meta"])
+    assert set(again["positions"]["vehicles"]) == set(again["meta"]["positions"]["vehicles"])
+    assert "target" in again["positions"]["vehicles"] and again["max_deviation_m"] < 0.05
+    assert main(["replay", str(tmp_path / row["meta"]), "--plot", str(tmp_path / "p.png")]) == 0
+    assert "<- collided" in capsys.readouterr().out and (tmp_path / "p.png").exists()
