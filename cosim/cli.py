@@ -142,6 +142,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--references", default="all",
                    help="reference rows added to the report: 'all' (autopilot, random and the "
                         "degenerate suite of `cosim check-scenarios`), 'none', or a comma list")
+    e.add_argument("--cross-play", action="store_true",
+                   help="also the cross-play matrix: each algorithm's AC among ACs of each other "
+                        "algorithm and among autopilots (eval/robustness.py)")
+    e.add_argument("--cross-play-group", type=_int_in(2), default=3, metavar="N",
+                   help="ACs per cross-play episode: the ego and N-1 partners (default 3)")
+    e.add_argument("--sweep", action="append", default=[], metavar="KIND=L1,L2",
+                   help="also a robustness sweep (repeatable): density=0.5,1,2, camera_noise=0,0.05, "
+                        "action_noise=0,0.2, dropout=0,0.3")
     e.add_argument("--no-replays", action="store_true",
                    help="skip the failure replays (clips and SUMO state of each first collision)")
     e.add_argument("--quiet", action="store_true")
@@ -439,6 +447,9 @@ def cmd_test(args) -> int:
                     steps=args.steps, seed=args.seed, agents=args.agents)
     algos = list(ALGO_ORDER[: args.agents])
     try:
+        from eval.robustness import parse_sweeps
+
+        sweeps = parse_sweeps(args.sweep)
         given = _checkpoint_slots(args.checkpoint, algos)
         if given and args.policy != "trained":
             raise ProtocolError(f"--checkpoint is for --policy trained, not --policy {args.policy}")
@@ -478,7 +489,18 @@ def cmd_test(args) -> int:
 
         labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
         replays = replay.capture(plan, factory, algos, records, out, labels)
-    written = write_paper_report(records, out, prov=prov, references=refs, replays=replays)
+    extra_md = ""
+    if args.cross_play or sweeps:
+        from eval import robustness
+
+        labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
+        cross = (robustness.run_cross_play(plan, factory, algos, group=args.cross_play_group)
+                 if args.cross_play else None)
+        swept = {kind: robustness.run_sweep(plan, factory, algos, kind, levels)
+                 for kind, levels in sweeps.items()}
+        _, extra_md = robustness.write(out, labels, cross, swept)
+    written = write_paper_report(records, out, prov=prov, references=refs, replays=replays,
+                                 extra_md=extra_md)
     print((out / "rq1.md").read_text())
     print(f"index: {out / 'index.html'}")
     print("wrote:\n" + "\n".join(f"  {p}" for p in written))
@@ -521,6 +543,10 @@ def _test_command(args) -> list[str]:
     for item in args.checkpoint:
         cmd += ["--checkpoint", item]
     cmd += ["--no-replays"] if args.no_replays else []
+    if args.cross_play:
+        cmd += ["--cross-play", "--cross-play-group", str(args.cross_play_group)]
+    for item in args.sweep:
+        cmd += ["--sweep", item]
     return cmd + ["--references", args.references, "--out", str(args.out)]
 
 

@@ -269,7 +269,7 @@ def slot_label(policy: str, algo: str) -> str:
 
 def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = None,
                        references: pd.DataFrame | None = None, replays: Sequence[dict] = (),
-                       dt: float = 0.1, figures: bool = True) -> list[Path]:
+                       dt: float = 0.1, figures: bool = True, extra_md: str = "") -> list[Path]:
     """The combined Table RQ1 (md, csv long/wide, tex), figures, index.md/html, provenance."""
     from eval import figures as figs
 
@@ -298,7 +298,7 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
                                  "rq1.tex", "provenance.json")]
     figures_written = figs.write_all(records, per, long, out, labels) if figures else []
     written += figures_written
-    written += write_index(out, md, prov, figures_written, references, replays)
+    written += write_index(out, md, prov, figures_written, references, replays, extra_md)
     (out / "report.md").write_text((out / "index.md").read_text())
     written.append(out / "report.md")
     if references is not None and not references.empty:
@@ -317,11 +317,14 @@ FILE_NOTES = {
     "provenance.json": "what was tested: checkpoints, hashes, versions, seeds, command",
     "references.csv": "reference rows (scripted policies)",
     "report.md": "this page as printed by cosim test",
+    "crossplay.csv": "cross-play: the ego's collision and goal rates per partner (per environment and pooled)",
+    "crossplay.md": "cross-play matrix, Markdown",
 }
 
 
 def write_index(out: Path, rq1_md: str, prov: dict, figures: Sequence[Path],
-                references: pd.DataFrame | None, replays: Sequence[dict]) -> list[Path]:
+                references: pd.DataFrame | None, replays: Sequence[dict],
+                extra_md: str = "") -> list[Path]:
     """index.md and index.html: the table, the figures, the replays, every file, provenance."""
     out = Path(out)
     policy = prov.get("policy", "trained")
@@ -364,6 +367,8 @@ def write_index(out: Path, rq1_md: str, prov: dict, figures: Sequence[Path],
         from eval.protocol import references_markdown
 
         md.append("\n" + references_markdown(references))
+    if extra_md:
+        md.append(extra_md)
     md.append("\n## Provenance\n")
     md.append(f"- command: `{prov.get('command', '')}`")
     md.append(f"- policy: {policy}")

@@ -227,3 +227,49 @@ def test_failure_replay_of_a_real_collision(tmp_path, capsys):
     assert "target" in again["positions"]["vehicles"] and again["max_deviation_m"] < 0.05
     assert main(["replay", str(tmp_path / row["meta"]), "--plot", str(tmp_path / "p.png")]) == 0
     assert "<- collided" in capsys.readouterr().out and (tmp_path / "p.png").exists()
+
+
+def test_cross_play_and_a_sweep_on_tiny_budgets(tmp_path):
+    assert main(["test", "--policy", "autopilot", "--agents", "2", "--envs", "env_1", "--scenario", "1",
+                 "--episodes", "1", "--steps", "15", "--quiet", "--references", "none", "--no-replays",
+                 "--cross-play", "--cross-play-group", "2", "--sweep", "density=0.5,2",
+                 "--out", str(tmp_path)]) == 0
+    (folder,) = tmp_path.iterdir()
+    cross = pd.read_csv(folder / "crossplay.csv")
+    pooled = cross[cross.env == "all"]
+    assert sorted(zip(pooled.ego, pooled.partner)) == sorted(
+        (e, p) for e in ("ppo", "a3c") for p in ("ppo", "a3c", "autopilot"))
+    assert pooled.collision_rate.between(0, 1).all() and (pooled.n == 1).all()
+    sweep = pd.read_csv(folder / "sweep_density.csv")
+    assert sorted(sweep.level.unique()) == [0.5, 2.0] and set(sweep.algorithm) == {"ppo", "a3c"}
+    html = (folder / "index.html").read_text()
+    for stem in ("crossplay_heatmap", "sweep_density"):
+        assert (folder / f"{stem}.pdf").exists() and f'href="{stem}.png"' in html
+    assert "autopilot (ppo slot)" in (folder / "crossplay.md").read_text()
+
+
+def test_sweep_levels_are_checked_and_perturbations_are_seeded():
+    from eval.protocol import ProtocolError
+    from eval.robustness import Perturbed, parse_sweeps
+
+    assert parse_sweeps(["density=0.5,1,2", "dropout=0,0.3"]) == {"density": [0.5, 1.0, 2.0],
+                                                                  "dropout": [0.0, 0.3]}
+    for bad in ("speed=1", "density", "dropout=2", "camera_noise=a"):
+        with pytest.raises(ProtocolError, match="--sweep"):
+            parse_sweeps([bad])
+    seen = []
+    policy = lambda obs: (seen.append(obs.copy()), 0)[1]  # noqa: E731
+    frames = [np.full((4, 4, 3), k, np.uint8) for k in range(20)]
+    for kind, level in (("camera_noise", 0.1), ("dropout", 0.5)):
+        runs = []
+        for _ in range(2):
+            seen.clear()
+            p = Perturbed(policy, spaces.Discrete(9), kind, level, seed=3)
+            for f in frames:
+                p.act(f)
+            runs.append([s.copy() for s in seen])
+        assert all((a == b).all() for a, b in zip(*runs, strict=True))  # seeded
+        if kind == "camera_noise":
+            assert not (runs[0][5] == frames[5]).all()
+        else:  # some frames lost: the policy saw an earlier frame again
+            assert any((s == frames[k - 1]).all() for k, s in enumerate(runs[0]) if k)
