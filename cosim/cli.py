@@ -145,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--cross-play", action="store_true",
                    help="also the cross-play matrix: each algorithm's AC among ACs of each other "
                         "algorithm and among autopilots (eval/robustness.py)")
-    e.add_argument("--cross-play-group", type=_int_in(2), default=3, metavar="N",
+    e.add_argument("--cross-play-group", type=_int_in(2, 6), default=3, metavar="N",
                    help="ACs per cross-play episode: the ego and N-1 partners (default 3)")
     e.add_argument("--sweep", action="append", default=[], metavar="KIND=L1,L2",
                    help="also a robustness sweep (repeatable): density=0.5,1,2, camera_noise=0,0.05, "
