@@ -61,8 +61,8 @@ import numpy as np
 import yaml
 
 from cosim.env import EPISODE_EVENTS, EPISODE_INFO
-from cosim.events import REWARD_TERMS
 from cosim.errors import CosimError
+from cosim.events import REWARD_TERMS
 
 log = logging.getLogger(__name__)
 
@@ -468,6 +468,7 @@ class RunLog:
         for row in self._read_rows():
             self.recent[row["agent"]].append(float(row["return"]))
         self.tb = SummaryWriter(str(self.run / "tb"), purge_step=self.env_steps or None)
+        self.on_checkpoint: Callable[[Path, int, float], None] | None = None
 
     def _read_rows(self) -> list[dict]:
         with open(self.csv_path, newline="") as f:
@@ -559,6 +560,8 @@ class RunLog:
         for name, value in (extra_time or {}).items():
             self.tb.add_scalar(name, value, env_step)
         self.tb.flush()
+        if self.on_checkpoint is not None:
+            self.on_checkpoint(self.run, env_step, self.mean_recent())
 
     def close(self) -> None:
         self._file.close()
@@ -635,8 +638,12 @@ class _EpisodeTap:
 
 # -- training -------------------------------------------------------------------------
 def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = None,
-          quiet: bool = False, progress: bool = True) -> Path:
+          quiet: bool = False, progress: bool = True,
+          on_checkpoint: Callable[[Path, int, float], None] | None = None) -> Path:
     """Run (or resume) one training run; return its folder.
+
+    ``on_checkpoint(run, env_steps, mean_return)`` is called after each committed
+    checkpoint (how Ray Tune trials report, eval/benchmark.py and eval/pbt.py).
 
     Raises:
         TrainError: the run folder is held by another process (naming its PID), or
@@ -660,7 +667,7 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
         lock = RunLock(run)
         state = None
     try:
-        _train_locked(cfg, run, state, quiet, progress)
+        _train_locked(cfg, run, state, quiet, progress, on_checkpoint)
     finally:
         lock.release()
     return run
@@ -679,8 +686,10 @@ def _read_state(run: Path) -> dict | None:
     return state
 
 
-def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, progress: bool) -> None:
+def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, progress: bool,
+                  on_checkpoint: Callable[[Path, int, float], None] | None = None) -> None:
     runlog = RunLog(run, cfg, state)
+    runlog.on_checkpoint = on_checkpoint
     log.info("training %s on %s with %d ACs for %d steps -> %s", cfg.algo, cfg.env, cfg.agents,
              cfg.steps, run)
     try:
