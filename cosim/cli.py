@@ -6,6 +6,7 @@
     cosim nets build | check                rebuild / check the SUMO networks
     cosim train --algo ppo --env env_1      train N ACs of one algorithm together
     cosim test --agents 6                   the test protocol (Scenario 1 and 2) and its report
+    cosim benchmark --preset smoke          train the grid on Ray Tune, test it, write the report
     cosim replay REPORT/replays/X/state.json  reopen a failure replay's SUMO state
     cosim check-scenarios env_4             degenerate-policy suite: does a scenario measure driving?
 """
@@ -155,6 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--quiet", action="store_true")
     e.set_defaults(func=cmd_test)
 
+    _benchmark_parser(sub)
+
     rp = sub.add_parser("replay", help="reopen a failure replay's SUMO state (from a cosim test report)")
     rp.add_argument("state", type=Path, help="replays/<...>/state.json (or state.xml) of a report")
     rp.add_argument("--plot", type=Path, default=None, metavar="PNG",
@@ -171,6 +174,30 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", type=Path, default=None, help="also write the per-episode rows (CSV)")
     c.set_defaults(func=cmd_check_scenarios)
     return p
+
+
+def _benchmark_parser(sub) -> None:
+    b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
+                                         "trial, then test them and write the report")
+    b.add_argument("--preset", choices=["smoke", "quick", "paper"], default="smoke")
+    b.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
+    b.add_argument("--algos", nargs="+", default=["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
+    b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")
+    b.add_argument("--steps", type=_int_in(1), default=None,
+                   help="environment steps per trial (default: the preset's)")
+    b.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
+    b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",
+                   help="trials at once (default: the CPUs here, or unlimited on a cluster)")
+    b.add_argument("--gpus-per-trial", type=float, default=0.0, help="GPU share of each trial")
+    b.add_argument("--no-ray", action="store_true",
+                   help="train the same grid one trial after another in this process")
+    b.add_argument("--train-only", action="store_true", help="train the grid, skip the test and report")
+    b.add_argument("--out", type=Path, default=Path("benchmark"), help="benchmark folder")
+    b.add_argument("--resume", action="store_true",
+                   help="continue an interrupted benchmark in --out without redoing finished trials")
+    b.add_argument("--quiet", action="store_true")
+    b.set_defaults(func=cmd_benchmark)
 
 
 def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
@@ -504,6 +531,38 @@ def cmd_test(args) -> int:
     print((out / "rq1.md").read_text())
     print(f"index: {out / 'index.html'}")
     print("wrote:\n" + "\n".join(f"  {p}" for p in written))
+    return 0
+
+
+def cmd_benchmark(args) -> int:
+    import time
+
+    from eval.benchmark import BenchmarkPlan, run_ray, run_sequential, write_report
+    from eval.raysession import INSTALL_HINT, ray_available
+
+    if not args.no_ray and not ray_available():
+        print(f"cosim benchmark: error: {INSTALL_HINT}", file=sys.stderr)
+        return 2
+    plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos),
+                         seeds=args.seeds, steps=args.steps)
+    cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
+    _output_folder(args.out, "--out")
+    say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
+    start = time.monotonic()
+    say(f"benchmark {args.preset}: {len(cells)} trials -> {args.out}")
+    if args.no_ray:
+        runs = run_sequential(plan, args.out, resume=args.resume, progress=lambda n: say(f"trained {n}"))
+    else:
+        concurrent = args.concurrent or (0 if args.ray_address else (os.cpu_count() or 1))
+        runs = run_ray(plan, args.out, resume=args.resume, address=args.ray_address,
+                       concurrent=concurrent, gpus_per_trial=args.gpus_per_trial)
+    say(f"trained {len(runs)} trials in {time.monotonic() - start:.0f} s: {args.out / 'runs'}")
+    if args.train_only:
+        return 0
+    written = write_report(plan, args.out, command=["benchmark", *sys.argv[2:]],
+                           progress=lambda n: say(f"tested {n}"))
+    say(f"report: {args.out / 'report' / 'index.html'} ({len(written)} files, "
+        f"{time.monotonic() - start:.0f} s in all)")
     return 0
 
 

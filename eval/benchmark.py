@@ -1,0 +1,330 @@
+"""`cosim benchmark`: the whole study in one command, each (algorithm, environment, seed)
+a Ray Tune trial, then the test protocol on the trained policies and its report.
+
+A benchmark folder (``--out``)::
+
+    benchmark.json     the plan (preset, envs, algos, seeds) that --resume reads back
+    tune/grid/         Ray Tune's experiment: trial results and checkpoints (4 kept per trial)
+    trials/<cell>/     where each trial trains (a normal run folder inside)
+    runs/<cell>/       the finished run folders, <env>__<algo>__<seed>__bench (what `cosim test` loads)
+    report/            the `cosim test` report: Scenario 1 and 2 in every environment
+
+A trial is the ordinary training run (:func:`eval.train.train`); it reports
+``env_steps`` and ``mean_return`` (the mean episodic return over each AC's last 20
+episodes) to Tune at every checkpoint, and the checkpoint is the run folder itself,
+so a restored trial continues with ``train(resume=...)``. ``--no-ray`` trains the
+same cells one after another in this process: same configs, same seeds, one torch
+thread per trial in both cases, so PPO, DQN, DDPG and TD3 give the same weights
+either way (A3C and IMPALA run asynchronous workers and are not bit-reproducible).
+A finished cell is never trained again: ``--resume`` continues an interrupted
+benchmark from each unfinished trial's last checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cosim.errors import CosimError
+from eval.train import ALGORITHMS, ASYNC_ALGOS, TrainConfig, make_config, train
+
+log = logging.getLogger(__name__)
+
+ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
+
+
+class BenchmarkError(CosimError, ValueError):
+    """A benchmark request that cannot run; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class TestSettings:
+    """How the trained policies are tested (the `cosim test` options of a preset)."""
+
+    episodes: int
+    """Episodes per environment and scenario."""
+    steps: int
+    """Steps per test episode."""
+    references: tuple[str, ...] = ()
+    """Reference rows (eval/validity.py POLICIES) added to the report."""
+
+
+TEST_SETTINGS = {
+    "smoke": TestSettings(episodes=1, steps=60),
+    "quick": TestSettings(episodes=3, steps=500, references=("autopilot", "random")),
+    "paper": TestSettings(episodes=3, steps=500, references=("autopilot", "random")),
+}
+
+
+@dataclass(frozen=True)
+class BenchmarkPlan:
+    """The grid: every (algorithm, environment, seed) of a preset."""
+
+    preset: str = "smoke"
+    envs: tuple[str, ...] = ENVS
+    algos: tuple[str, ...] = ALGORITHMS
+    seeds: int = 1
+    """Seeds 0..seeds-1 per (algorithm, environment)."""
+    steps: int | None = None
+    """Environment steps per trial (default: the preset's, per algorithm)."""
+
+    def __post_init__(self):
+        unknown = sorted(set(self.algos) - set(ALGORITHMS))
+        if unknown or not self.algos:
+            raise BenchmarkError(f"--algos {' '.join(unknown) or '(none)'}: choose from {' '.join(ALGORITHMS)}")
+        if self.seeds < 1:
+            raise BenchmarkError(f"--seeds must be >= 1, got {self.seeds}")
+        if not self.envs:
+            raise BenchmarkError("--envs: name at least one environment")
+
+    def cells(self) -> list[TrainConfig]:
+        """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
+        return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, torch_threads=1)
+                for env in self.envs for algo in self.algos for seed in range(self.seeds)]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
+                "seeds": self.seeds, "steps": self.steps}
+
+
+def cell_name(cfg: TrainConfig | dict) -> str:
+    """``<env>__<algo>__<seed>__bench``: a run-folder name `cosim test --runs` recognises."""
+    c = cfg if isinstance(cfg, dict) else cfg.to_dict()
+    return f"{Path(c['env']).stem}__{c['algo']}__{c['seed']}__bench"
+
+
+def trial_resources(cfg: TrainConfig, max_cpus: int | None = None, gpus: float = 0.0) -> dict:
+    """CPUs a trial keeps busy: its env workers (or A3C/IMPALA workers plus the learner)."""
+    cpus = 1 + cfg.workers if cfg.algo in ASYNC_ALGOS else cfg.envs
+    if max_cpus:
+        cpus = min(cpus, max_cpus)
+    return {"cpu": cpus, "gpu": gpus}
+
+
+# -- one trial ---------------------------------------------------------------------------
+def _seed_everything(seed: int) -> None:
+    """Same global RNG state at the start of a trial, in a fresh Ray worker or in this process."""
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def train_cell(cfg: TrainConfig, folder: Path, restore_from: Path | None = None,
+               on_checkpoint: Callable[[Path, int, float], None] | None = None) -> Path:
+    """Train one cell in ``folder`` (wiped first), from scratch or from a copied run folder.
+
+    Returns:
+        The run folder.
+    """
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    _seed_everything(cfg.seed)
+    if restore_from is None:
+        return train(cfg, folder, quiet=True, progress=False, on_checkpoint=on_checkpoint)
+    run = folder / "run"
+    shutil.copytree(restore_from, run)
+    return train(None, resume=run, quiet=True, progress=False, on_checkpoint=on_checkpoint)
+
+
+def finite(value: float) -> float:
+    """A score Tune can rank: -inf before the first finished episode."""
+    return float(value) if np.isfinite(value) else float("-inf")
+
+
+def _tune_trial(config: dict) -> None:
+    """Ray Tune function trainable: one cell, reporting at every checkpoint."""
+    from ray import tune
+
+    cfg = TrainConfig(**config["cell"])
+    folder = Path(config["scratch"]) / cell_name(cfg)
+
+    def report(run: Path, env_steps: int, mean_return: float) -> None:
+        tune.report({"env_steps": env_steps, "mean_return": finite(mean_return)},
+                    checkpoint=tune.Checkpoint.from_directory(str(run)))
+
+    checkpoint = tune.get_checkpoint()
+    if checkpoint is None:
+        train_cell(cfg, folder, None, report)
+        return
+    with checkpoint.as_directory() as restored:
+        train_cell(cfg, folder, Path(restored), report)
+
+
+# -- the grid ----------------------------------------------------------------------------
+def _export(run: Path, dest: Path) -> None:
+    """Copy a finished run folder to ``runs/<cell>`` (renamed into place: exists = complete)."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(run, tmp, ignore=shutil.ignore_patterns("run.lock"))
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+
+
+def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    saved = out / "benchmark.json"
+    if resume:
+        if not saved.exists():
+            raise BenchmarkError(f"--resume: {out} holds no benchmark (no benchmark.json); "
+                                 "start one without --resume")
+        old = json.loads(saved.read_text())
+        if old != plan.to_dict():
+            raise BenchmarkError(f"--resume: {saved} was started with {old}; repeat those options "
+                                 "(or drop --resume and choose another --out)")
+    elif saved.exists():
+        raise BenchmarkError(f"{out} already holds a benchmark; continue it with --resume or "
+                             "choose another --out")
+    saved.write_text(json.dumps(plan.to_dict(), indent=2))
+
+
+def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
+                   progress: Callable[[str], None] | None = None) -> dict[str, Path]:
+    """Train every cell in this process, one after another (``--no-ray``).
+
+    Returns:
+        Cell name -> finished run folder under ``out/runs``.
+    """
+    out = Path(out)
+    _prepare(plan, out, resume)
+    done = {}
+    for cfg in plan.cells():
+        name = cell_name(cfg)
+        dest = out / "runs" / name
+        if not dest.exists():
+            folder = out / "trials" / name
+            runs = sorted(p for p in folder.glob("*") if (p / "config.yaml").exists()) if resume else []
+            if runs:  # interrupted: continue from its last checkpoint
+                _seed_everything(cfg.seed)
+                run = train(None, resume=runs[-1], quiet=True, progress=False)
+            else:
+                run = train_cell(cfg, folder)
+            _export(run, dest)
+        done[name] = dest
+        if progress:
+            progress(name)
+    return done
+
+
+def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: str | None = None,
+            concurrent: int = 2, gpus_per_trial: float = 0.0) -> dict[str, Path]:
+    """Train every cell as a Ray Tune trial, ``concurrent`` at a time.
+
+    Returns:
+        Cell name -> finished run folder under ``out/runs``.
+
+    Raises:
+        BenchmarkError: a trial failed (naming it and its error) or the run was interrupted.
+        eval.raysession.RayError: Ray missing or the address does not answer.
+    """
+    import os
+
+    from eval.raysession import ray_session
+
+    out = Path(out).resolve()
+    with ray_session(address):
+        _prepare(plan, out, resume)
+        from ray import tune
+
+        cells = plan.cells()
+        local_cpus = None if address else (os.cpu_count() or 1)
+        trainable = tune.with_resources(
+            _tune_trial, lambda config: trial_resources(TrainConfig(**config["cell"]), local_cpus,
+                                                        gpus_per_trial))
+        path = out / "tune" / "grid"
+        if resume and tune.Tuner.can_restore(str(path)):
+            tuner = tune.Tuner.restore(str(path), trainable, resume_unfinished=True,
+                                       resume_errored=True)
+        else:
+            tuner = tune.Tuner(
+                trainable,
+                param_space={"cell": tune.grid_search([c.to_dict() for c in cells]),
+                             "scratch": str(out / "trials")},
+                tune_config=tune.TuneConfig(max_concurrent_trials=concurrent or None,
+                                            trial_name_creator=lambda t: cell_name(t.config["cell"]),
+                                            trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
+                run_config=tune.RunConfig(
+                    name="grid", storage_path=str(out / "tune"), verbose=0,
+                    checkpoint_config=tune.CheckpointConfig(num_to_keep=4),
+                    failure_config=tune.FailureConfig(max_failures=0)),
+            )
+        grid = tuner.fit()
+    return _collect(grid, cells, out)
+
+
+def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
+    """Export the finished trials' last checkpoints; fail naming any that did not finish."""
+    steps = {cell_name(c): c.steps for c in cells}
+    done, failed, unfinished = {}, [], []
+    for result in grid:
+        name = cell_name(result.config["cell"])
+        if result.error is not None:
+            failed.append(f"{name} ({type(result.error).__name__}: {str(result.error).strip().splitlines()[-1][:200]})")
+        elif result.checkpoint is None or (result.metrics or {}).get("env_steps", 0) < steps[name]:
+            unfinished.append(name)
+        else:
+            dest = out / "runs" / name
+            if not dest.exists():
+                _export(Path(result.checkpoint.path), dest)
+            done[name] = dest
+    if failed:
+        raise BenchmarkError(f"{len(failed)} trial(s) failed: {'; '.join(failed)}")
+    if unfinished:
+        raise BenchmarkError(f"interrupted with {len(unfinished)} trial(s) unfinished "
+                             f"({', '.join(unfinished[:4])}{', ...' if len(unfinished) > 4 else ''}); "
+                             f"continue with: cosim benchmark --resume --out {out}")
+    return done
+
+
+# -- the test protocol and its report ----------------------------------------------------
+def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
+                 progress: Callable[[str], None] | None = None) -> list[Path]:
+    """Scenario 1 and 2 in every environment with that environment's trained policies
+    (every seed's, pooled), the references of the preset, and the `cosim test` report."""
+    import pandas as pd
+
+    from eval import selection
+    from eval.protocol import ProtocolPlan, policy_factory, reference_rows, run_protocol
+    from eval.report import provenance, write_paper_report
+
+    out = Path(out)
+    settings = TEST_SETTINGS[plan.preset]
+    algos = list(plan.algos)
+    frames, rows, first = [], [], {}
+    for env in plan.envs:
+        for seed in range(plan.seeds):
+            ckpts = {}
+            for algo in algos:
+                run = out / "runs" / f"{Path(env).stem}__{algo}__{seed}__bench"
+                chosen = selection.choose(run)
+                if chosen is None:
+                    raise BenchmarkError(f"{run}: no checkpoint; rerun with --resume")
+                ckpts[algo] = chosen.path
+                first.setdefault(algo, chosen.path)
+                rows.append(f"| {env} | {algo} | {seed} | `{chosen.path.relative_to(out)}` |")
+            test_plan = ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
+                                     seed=0, agents=len(algos))
+            records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
+            frames.append(records.assign(train_seed=seed))
+            if progress:
+                progress(f"{env} seed {seed}")
+    records = pd.concat(frames, ignore_index=True)
+    whole = ProtocolPlan(envs=tuple(plan.envs), episodes=settings.episodes, steps=settings.steps,
+                         seed=0, agents=len(algos))
+    refs = reference_rows(whole, list(settings.references)) if settings.references else None
+    prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
+                      command=list(command))
+    extra = ("\n## Benchmark grid\n\nEvery environment is tested with its own trained policies, "
+             f"{plan.seeds} seed(s) pooled (`cosim benchmark --preset {plan.preset}`); the "
+             "checkpoints listed under provenance are the first environment's.\n\n"
+             "| environment | algorithm | seed | checkpoint |\n|---|---|---|---|\n" + "\n".join(rows) + "\n")
+    return write_paper_report(records, out / "report", prov=prov, references=refs, extra_md=extra)
