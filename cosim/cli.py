@@ -123,6 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",
                    help="torch threads in the trainer (0: the CPUs the env workers leave, or torch's default)")
+    t.add_argument("--pbt", type=_int_in(2), default=None, metavar="P",
+                   help="Population Based Training on Ray Tune with P trials (eval/pbt.py)")
+    t.add_argument("--pbt-interval", type=_int_in(1), default=None, metavar="STEPS",
+                   help="environment steps between PBT exploit/explore decisions (default: the "
+                        "preset's checkpoint interval)")
+    t.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --pbt: an existing Ray cluster (default: local Ray)")
     t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
     t.set_defaults(func=cmd_train)
     e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
@@ -377,6 +384,8 @@ def cmd_train(args) -> int:
 
     from eval.train import ALGORITHMS, ASYNC_ALGOS, TrainError, make_config, parse_set, train
 
+    if args.pbt is not None or (args.resume is not None and (args.resume / "pbt.json").exists()):
+        return _train_pbt(args)
     try:
         if args.resume is not None:
             run = train(None, resume=args.resume, quiet=args.quiet)
@@ -440,6 +449,34 @@ def cmd_train(args) -> int:
         for proc in running.values():
             proc.terminate()
     return 1 if failed else 0
+
+
+def _train_pbt(args) -> int:
+    from eval.pbt import run_pbt
+    from eval.raysession import ray_available
+    from eval.train import TrainError, make_config, parse_set
+
+    if not ray_available():
+        print("cosim train: error: --pbt needs Ray Tune, which is not installed; install it with: "
+              "pip install -e '.[tune]'", file=sys.stderr)
+        return 2
+    try:
+        cfg = None
+        if args.resume is None:
+            if args.algo == "all":
+                raise TrainError("--pbt trains one algorithm; choose it with --algo")
+            cfg = make_config(args.algo, args.env, args.preset, agents=args.agents, steps=args.steps,
+                              seed=args.seed, action_type=args.action_type,
+                              agent_preset=args.agent_preset, hyper=parse_set(args.hyper),
+                              envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1)
+        folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
+                         address=args.ray_address)
+    except TrainError as exc:
+        print(f"cosim train: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"lineage: {folder / 'lineage.csv'}  {folder / 'lineage.png'}")
+    print(f"run folder (best trial): {folder}")
+    return 0
 
 
 def cmd_test(args) -> int:

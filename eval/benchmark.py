@@ -120,8 +120,10 @@ def _seed_everything(seed: int) -> None:
 
 
 def train_cell(cfg: TrainConfig, folder: Path, restore_from: Path | None = None,
-               on_checkpoint: Callable[[Path, int, float], None] | None = None) -> Path:
-    """Train one cell in ``folder`` (wiped first), from scratch or from a copied run folder.
+               on_checkpoint: Callable[[Path, int, float], None] | None = None,
+               prepare: Callable[[Path], None] | None = None) -> Path:
+    """Train one cell in ``folder`` (wiped first), from scratch or from a copied run folder
+    (``prepare(run)`` edits the copy before it is resumed).
 
     Returns:
         The run folder.
@@ -133,6 +135,8 @@ def train_cell(cfg: TrainConfig, folder: Path, restore_from: Path | None = None,
         return train(cfg, folder, quiet=True, progress=False, on_checkpoint=on_checkpoint)
     run = folder / "run"
     shutil.copytree(restore_from, run)
+    if prepare is not None:
+        prepare(run)
     return train(None, resume=run, quiet=True, progress=False, on_checkpoint=on_checkpoint)
 
 
