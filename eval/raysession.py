@@ -38,8 +38,11 @@ class RayError(CosimError, RuntimeError):
 def ray_available() -> bool:
     """Whether Ray Tune can be imported (without importing it)."""
     import importlib.util
+    from pathlib import Path
 
-    return importlib.util.find_spec("ray") is not None and importlib.util.find_spec("ray.tune") is not None
+    spec = importlib.util.find_spec("ray")  # find_spec("ray.tune") would import ray
+    return spec is not None and any((Path(p) / "tune").is_dir()
+                                    for p in spec.submodule_search_locations or ())
 
 
 def probe_address(address: str, timeout: float = 3.0) -> None:

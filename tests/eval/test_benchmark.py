@@ -1,0 +1,296 @@
+"""`cosim benchmark` and `cosim train --pbt` on Ray Tune (eval/benchmark.py, eval/pbt.py).
+
+Each Ray run is a `cosim` subprocess with its own RAY_TMPDIR, so the test can tell
+its Ray processes (GCS, raylet, workers inherit the variable) from anyone else's
+and end exactly those. Tests that need Ray skip when it is not installed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from eval.raysession import ray_available
+
+needs_ray = pytest.mark.skipif(not ray_available(),
+                               reason="Ray Tune is not installed (pip install -e '.[tune]')")
+PBT_STEPS, PBT_INTERVAL = 180, 60
+
+
+@pytest.fixture
+def ray_tmp():
+    """A short RAY_TMPDIR (Ray's socket paths must stay under 107 characters); on the way
+    out, the test asserts that no process of this Ray is left, and ends any that is."""
+    path = Path(tempfile.mkdtemp(prefix="cr", dir="/tmp"))
+    yield path
+    left = ray_pids(path)
+    for pid in left:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    assert not left, f"Ray processes left behind: {left}"
+
+
+def ray_pids(tmp: Path) -> list[int]:
+    """PIDs of live processes started with RAY_TMPDIR=tmp (Ray's processes inherit it)."""
+    needle = f"RAY_TMPDIR={tmp}\0".encode()
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
+        try:
+            if needle in (proc / "environ").read_bytes():
+                status = (proc / "status").read_text()
+                if "\nState:\tZ" not in status:
+                    found.append(int(proc.name))
+        except OSError:
+            continue
+    return found
+
+
+def cosim(args: list[str], ray_tmp: Path | None = None, timeout: float = 600, **kwargs):
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if ray_tmp is not None:
+        env["RAY_TMPDIR"] = str(ray_tmp)
+    return subprocess.run([sys.executable, "-m", "cosim.cli", *args], env=env, capture_output=True,
+                          text=True, timeout=timeout, **kwargs)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def tensors(path: Path) -> dict:
+    import torch
+
+    def flat(d, prefix=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{prefix}{k}.")
+            elif torch.is_tensor(v):
+                yield f"{prefix}{k}", v
+    return dict(flat(torch.load(path, map_location="cpu", weights_only=True)["state"]))
+
+
+# -- without Ray ---------------------------------------------------------------------
+def test_commands_without_a_grid_never_import_ray():
+    code = ("import sys, cosim.cli, eval.benchmark, eval.pbt, eval.raysession; "
+            "cosim.cli.build_parser().parse_args(['benchmark', '--no-ray']); "
+            "eval.raysession.ray_available(); assert 'ray' not in sys.modules, 'ray imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_benchmark_without_ray_says_how_to_install(monkeypatch, capsys, tmp_path):
+    import eval.raysession
+    from cosim.cli import main
+
+    monkeypatch.setattr(eval.raysession, "ray_available", lambda: False)
+    assert main(["benchmark", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "pip install -e '.[tune]'" in err
+    assert main(["train", "--algo", "ppo", "--pbt", "4", "--out", str(tmp_path)]) == 2
+    assert "pip install -e '.[tune]'" in capsys.readouterr().err
+
+
+def test_pbt_mutations_are_fields_of_each_agent_config():
+    from eval.pbt import MUTATIONS, mutation_space, with_hyper
+    from eval.train import make_config
+
+    for algo in MUTATIONS:
+        cfg = make_config(algo, "env_1", "quick")
+        space = mutation_space(algo, cfg.agent_config)
+        assert space and all(len(v) >= 3 for v in space.values()), (algo, space)
+        for name, values in space.items():  # every value is valid for the agent's config class
+            for value in values:
+                assert with_hyper(cfg, {name: value}).agent_config[name] == value
+
+
+# -- Ray -------------------------------------------------------------------------------
+@needs_ray
+def test_ray_address_that_does_not_answer_fails_within_seconds(tmp_path):
+    port = free_port()
+    for args in (["benchmark", "--envs", "env_1", "--algos", "ppo", "--out", str(tmp_path / "b")],
+                 ["train", "--algo", "ppo", "--pbt", "2", "--out", str(tmp_path / "p")]):
+        start = time.monotonic()
+        done = cosim([*args, "--ray-address", f"127.0.0.1:{port}"], timeout=60)
+        assert time.monotonic() - start < 20  # python + torch imports included; Ray itself retries ~60 s
+        assert done.returncode == 1, done.stderr
+        assert f"no Ray cluster answers at 127.0.0.1:{port}" in done.stderr
+        assert "ray start --head" in done.stderr
+    bad = cosim(["benchmark", "--ray-address", "nonsense", "--out", str(tmp_path / "c")], timeout=60)
+    assert bad.returncode == 1 and "write HOST:PORT" in bad.stderr
+
+
+def _checkpoints(tune_dir: Path) -> dict[tuple[str, int], Path]:
+    """(trial, env_steps) -> the Tune checkpoint (a run folder) that trial reported then."""
+    out = {}
+    for meta in tune_dir.glob("*/checkpoint_*/pbt_trial.json"):
+        m = json.loads(meta.read_text())
+        if meta.parent.parent.name == m["trial"]:
+            out[(m["trial"], m["env_steps"])] = meta.parent
+    return out
+
+
+@needs_ray
+def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperparameters(tmp_path, ray_tmp):
+    import pandas as pd
+    import torch
+
+    from eval import selection
+    from eval.pbt import weights_digest
+    from eval.protocol import load_for_slot
+
+    done = cosim(["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps",
+                  str(PBT_STEPS), "--pbt", "4", "--pbt-interval", str(PBT_INTERVAL), "--out",
+                  str(tmp_path)], ray_tmp, timeout=400)
+    assert done.returncode == 0, done.stderr[-3000:]
+    (folder,) = tmp_path.glob("env_1__ppo__0__pbt4-*")
+    lineage = pd.read_csv(folder / "lineage.csv")
+    assert (folder / "lineage.png").stat().st_size > 10_000
+    exploits = lineage.drop_duplicates(["env_steps", "trial"])
+    assert len(exploits) >= 1, "no exploit happened"
+    assert set(lineage["parameter"]) == {"learning_rate", "ent_coef", "clip_coef", "gae_lambda"}
+    ckpts = _checkpoints(folder / "pbt" / "tune" / "pbt")
+    checked = 0
+    for e in exploits.itertuples():
+        rows = lineage[(lineage.env_steps == e.env_steps) & (lineage.trial == e.trial)]
+        assert rows["perturbed"].any(), f"exploit of {e.trial} at {e.env_steps}: nothing perturbed"
+        donor_ckpt = ckpts[(e.donor, e.env_steps)]
+        # the weights resumed are the donor's at that step, not the clone's own
+        donor = weights_digest(donor_ckpt / "checkpoints/ac_0/latest.pt")
+        assert e.donor_weights_sha256 == donor and e.resumed_weights_sha256 == donor
+        own = ckpts.get((e.trial, e.env_steps))
+        if own is not None:
+            assert weights_digest(own / "checkpoints/ac_0/latest.pt") != donor
+        after = ckpts.get((e.trial, e.env_steps + PBT_INTERVAL))
+        if after is None:  # cloned at the final step
+            continue
+        # the step counter and the episode history continue from the donor's
+        assert json.loads((after / "state.json").read_text())["env_steps"] == e.env_steps + PBT_INTERVAL
+        donor_rows = (donor_ckpt / "episodes.csv").read_text().splitlines()
+        assert (after / "episodes.csv").read_text().splitlines()[: len(donor_rows)] == donor_rows
+        # the perturbed hyperparameters are the ones trained with: config and optimizer
+        new = dict(zip(rows.parameter, rows.new_value, strict=True))
+        agent_config = yaml.safe_load((after / "config.yaml").read_text())["agent_config"]
+        assert agent_config["learning_rate"] == pytest.approx(new["learning_rate"])
+        payload = torch.load(after / "checkpoints/ac_0/latest.pt", weights_only=True)
+        assert payload["config"]["ent_coef"] == pytest.approx(new["ent_coef"])
+        lr = payload["state"]["optimizers"]["optimizer"]["param_groups"][0]["lr"]
+        assert lr == pytest.approx(new["learning_rate"])
+        checked += 1
+    assert checked >= 1, "no exploit before the final step to follow"
+    # the best trial is a normal run folder that `cosim test` loads
+    chosen = selection.choose(folder)
+    assert chosen is not None and load_for_slot(chosen.path, "ppo") is not None
+    assert len(pd.read_csv(folder / "trials.csv")) == 4
+
+
+BENCH = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn", "td3",
+         "--steps", "80"]
+
+
+@needs_ray
+def test_benchmark_with_ray_and_without_gives_the_same_checkpoints(tmp_path, ray_tmp):
+    with_ray = cosim([*BENCH, "--train-only", "--concurrent", "2", "--out", str(tmp_path / "ray")],
+                     ray_tmp)
+    assert with_ray.returncode == 0, with_ray.stderr[-3000:]
+    without = cosim([*BENCH, "--train-only", "--no-ray", "--out", str(tmp_path / "seq")])
+    assert without.returncode == 0, without.stderr[-3000:]
+    files = sorted((tmp_path / "ray" / "runs").glob("*/checkpoints/ac_*/latest.pt"))
+    assert len(files) == 3 * 2  # three cells, two ACs each
+    for path in files:
+        other = tmp_path / "seq" / path.relative_to(tmp_path / "ray")
+        a, b = tensors(path), tensors(other)
+        assert a.keys() == b.keys() and a
+        different = [k for k in a if not (a[k] == b[k]).all()]
+        assert not different, f"{path.relative_to(tmp_path)}: {different[:3]}"
+        assert json.loads((path.parents[2] / "state.json").read_text())["env_steps"] == 80
+
+
+@needs_ray
+@pytest.mark.slow
+def test_benchmark_writes_the_report_in_one_command(tmp_path, ray_tmp):
+    done = cosim([*BENCH, "--out", str(tmp_path / "b")], ray_tmp)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = tmp_path / "b" / "report"
+    for name in ("index.html", "rq1.md", "provenance.json"):
+        assert (report / name).exists(), name
+    rq1 = (report / "rq1.md").read_text()
+    assert all(algo.upper() in rq1.upper() for algo in ("ppo", "dqn", "td3"))
+    assert "Benchmark grid" in (report / "index.md").read_text()
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp):
+    out = tmp_path / "b"
+    args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn",
+            "--steps", "160", "--concurrent", "1", "--train-only", "--out", str(out)]
+    env = {**os.environ, "RAY_TMPDIR": str(ray_tmp)}
+    proc = subprocess.Popen([sys.executable, "-m", "cosim.cli", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    grid = out / "tune" / "grid"
+    deadline = time.monotonic() + 300
+    # interrupt once the first trial finished and the second has a checkpoint
+    while time.monotonic() < deadline and len(list(grid.glob("*/checkpoint_*"))) < 5:
+        time.sleep(0.5)
+    first = out / "trials" / "env_1__ppo__0__bench"
+    assert first.exists() and proc.poll() is None
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal sends: the whole group
+    log, _ = proc.communicate(timeout=120)
+    assert proc.returncode != 0, log[-2000:]
+    assert "--resume" in log
+    time.sleep(2)
+    assert not ray_pids(ray_tmp), "Ray processes left after Ctrl-C"
+    finished = {p: p.stat().st_mtime_ns for p in first.rglob("state.json")}
+    resumed = cosim([*args, "--resume"], ray_tmp)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert {p: p.stat().st_mtime_ns for p in first.rglob("state.json")} == finished  # not redone
+    for cell in ("env_1__ppo__0__bench", "env_1__dqn__0__bench"):
+        assert json.loads((out / "runs" / cell / "state.json").read_text())["env_steps"] == 160
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ray_start_head_on_loopback_and_benchmark_on_it(tmp_path, ray_tmp):
+    port = free_port()
+    env = {**os.environ, "RAY_TMPDIR": str(ray_tmp), "RAY_USAGE_STATS_ENABLED": "0",
+           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+    ray_bin = Path(sys.executable).with_name("ray")
+    start = subprocess.run([str(ray_bin), "start", "--head", "--node-ip-address", "127.0.0.1",
+                            "--port", str(port), "--num-cpus", "2", "--include-dashboard", "false",
+                            "--disable-usage-stats"], env=env, capture_output=True, text=True,
+                           timeout=120)
+    try:
+        assert start.returncode == 0, start.stderr[-2000:]
+        listening = subprocess.run(["ss", "-ltnp"], capture_output=True, text=True).stdout
+        ours = [line for line in listening.splitlines() if f":{port} " in line]
+        assert ours and all("127.0.0.1:" in line for line in ours), ours
+        done = cosim(["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo",
+                      "--steps", "40", "--train-only", "--ray-address", f"127.0.0.1:{port}",
+                      "--out", str(tmp_path / "b")], ray_tmp)
+        assert done.returncode == 0, done.stderr[-3000:]
+        assert (tmp_path / "b" / "runs" / "env_1__ppo__0__bench" / "checkpoints").exists()
+    finally:  # the head's processes, by PID (never `ray stop`: it stops every Ray on the machine)
+        for pid in ray_pids(ray_tmp):
+            try:
+                os.kill(pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + 20
+        while ray_pids(ray_tmp) and time.monotonic() < deadline:
+            time.sleep(0.5)
