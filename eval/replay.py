@@ -88,7 +88,7 @@ def capture(plan, make_policy: Callable, algos: Sequence[str], records: pd.DataF
         return done
     out = Path(out)
     # one re-run per (scenario, env, episode[, algorithm alone]) covers all its targets
-    for (scenario, env_name, episode), group in targets.groupby(["scenario", "env", "episode"], sort=True):
+    for (scenario, env_name, _episode), group in targets.groupby(["scenario", "env", "episode"], sort=True):
         runs = [group] if scenario == 1 else [group[group["algorithm"] == a] for a in group["algorithm"]]
         for sub in runs:
             env_algos = algos if scenario == 1 else [sub["algorithm"].iloc[0]]

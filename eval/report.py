@@ -272,7 +272,6 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
                        dt: float = 0.1, figures: bool = True, extra_md: str = "") -> list[Path]:
     """The combined Table RQ1 (md, csv long/wide, tex), figures, index.md/html, provenance."""
     from eval import figures as figs
-
     from eval.protocol import metrics_table
     from eval.records import save
 
@@ -298,7 +297,8 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
                                  "rq1.tex", "provenance.json")]
     figures_written = figs.write_all(records, per, long, out, labels) if figures else []
     written += figures_written
-    written += write_index(out, md, prov, figures_written, references, replays, extra_md)
+    index_md = rq1_markdown(*with_replay_links(header, rows, groups, scenarios, algos, long, replays))
+    written += write_index(out, index_md, prov, figures_written, references, replays, extra_md)
     (out / "report.md").write_text((out / "index.md").read_text())
     written.append(out / "report.md")
     if references is not None and not references.empty:
@@ -320,6 +320,27 @@ FILE_NOTES = {
     "crossplay.csv": "cross-play: the ego's collision and goal rates per partner (per environment and pooled)",
     "crossplay.md": "cross-play matrix, Markdown",
 }
+
+
+def with_replay_links(header, rows, groups, scenarios, algos, long: pd.DataFrame,
+                      replays: Sequence[dict]):
+    """The table for the index: a 'first collision' row after TTFC in each environment,
+    linking the failure replay of each column that has one (eval/replay.py)."""
+    if not replays:
+        return header, rows, groups
+    by = {(r["title"], r["scenario"], r["algorithm"]): r for r in replays}
+    cols = [(s, a) for s in scenarios for a in algos]
+    out_rows, out_groups, k = [], [], 0
+    for title, size in groups:
+        block = rows[k:k + size]
+        k += size
+        links = [title, "first collision"] + [
+            f"[clip]({by[(title, s, a)]['strip']}) [state]({by[(title, s, a)]['meta']})"
+            if (title, s, a) in by else "" for s, a in cols]
+        at = next((i for i, r in enumerate(block) if r[1] == "TTFC"), len(block) - 1) + 1
+        out_rows += [*block[:at], links, *block[at:]]
+        out_groups.append((title, size + 1))
+    return header, out_rows, out_groups
 
 
 def write_index(out: Path, rq1_md: str, prov: dict, figures: Sequence[Path],

@@ -296,7 +296,7 @@ def write(out: Path, labels: dict, cross: pd.DataFrame | None = None,
         figs = cross_play_heatmap(table, out, labels)
         written += [out / "crossplay.csv", out / "crossplay.md", *figs]
         md += ["\n## Cross-play (Scenario 1 conditions: the ego AC among ACs of one partner policy)\n",
-               text, f"\n![crossplay_heatmap](crossplay_heatmap.png) ([PDF](crossplay_heatmap.pdf))\n"]
+               text, "\n![crossplay_heatmap](crossplay_heatmap.png) ([PDF](crossplay_heatmap.pdf))\n"]
     for kind, rec in (sweeps or {}).items():
         table = sweep_table(rec)
         table.to_csv(out / f"sweep_{kind}.csv", index=False)

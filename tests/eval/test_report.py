@@ -213,6 +213,10 @@ def test_failure_replay_of_a_real_collision(tmp_path, capsys):
     html = (tmp_path / "index.html").read_text()
     for key in ("camera", "overview", "strip", "state", "meta"):
         assert f'href="{row[key]}"' in html
+    # next to the metric that counts it: a row after TTFC in the index's Table RQ1
+    index = (tmp_path / "index.md").read_text()
+    assert f"| first collision | [clip]({row['strip']}) [state]({row['meta']}) |" in index
+    assert index.index("| TTFC |") < index.index("| first collision |") < index.index("| SPEED |")
     import imageio.v3 as iio
 
     frames = iio.imread(tmp_path / row["camera"])
@@ -237,7 +241,7 @@ def test_cross_play_and_a_sweep_on_tiny_budgets(tmp_path):
     (folder,) = tmp_path.iterdir()
     cross = pd.read_csv(folder / "crossplay.csv")
     pooled = cross[cross.env == "all"]
-    assert sorted(zip(pooled.ego, pooled.partner)) == sorted(
+    assert sorted(zip(pooled.ego, pooled.partner, strict=True)) == sorted(
         (e, p) for e in ("ppo", "a3c") for p in ("ppo", "a3c", "autopilot"))
     assert pooled.collision_rate.between(0, 1).all() and (pooled.n == 1).all()
     sweep = pd.read_csv(folder / "sweep_density.csv")
