@@ -532,6 +532,15 @@ def cmd_test(args) -> int:
     out = _output_folder(args.out / dt.datetime.now().strftime("%Y%m%d-%H%M%S"), "--out")
     for algo, path in (ckpts or {}).items():
         print(f"{algo:7s} {path}")
+    from eval import selection
+    from eval.report import provenance, write_paper_report
+
+    # provenance first: the code, checkpoints and hashes as they are when the test starts
+    picked = {a: selection.describe(p) if a in given else
+              (selection.choose(p.parent.parent.parent) or selection.describe(p))
+              for a, p in (ckpts or {}).items()}
+    prov = provenance(policy=args.policy, plan=plan, algos=algos, checkpoints=ckpts,
+                      selections=picked, command=_test_command(args))
     units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
     bar = tqdm(total=units, disable=args.quiet, unit="run", desc="test")
     records = run_protocol(plan, factory, algos, progress=lambda name: bar.update(1))
@@ -539,14 +548,6 @@ def cmd_test(args) -> int:
     refs = None
     if refs_wanted:
         refs = reference_rows(plan, refs_wanted)
-    from eval import selection
-    from eval.report import provenance, write_paper_report
-
-    picked = {a: selection.describe(p) if a in given else
-              (selection.choose(p.parent.parent.parent) or selection.describe(p))
-              for a, p in (ckpts or {}).items()}
-    prov = provenance(policy=args.policy, plan=plan, algos=algos, checkpoints=ckpts,
-                      selections=picked, command=_test_command(args))
     replays = []
     if not args.no_replays:
         from eval import replay
