@@ -11,7 +11,8 @@ From the per-step records of the test protocol (eval/protocol.py) this writes:
   "-": the metric does not apply (CV with no other vehicle, CP with no
   pedestrian); "--": TTFC of an AC that never collided. Files: ``rq1.md``,
   ``rq1_long.csv`` (one row per cell: mean, ci_low, ci_high, n),
-  ``rq1_wide.csv`` (the table as printed) and ``rq1.tex`` (booktabs + multirow).
+  ``rq1_wide.csv`` (the table as printed) and ``rq1.tex`` (booktabs + multirow,
+  scaled to the page width: ``\\usepackage{booktabs,multirow,graphicx}``).
 - Figures (eval/figures.py), each as PDF and PNG.
 - ``index.md`` and ``index.html``: everything above with its provenance
   (``provenance.json``: runs and checkpoints with SHA-256, the rule that chose each
@@ -173,16 +174,17 @@ def _tex_cell(c: str) -> str:
 
 
 def rq1_latex(header, rows, groups, scenarios, algos, labels: Mapping[str, str]) -> str:
-    """booktabs + multirow; needs \\usepackage{booktabs,multirow} in the preamble."""
+    """booktabs + multirow, scaled to the page width; needs \\usepackage{booktabs,multirow,graphicx}."""
     k = len(algos)
     cols = "ll" + "c" * (k * len(scenarios))
     lines = [
-        "% Table RQ1 (cosim test): needs \\usepackage{booktabs} and \\usepackage{multirow}",
+        "% Table RQ1 (cosim test): needs \\usepackage{booktabs,multirow,graphicx}",
         r"\begin{table*}[t]", r"\centering", r"\small", r"\setlength{\tabcolsep}{3pt}",
         r"\caption{Driving errors per environment (Table RQ1): mean $\pm$ 95\% bootstrap CI over "
         r"episodes. CV, CO, CP, OS, RL: fraction of steps; TTFC: s; SPEED: km/h; DISTANCE: m. "
         r"``-'': does not apply; ``--'': no collision.}",
         r"\label{tab:rq1}",
+        r"\resizebox{\textwidth}{!}{%",  # twelve columns of mean ± CI: fit the page width
         rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
     ]
     head = ["", ""] + [rf"\multicolumn{{{k}}}{{c}}{{{_tex(SCENARIO_NAMES.get(s, f'Scenario {s}'))}}}"
@@ -201,7 +203,7 @@ def rq1_latex(header, rows, groups, scenarios, algos, labels: Mapping[str, str])
             lines.append(" & ".join([first, _tex(r[1])] + [_tex_cell(c) for c in r[2:]]) + r" \\")
         i += size
         lines.append(r"\midrule" if g < len(groups) - 1 else r"\bottomrule")
-    lines += [r"\end{tabular}", r"\end{table*}"]
+    lines += [r"\end{tabular}}", r"\end{table*}"]
     return "\n".join(lines) + "\n"
 
 

@@ -84,7 +84,7 @@ def test_latex_is_booktabs_multirow_and_compiles_or_is_balanced(reports, tmp_pat
     engine = shutil.which("pdflatex")
     if engine:
         doc = tmp_path / "t.tex"
-        doc.write_text("\\documentclass{article}\\usepackage{booktabs,multirow}\\begin{document}\n"
+        doc.write_text("\\documentclass{article}\\usepackage{booktabs,multirow,graphicx}\\begin{document}\n"
                        + tex + "\\end{document}\n")
         done = subprocess.run([engine, "-interaction=nonstopmode", doc.name], cwd=tmp_path,
                               capture_output=True, timeout=120)
