@@ -223,7 +223,11 @@ def run_pbt(cfg: TrainConfig | None, population: int = 4, interval: int | None =
         (folder / "pbt.json").write_text(json.dumps({"config": cfg.to_dict(), "population": population,
                                                      "interval": interval}, indent=2))
     space = mutation_space(cfg.algo, cfg.agent_config)
-    with ray_session(address):
+    # a local population trains side by side, time-shared when it outnumbers the cores:
+    # synchronous PBT would otherwise pause and restart trials at every interval
+    import os
+
+    with ray_session(address, num_cpus=None if address else max(os.cpu_count() or 1, population)):
         grid = _fit(cfg, population, interval, space, folder, resume is not None, concurrent)
     _finish(grid, folder, cfg, space)
     return folder

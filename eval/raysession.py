@@ -29,6 +29,10 @@ RAY_ENV = {
     "RAY_AIR_NEW_OUTPUT": "0",
     "RAY_DEDUP_LOGS": "0",
 }
+# for the trials' processes, on a cluster too: a function trainable is reused (PBT,
+# reuse_actors=True) only if its training thread ends within this time after a stop;
+# Ray's 2 s default is shorter than a trial's env.close() and final plot
+TRIAL_ENV = {"TUNE_FUNCTION_THREAD_TIMEOUT_S": "60"}
 
 
 class RayError(CosimError, RuntimeError):
@@ -83,14 +87,15 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
         raise RayError(INSTALL_HINT)
     if address:
         probe_address(address)
-    for key, value in RAY_ENV.items():
+    for key, value in {**RAY_ENV, **TRIAL_ENV}.items():
         os.environ.setdefault(key, value)
     import ray
 
     if ray.is_initialized():  # a caller's own session (a notebook): use it, leave it running
         yield
         return
-    kwargs = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
+    kwargs = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False,
+              "runtime_env": {"env_vars": TRIAL_ENV}}
     if address:
         ray.init(address=address, **kwargs)
     else:
