@@ -231,6 +231,8 @@ def test_failure_replay_of_a_real_collision(tmp_path, capsys):
     assert "target" in again["positions"]["vehicles"] and again["max_deviation_m"] < 0.05
     assert main(["replay", str(tmp_path / row["meta"]), "--plot", str(tmp_path / "p.png")]) == 0
     assert "<- collided" in capsys.readouterr().out and (tmp_path / "p.png").exists()
+    assert main(["replay", str(tmp_path / "records.parquet")]) == 2
+    assert "not a failure replay" in capsys.readouterr().err
 
 
 def test_cross_play_and_a_sweep_on_tiny_budgets(tmp_path):
