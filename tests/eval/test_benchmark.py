@@ -293,18 +293,19 @@ def test_ray_start_head_on_loopback_and_benchmark_on_it(tmp_path, ray_tmp):
         assert start.returncode == 0, start.stderr[-2000:]
         listening = subprocess.run(["ss", "-ltnp"], capture_output=True, text=True).stdout
         ours = [line for line in listening.splitlines() if f":{port} " in line]
-        assert ours and all("127.0.0.1:" in line for line in ours), ours
+        assert ours and all("127.0.0.1]:" in line or " 127.0.0.1:" in line for line in ours), ours
         done = cosim(["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo",
                       "--steps", "40", "--train-only", "--ray-address", f"127.0.0.1:{port}",
                       "--out", str(tmp_path / "b")], ray_tmp)
         assert done.returncode == 0, done.stderr[-3000:]
         assert (tmp_path / "b" / "runs" / "env_1__ppo__0__bench" / "checkpoints").exists()
     finally:  # the head's processes, by PID (never `ray stop`: it stops every Ray on the machine)
-        for pid in ray_pids(ray_tmp):
-            try:
-                os.kill(pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
-        deadline = time.monotonic() + 20
-        while ray_pids(ray_tmp) and time.monotonic() < deadline:
-            time.sleep(0.5)
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            for pid in ray_pids(ray_tmp):
+                try:
+                    os.kill(pid, sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + 10
+            while ray_pids(ray_tmp) and time.monotonic() < deadline:
+                time.sleep(0.5)
