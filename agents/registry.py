@@ -1,26 +1,52 @@
-"""Algorithm registry: name -> agent class, so a checkpoint can be rebuilt by name.
+"""The algorithm catalogue: every algorithm's name, class, action kind and training loop.
 
-Entries are ``"module:Class"`` strings imported on first use, so importing the
-registry does not import every algorithm (and cannot create import cycles).
+This is the one place an algorithm is listed; the training layer (``eval/``), the
+test protocol and a checkpoint's loader read it from here. Classes are given as
+``"module:Class"`` strings imported on first use, so importing the catalogue does
+not import every algorithm (and cannot create import cycles).
 """
 
 from __future__ import annotations
 
 import importlib
+from dataclasses import dataclass
 
-__all__ = ["ALGORITHMS", "available", "get_agent_class"]
+__all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DISCRETE", "Algorithm", "available",
+           "get_agent_class"]
+
+
+@dataclass(frozen=True)
+class Algorithm:
+    """One catalogue entry."""
+
+    name: str
+    """What ``--algo`` and checkpoints call it."""
+    target: str
+    """The agent class, ``"module:Class"``."""
+    action: str
+    """``"discrete"`` (Discrete(9)) or ``"continuous"`` (Box(-1, 1, (2,)))."""
+    loop: str
+    """``"sync"``: one process steps the environments (agents.loop.run_vector_loop);
+    ``"async"``: worker/actor processes, each with its own environment."""
+
 
 # ---------------------------------------------------------------------------------------
-# REGISTERED ALGORITHMS: one line per algorithm, "name": "module:Class".
-ALGORITHMS: dict[str, str] = {
-    "ppo": "agents.ppo:PPO",
-    "dqn": "agents.dqn:DQN",
-    "ddpg": "agents.ddpg:DDPG",
-    "td3": "agents.td3:TD3",
-    "a3c": "agents.a3c:A3C",
-    "impala": "agents.impala:IMPALA",
-}
+# THE CATALOGUE: one line per algorithm, in the paper's order (SPEC §5 tables).
+CATALOGUE: tuple[Algorithm, ...] = (
+    Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync"),
+    Algorithm("a3c", "agents.a3c:A3C", "discrete", "async"),
+    Algorithm("impala", "agents.impala:IMPALA", "discrete", "async"),
+    Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync"),
+    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync"),
+    Algorithm("td3", "agents.td3:TD3", "continuous", "sync"),
+)
 # ---------------------------------------------------------------------------------------
+
+ALGORITHMS: dict[str, str] = {a.name: a.target for a in CATALOGUE}
+"""name -> ``"module:Class"``, in catalogue order."""
+DISCRETE: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.action == "discrete")
+CONTINUOUS: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.action == "continuous")
+ASYNC: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.loop == "async")
 
 
 def available() -> list[str]:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from agents import registry
 from cosim.errors import CosimError
 from eval import selection
 from eval.metrics import METRICS, episode_metrics, speed_curve, success_rates, summarize
@@ -28,8 +29,8 @@ from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
 
 log = logging.getLogger(__name__)
 
-ALGO_ORDER = ("ppo", "a3c", "impala", "dqn", "ddpg", "td3")
-CONTINUOUS = ("ddpg", "td3")
+ALGO_ORDER = tuple(registry.ALGORITHMS)  # the catalogue's order (agents/registry.py)
+CONTINUOUS = registry.CONTINUOUS
 ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
 
 

@@ -20,7 +20,7 @@ import sys
 import torch
 
 import agents.checkpoint
-import eval.train
+import eval.runlog
 from cosim.cli import main
 
 calls = {"checkpoint": 0}
@@ -31,7 +31,7 @@ def fire() -> None:
     os.kill(os.getpid(), sig)
 
 
-real_checkpoint = eval.train.RunLog.checkpoint
+real_checkpoint = eval.runlog.RunLog.checkpoint
 
 
 def checkpoint(self, *args, **kwargs):
@@ -41,7 +41,7 @@ def checkpoint(self, *args, **kwargs):
     return real_checkpoint(self, *args, **kwargs)
 
 
-real_write = eval.train._atomic_write
+real_write = eval.runlog.atomic_write  # how RunLog.checkpoint writes state.json
 
 
 def atomic_write(path, text):
@@ -67,7 +67,7 @@ def save(obj, f, *args, **kwargs):
 
 if __name__ == "__main__":  # worker processes (spawn) import this module again
     moment, nth, sig = sys.argv[1], int(sys.argv[2]), getattr(signal, f"SIG{sys.argv[3]}")
-    eval.train.RunLog.checkpoint = checkpoint
-    eval.train._atomic_write = atomic_write
+    eval.runlog.RunLog.checkpoint = checkpoint
+    eval.runlog.atomic_write = atomic_write
     agents.checkpoint.torch.save = save
     sys.exit(main(sys.argv[sys.argv.index("--") + 1:]))

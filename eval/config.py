@@ -1,0 +1,168 @@
+"""Training configuration: :class:`TrainConfig`, resolved from a preset by
+:func:`make_config`, with ``--set FIELD=VALUE`` hyperparameter changes
+(:func:`parse_set`, :func:`parse_hyper`).
+
+Algorithm names, action kinds and training loops come from the catalogue
+(agents/registry.py); presets from eval/presets.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import yaml
+
+from agents import registry
+from cosim.errors import CosimError
+from eval.presets import load_presets
+
+__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "CONTINUOUS_ALGOS", "DISCRETE_ALGOS", "TrainConfig", "TrainError",
+           "make_config", "parse_hyper", "parse_set"]
+
+ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
+DISCRETE_ALGOS = registry.DISCRETE
+CONTINUOUS_ALGOS = registry.CONTINUOUS
+ASYNC_ALGOS = registry.ASYNC
+
+
+class TrainError(CosimError, ValueError):
+    """A training request that cannot run; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (written to config.yaml)."""
+
+    algo: str
+    env: str = "env_1"
+    agents: int = 3
+    steps: int = 10_000
+    seed: int = 0
+    preset: str = "quick"
+    horizon: int = 300
+    checkpoint_every: int = 2_000
+    workers: int = 2
+    image_size: int = 84
+    agent_config: dict[str, Any] = field(default_factory=dict)
+    envs: int = 1
+    """Environments stepped together, each in its own process when > 1 (PPO, DQN, DDPG, TD3)."""
+    device: str = "auto"
+    """Torch device of the learners: auto (cuda when available), cpu or cuda."""
+    torch_threads: int = 0
+    """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers
+    (cpu_count - envs, at least 1) when envs > 1, else torch's default."""
+
+    @property
+    def action_type(self) -> str:
+        return "discrete" if self.algo in DISCRETE_ALGOS else "continuous"
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents: int | None = None,
+                steps: int | None = None, seed: int = 0, action_type: str | None = None,
+                image_size: int = 84, agent_preset: str | None = None,
+                hyper: Mapping[str, str] | None = None, envs: int = 1, device: str = "auto",
+                torch_threads: int = 0) -> TrainConfig:
+    """Resolve a training request into a TrainConfig, refusing what cannot work.
+
+    ``hyper`` changes agent hyperparameters last, field name -> value as text
+    (``cosim train --set actor_learning_rate=1e-4``).
+
+    Raises:
+        TrainError: unknown algorithm or preset (listing the valid ones), an action
+            type the algorithm cannot use (with the reason), bad numbers.
+        cosim.errors.ScenarioError: unknown environment (listing the valid ones).
+    """
+    from cosim.scenario import load_scenario
+
+    if algo not in ALGORITHMS:
+        raise TrainError(f"unknown algorithm {algo!r}; choose one of {', '.join(ALGORITHMS)} (or 'all')")
+    presets = load_presets()
+    if preset not in presets:
+        raise TrainError(f"unknown preset {preset!r}; choose one of {', '.join(presets)}")
+    natural = "discrete" if algo in DISCRETE_ALGOS else "continuous"
+    if action_type is not None and action_type != natural:
+        why = ("it picks among a finite set of actions (Discrete(9))" if natural == "discrete"
+               else "its actor outputs continuous values (Box(-1, 1, (2,)))")
+        raise TrainError(
+            f"{algo} cannot train with {action_type} actions: {why}; use --action-type {natural} "
+            f"or a {'continuous' if natural == 'discrete' else 'discrete'} algorithm "
+            f"({', '.join(CONTINUOUS_ALGOS if natural == 'discrete' else DISCRETE_ALGOS)})"
+        )
+    scenario = load_scenario(env)
+    p = presets[preset]
+    n = p.agents if agents is None else int(agents)
+    if not 1 <= n <= scenario.max_agents:
+        raise TrainError(f"--agents must be 1..{scenario.max_agents} for {env}, got {n}")
+    total = p.steps[algo] if steps is None else int(steps)
+    if total < 1:
+        raise TrainError(f"--steps must be >= 1, got {total}")
+    if int(envs) < 1 or int(torch_threads) < 0:
+        raise TrainError(f"--envs must be >= 1 and --torch-threads >= 0, got {envs} and {torch_threads}")
+    if int(envs) > 1 and algo in ASYNC_ALGOS:
+        sync = [a for a in ALGORITHMS if a not in ASYNC_ALGOS]
+        raise TrainError(f"--envs applies to {', '.join(sync[:-1])} and {sync[-1]}; {algo} runs one environment per "
+                         "worker process (the preset's workers)")
+    if device not in ("auto", "cpu", "cuda"):
+        raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
+    config_cls = registry.get_agent_class(algo).config_class
+    chosen = agent_preset or p.agent_preset
+    try:
+        base = config_cls.preset(chosen, **{"reward_scale": p.reward_scale, **p.overrides.get(algo, {})})
+        agent_config = base.replace(**parse_hyper(base.to_dict(), hyper or {}, algo)).to_dict()
+    except ValueError as exc:
+        raise TrainError(f"{algo} hyperparameters: {exc}") from exc
+    return TrainConfig(
+        algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
+        horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
+        image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
+        torch_threads=int(torch_threads),
+    )
+
+
+def parse_set(items: list[str]) -> dict[str, str]:
+    """``["lr=3e-4", ...]`` (``--set`` arguments) -> ``{"lr": "3e-4"}``; values stay text."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise TrainError(f"--set {item!r}: write FIELD=VALUE, e.g. --set learning_rate=3e-4")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def parse_hyper(current: Mapping[str, Any], hyper: Mapping[str, str], algo: str) -> dict[str, Any]:
+    """Typed values for hyperparameter overrides given as text, checked against ``current``.
+
+    A value must have the type of the field's current value; ints are accepted for
+    floats and lists for tuples. (YAML reads "1e-4" as text, hence float().)
+
+    Raises:
+        ValueError: an unknown field (listing the valid ones) or a value of the wrong type.
+    """
+    out: dict[str, Any] = {}
+    for key, text in hyper.items():
+        if key not in current:
+            raise ValueError(f"--set {key}: {algo} has no such hyperparameter; valid: {', '.join(sorted(current))}")
+        old = current[key]
+        try:
+            value = yaml.safe_load(text)
+            if isinstance(old, float) and not isinstance(value, bool):
+                value = float(value)
+            elif isinstance(old, tuple) and isinstance(value, list):
+                value = tuple(value)
+            ok = type(value) is type(old)
+        except (TypeError, ValueError, yaml.YAMLError):
+            ok = False
+        if not ok:
+            kind = type(old).__name__
+            raise ValueError(
+                f"--set {key}={text}: expected {'an' if kind[0] in 'aeiou' else 'a'} {kind} like {old!r}"
+            )
+        out[key] = value
+    return out

@@ -1,0 +1,97 @@
+"""Run presets (smoke, quick, paper) read from YAML, rl-zoo style.
+
+``eval/hyperparams/runs.yaml`` holds what every algorithm of a preset shares (ACs,
+episode horizon, checkpoint interval, agent preset, workers);
+``eval/hyperparams/<algo>.yaml`` holds, per preset, the algorithm's step budget and
+the hyperparameters it changes on top of the agent preset (the agent config
+dataclass's ``PRESETS``, e.g. ``TD3Config`` in agents/td3.py). Adding an algorithm
+to the catalogue (agents/registry.py) means adding its YAML here; unknown keys
+are refused with the list of valid ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from agents.registry import ALGORITHMS
+
+__all__ = ["HYPERPARAMS", "TrainPreset", "load_presets"]
+
+HYPERPARAMS = Path(__file__).with_name("hyperparams")
+"""The folder of the preset YAML files (package data)."""
+
+
+@dataclass(frozen=True)
+class TrainPreset:
+    """Budgets and sizes of a family of runs."""
+
+    steps: dict[str, int]
+    """Environment steps per algorithm."""
+    agents: int
+    """Learning cars trained together."""
+    horizon: int
+    """Steps per episode before truncation."""
+    checkpoint_every: int
+    """Environment steps between checkpoints."""
+    agent_preset: str
+    """The agents' hyperparameter preset ("default" or "paper")."""
+    workers: int
+    """Worker/actor processes for A3C and IMPALA."""
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per-algorithm hyperparameter changes on top of agent_preset."""
+    reward_scale: float = 0.01
+    """Every algorithm learns on reward x this: the driving reward is worth up to ~24
+    per step and -50 per collision, so unscaled returns run to thousands and the value
+    loss swamps the policy's gradients in the shared CNN (PPO collapsed without it)."""
+
+
+_ALGO_KEYS = ("steps", "hyperparameters")
+
+
+def _read(path: Path) -> dict[str, dict[str, Any]]:
+    data = yaml.safe_load(path.read_text())
+    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
+        raise ValueError(f"{path}: expected a mapping of preset name -> settings")
+    return data
+
+
+def _check_keys(path: Path, where: str, keys, valid) -> None:
+    unknown = sorted(set(keys) - set(valid))
+    if unknown:
+        raise ValueError(f"{path}: {where}: unknown key(s) {unknown}; valid keys: {sorted(valid)}")
+
+
+@functools.cache
+def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
+    """The run presets, by name, from ``folder``'s runs.yaml and <algo>.yaml files.
+
+    Raises:
+        ValueError: a missing file, an unknown key (listing the valid ones), or an
+            algorithm without a step budget for a preset.
+    """
+    folder = Path(folder)
+    runs = _read(folder / "runs.yaml")
+    shared = [f.name for f in dataclasses.fields(TrainPreset) if f.name not in ("steps", "overrides")]
+    per_algo = {algo: _read(folder / f"{algo}.yaml") for algo in ALGORITHMS}
+    presets = {}
+    for name, settings in runs.items():
+        _check_keys(folder / "runs.yaml", name, settings, shared)
+        steps, overrides = {}, {}
+        for algo, entries in per_algo.items():
+            path = folder / f"{algo}.yaml"
+            _check_keys(path, "presets", entries, runs)
+            entry = entries.get(name)
+            if entry is None or "steps" not in entry:
+                raise ValueError(f"{path}: preset {name!r} needs 'steps' (environment steps)")
+            _check_keys(path, name, entry, _ALGO_KEYS)
+            steps[algo] = int(entry["steps"])
+            if entry.get("hyperparameters"):
+                overrides[algo] = dict(entry["hyperparameters"])
+        presets[name] = TrainPreset(steps=steps, overrides=overrides, **settings)
+    return presets

@@ -1,0 +1,263 @@
+"""The trainer (SPEC §6, "Scenario 1, train"): N ACs of ONE algorithm, each with its
+own network, learning together in a driving environment among background cars.
+
+Algorithms that train in the sync loop (agents/registry.py) step ``--envs N``
+environments through :func:`agents.loop.run_vector_loop`: one in this process, or
+N worker processes (``agents/vector.py``), each AC acting in all of them in one
+forward pass; each environment's episodes become CSV rows. The async ones (A3C,
+IMPALA) run worker/actor processes, each with its own environment (libsumo allows
+one simulation per process). The run folder, resuming and the lock are
+eval/runfolder.py; the CSV, TensorBoard and checkpoints eval/runlog.py.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from cosim.env import EPISODE_INFO
+from eval.config import ASYNC_ALGOS, TrainConfig, TrainError
+from eval.plots import plot_convergence
+from eval.runfolder import RunLock, load_run_config, new_run_dir, read_state, recover_checkpoints
+from eval.runlog import RunLog
+
+log = logging.getLogger(__name__)
+
+
+def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = None,
+          quiet: bool = False, progress: bool = True,
+          on_checkpoint: Callable[[Path, int, float], None] | None = None) -> Path:
+    """Run (or resume) one training run; return its folder.
+
+    ``on_checkpoint(run, env_steps, mean_return)`` is called after each committed
+    checkpoint (how Ray Tune trials report, eval/benchmark.py and eval/pbt.py).
+
+    Raises:
+        TrainError: the run folder is held by another process (naming its PID), or
+            its config.yaml / state.json is unreadable (naming the file and the key).
+    """
+    if resume is not None:
+        run = Path(resume)
+        cfg = load_run_config(run)
+        lock = RunLock(run)
+        try:
+            state = read_state(run)
+            recover_checkpoints(run, None if state is None else int(state["env_steps"]))
+            if state is None:  # stopped before its first checkpoint: start again from step 0
+                log.info("resume: %s has no checkpoint yet; restarting it from step 0", run)
+                shutil.rmtree(run / "tb", ignore_errors=True)
+        except BaseException:
+            lock.release()
+            raise
+    else:
+        run = new_run_dir(out, cfg)
+        lock = RunLock(run)
+        state = None
+    try:
+        _train_locked(cfg, run, state, quiet, progress, on_checkpoint)
+    finally:
+        lock.release()
+    return run
+
+
+
+def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, progress: bool,
+                  on_checkpoint: Callable[[Path, int, float], None] | None = None) -> None:
+    runlog = RunLog(run, cfg, state)
+    runlog.on_checkpoint = on_checkpoint
+    log.info("training %s on %s with %d ACs for %d steps -> %s", cfg.algo, cfg.env, cfg.agents,
+             cfg.steps, run)
+    try:
+        if runlog.env_steps >= cfg.steps:
+            log.info("run %s is already complete (%d steps)", run, runlog.env_steps)
+        elif cfg.algo in ASYNC_ALGOS:
+            _train_async(cfg, runlog, state is not None, quiet, progress)
+        else:
+            _train_sync(cfg, runlog, state is not None, quiet, progress)
+    finally:
+        runlog.close()
+        plot_convergence(run)
+
+
+def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space,
+                   device: str = "cpu") -> dict:
+    import agents as agents_pkg
+    from agents.registry import get_agent_class
+
+    cls = get_agent_class(cfg.algo)
+    config = cls.config_class.from_dict(cfg.agent_config)
+    out = {}
+    for k in range(cfg.agents):
+        aid = f"ac_{k}"
+        latest = run / "checkpoints" / aid / "latest.pt"
+        if resumed and latest.exists():
+            out[aid] = agents_pkg.load(latest, device=device)  # saved from any device, loads on any
+        else:
+            out[aid] = cls.from_spaces(obs_space, act_space, config, seed=cfg.seed + k, device=device)
+    return out
+
+
+def _bar(cfg: TrainConfig, runlog: RunLog, quiet: bool, progress: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=cfg.steps, initial=runlog.env_steps, unit="step", dynamic_ncols=True,
+                desc=f"{cfg.env} {cfg.algo}", disable=quiet or not progress, smoothing=0.05)
+
+
+def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_log: list) -> None:
+    mean = runlog.mean_recent()
+    bar.set_postfix_str(f"return {mean:8.1f}", refresh=False)
+    now = time.monotonic()
+    if quiet and now - last_log[0] > 30:
+        rate = (step - last_log[1]) / (now - last_log[0])
+        last_log[0], last_log[1] = now, step
+        print(f"[{cfg.algo} {cfg.env}] step {step}/{cfg.steps} recent mean return {mean:.1f} "
+              f"({rate:.0f} steps/s)", flush=True)
+
+
+def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    """PPO, DQN, DDPG, TD3: ``cfg.envs`` environments (worker processes when > 1), one
+    batched forward pass per AC per step (agents.loop.run_vector_loop, docs/agents.md)."""
+    import torch
+
+    from agents.base import resolve_device
+    from agents.loop import run_vector_loop
+    from agents.vector import make_vector_env
+
+    n = cfg.envs
+    # N env workers keep N cores busy; more torch threads than the cores left only contend
+    threads = cfg.torch_threads or (max(1, (os.cpu_count() or 1) - n) if n > 1 else 0)
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        device = resolve_device(cfg.device)
+    except ValueError as exc:
+        raise TrainError(str(exc)) from None
+    start_step = runlog.env_steps
+    # env i of N: seed + i (env 0 is the one-env run's env)
+    fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(n)]
+    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, env.env_step))
+    env.env_step = start_step
+    last = [start_step]
+    bar = _bar(cfg, runlog, quiet, progress)
+    last_log = [time.monotonic(), start_step]
+    try:
+        agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
+                                   env.action_space("ac_0"), device)
+
+        def callback(step: int, stats, metrics) -> bool:
+            now = start_step + step
+            before, last[0] = last[0], now
+            for aid, m in metrics.items():
+                runlog.metrics(aid, m, now)
+            bar.update(now - before)
+            if now // cfg.checkpoint_every > before // cfg.checkpoint_every or now >= cfg.steps:
+                runlog.checkpoint(agent_map, now, stats.summary())
+            _report(bar, runlog, cfg, now, quiet, last_log)
+            return now >= cfg.steps
+
+        # episodes after a resume get fresh seeds: seed + 100003 * (episodes so far)
+        first_seed = cfg.seed + 100_003 * sum(runlog.episodes.values())
+        run_vector_loop(agent_map, env, total_steps=cfg.steps - start_step, callback=callback,
+                        seed=first_seed)
+    finally:
+        bar.close()
+        env.close()
+
+
+def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    from agents.registry import get_agent_class
+
+    if cfg.algo == "a3c":
+        from agents.a3c import train_a3c as trainer
+    else:
+        from agents.impala import train_impala as trainer
+    probe = make_env(cfg.to_dict())
+    obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
+    probe.close()
+    start_step = runlog.env_steps
+    initial = _load_or_build(cfg, runlog.run, resumed, obs_space, act_space) if resumed else None
+    config = get_agent_class(cfg.algo).config_class.from_dict(cfg.agent_config)
+    bar = _bar(cfg, runlog, quiet, progress)
+    last = {"step": start_step, "ckpt": start_step}
+    last_log = [time.monotonic(), start_step]
+
+    def callback(p) -> bool:
+        now = start_step + int(p.env_steps)
+        for ep in p.episodes:
+            for aid, stats in getattr(ep, "extras", {}).items():
+                runlog.episode(aid, stats, now)
+        metrics = p.metrics or {}
+        if metrics and all(isinstance(v, dict) for v in metrics.values()):
+            for aid, m in metrics.items():  # per-agent metrics
+                runlog.metrics(aid, {k: v for k, v in m.items() if np.isscalar(v)}, now)
+        elif metrics:  # shared metrics (e.g. policy lag)
+            scalars = {k: v for k, v in metrics.items() if np.isscalar(v)}
+            for aid in p.agents:
+                runlog.metrics(aid, scalars, now)
+        bar.update(max(now - last["step"], 0))
+        last["step"] = now
+        if now - last["ckpt"] >= cfg.checkpoint_every or now >= cfg.steps:
+            runlog.checkpoint(p.agents, now)
+            last["ckpt"] = now
+        _report(bar, runlog, cfg, now, quiet, last_log)
+        return now >= cfg.steps
+
+    kwargs = {"num_workers": cfg.workers} if cfg.algo == "a3c" else {"num_actors": cfg.workers}
+    if initial is not None:
+        kwargs["agents"] = initial
+    try:
+        trained = trainer(
+            functools.partial(make_env, cfg.to_dict()), obs_space, act_space,
+            agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=config,
+            total_steps=cfg.steps - start_step, seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
+            callback=callback, **kwargs,
+        )
+        runlog.checkpoint(trained, max(last["step"], runlog.env_steps))
+    finally:
+        bar.close()
+
+
+def make_env(cfg_dict: dict, worker_seed: int | None = None):
+    """Build the training env of a config (top-level, so worker processes can pickle it)."""
+    from cosim.env import CosimParallelEnv
+
+    cfg = TrainConfig(**cfg_dict)
+    return CosimParallelEnv(
+        cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
+        seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
+        horizon=cfg.horizon, terminate_on_collision=True,
+    )
+
+
+class _EpisodeTap:
+    """Forwards a ParallelEnv and hands each agent's final ``info[EPISODE_INFO]`` to a callback."""
+
+    def __init__(self, env, on_episode: Callable[[str, dict], None]):
+        self.env, self.on_episode = env, on_episode
+        self.env_step = 0  # env steps so far (a vector env: summed over the envs it stepped)
+
+    def __getattr__(self, name):  # reset, agents, spaces, close: the env's own
+        return getattr(self.env, name)
+
+    def step(self, actions):
+        return self._tap(self.env.step(actions))
+
+    def step_wait(self, *envs):  # a vector env's second half of step (agents/vector.py)
+        return self._tap(self.env.step_wait(*envs))
+
+    def _tap(self, out):
+        # a vector env gives one info dict per environment
+        self.env_step += int(out.stepped.sum()) if hasattr(out, "stepped") else 1
+        for infos in (out.infos if hasattr(out, "env_reset") else [out[4]]):
+            for agent, info in infos.items():
+                if EPISODE_INFO in info:
+                    self.on_episode(agent, info[EPISODE_INFO])
+        return out

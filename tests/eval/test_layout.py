@@ -1,0 +1,114 @@
+"""The training layer's layout (issue 11): small modules, one algorithm catalogue,
+CSV columns and presets derived from their definitions."""
+
+import csv
+from pathlib import Path
+
+import pytest
+import yaml
+
+import eval
+from agents import registry
+from cosim.env import EPISODE_EVENTS
+from cosim.events import REWARD_TERMS
+from eval import config, presets, protocol, runlog
+
+TRAINING_LAYER = ("config", "presets", "runfolder", "runlog", "trainer", "plots", "train")
+
+
+@pytest.mark.parametrize("module", TRAINING_LAYER)
+def test_no_training_module_exceeds_300_lines(module):
+    path = Path(eval.__file__).with_name(f"{module}.py")
+    lines = len(path.read_text().splitlines())
+    assert lines <= 300, f"{path} has {lines} lines; split it"
+
+
+def test_csv_columns_come_from_the_reward_terms_and_events():
+    assert [c for c in runlog.EPISODE_FIELDS if c.startswith("r_")] == [f"r_{t}" for t in REWARD_TERMS]
+    assert [c for c in runlog.EPISODE_FIELDS if c.startswith("n_")] == [f"n_{e}" for e in EPISODE_EVENTS]
+    # a new term or event gets its column with no edit to the training layer
+    fields = runlog.episode_fields((*REWARD_TERMS, "comfort"), (*EPISODE_EVENTS, "honked"))
+    assert {"r_comfort", "n_honked"} <= set(fields)
+    assert fields[: 5] == runlog.EPISODE_FIELDS[: 5] and fields[-4:] == runlog.EPISODE_FIELDS[-4:]
+
+
+def test_the_csv_header_written_is_the_derived_columns(tmp_path):
+    pytest.importorskip("torch")
+    cfg = config.TrainConfig(algo="ppo", agents=1)
+    log = runlog.RunLog(tmp_path, cfg, None)
+    stats = {c: 1 for c in runlog.EPISODE_FIELDS if c.startswith(("r_", "n_"))}
+    log.episode("ac_0", {**stats, "return": 2.0, "length": 3, "mean_speed_kmh": 10.0, "DISTANCE": 4.0,
+                         "distance_to_goal": 5.0, "goal_reached": False}, 3)
+    log.close()
+    with open(tmp_path / "episodes.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == runlog.EPISODE_FIELDS
+    assert all(rows[0][c] == "1" for c in stats)
+
+
+def test_the_algorithm_catalogue_is_the_single_source():
+    names = tuple(a.name for a in registry.CATALOGUE)
+    assert config.ALGORITHMS == names == tuple(registry.ALGORITHMS)
+    assert config.DISCRETE_ALGOS == tuple(a.name for a in registry.CATALOGUE if a.action == "discrete")
+    assert config.CONTINUOUS_ALGOS == tuple(a.name for a in registry.CATALOGUE if a.action == "continuous")
+    assert config.ASYNC_ALGOS == tuple(a.name for a in registry.CATALOGUE if a.loop == "async")
+    assert set(config.DISCRETE_ALGOS) | set(config.CONTINUOUS_ALGOS) == set(names)
+    assert (protocol.ALGO_ORDER, protocol.CONTINUOUS) == (names, config.CONTINUOUS_ALGOS)
+    for a in registry.CATALOGUE:
+        assert a.action in ("discrete", "continuous") and a.loop in ("sync", "async")
+        assert registry.get_agent_class(a.name).algo == a.name
+
+
+def test_the_facade_reexports_the_modules_names():
+    import eval.train as facade
+
+    assert facade.train is __import__("eval.trainer").trainer.train
+    assert facade.make_config is config.make_config and facade.RunLog is runlog.RunLog
+
+
+def test_every_algorithm_has_a_preset_yaml_and_no_stray_files():
+    files = {p.stem for p in presets.HYPERPARAMS.glob("*.yaml")}
+    assert files == {*registry.ALGORITHMS, "runs"}
+
+
+@pytest.mark.parametrize("algo", list(registry.ALGORITHMS))
+def test_every_preset_yaml_loads_into_the_agent_config(algo):
+    config_cls = registry.get_agent_class(algo).config_class
+    defaults = config_cls().to_dict()
+    entries = yaml.safe_load((presets.HYPERPARAMS / f"{algo}.yaml").read_text())
+    assert set(entries) == set(presets.load_presets())
+    for name, preset in presets.load_presets().items():
+        hyper = entries[name].get("hyperparameters") or {}
+        unknown = set(hyper) - set(defaults)
+        assert not unknown, f"{algo}.yaml {name}: unknown hyperparameters {unknown}"
+        for key, value in hyper.items():  # YAML reads 1e-4 as text: write 1.0e-4
+            kind = type(defaults[key])
+            assert isinstance(value, kind) or (kind is float and type(value) is int), (algo, name, key)
+        built = config_cls.preset(preset.agent_preset, reward_scale=preset.reward_scale, **hyper)
+        assert {k: getattr(built, k) for k in hyper} == pytest.approx(hyper)
+        assert preset.steps[algo] >= 1
+
+
+def test_an_unknown_preset_key_is_refused_listing_the_valid_ones(tmp_path):
+    for path in presets.HYPERPARAMS.glob("*.yaml"):
+        (tmp_path / path.name).write_text(path.read_text())
+    runs = yaml.safe_load((tmp_path / "runs.yaml").read_text())
+    runs["quick"]["horizn"] = 10
+    (tmp_path / "runs.yaml").write_text(yaml.safe_dump(runs))
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['horizn'\]; valid keys: .*'horizon'"):
+        presets.load_presets(tmp_path)
+    runs["quick"].pop("horizn")
+    (tmp_path / "runs.yaml").write_text(yaml.safe_dump(runs))
+    td3 = yaml.safe_load((tmp_path / "td3.yaml").read_text())
+    td3["quick"]["hyperparams"] = td3["quick"].pop("hyperparameters")
+    (tmp_path / "td3.yaml").write_text(yaml.safe_dump(td3))
+    with pytest.raises(ValueError, match="td3.yaml: quick: unknown key"):
+        presets.load_presets(tmp_path)
+
+
+def test_the_td3_quick_learning_rate_is_written_once():
+    root = Path(eval.__file__).resolve().parent
+    hits = [p.name for p in [*root.glob("*.py"), *presets.HYPERPARAMS.glob("*.yaml")]
+            if "actor_learning_rate: 1.0e-4" in p.read_text() or '"actor_learning_rate": 1e-4' in p.read_text()]
+    assert sorted(hits) == ["ddpg.yaml", "td3.yaml"]
+    assert config.make_config("td3", preset="quick").agent_config["actor_learning_rate"] == 1e-4
