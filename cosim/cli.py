@@ -101,16 +101,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a netconvert .netccfg (default: every bundled network)")
     n.set_defaults(func=cmd_nets)
 
+    from agents.registry import ALGORITHMS, DISCRETE  # the catalogue (no algorithm imported)
+
     t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
     t.add_argument("--algo", default="ppo",
-                   help="ppo, a3c, impala, dqn, ddpg, td3, or all (the six, in parallel where CPUs allow)")
+                   help=f"{', '.join(ALGORITHMS)}, or all (every one, in parallel where CPUs allow)")
     t.add_argument("--env", default="env_1", help="env_1..env_5 or a scenario .yaml")
     t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
     t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--preset", default="quick", help="smoke, quick or paper")
     t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
-                   help="must match the algorithm (discrete: ppo a3c impala dqn)")
+                   help=f"must match the algorithm (discrete: {' '.join(DISCRETE)})")
     t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
     t.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="hyper",
                    help="change one agent hyperparameter, e.g. --set learning_rate=3e-4 (repeatable)")
@@ -184,11 +186,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _benchmark_parser(sub) -> None:
+    from agents.registry import ALGORITHMS
+
     b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
                                          "trial, then test them and write the report")
     b.add_argument("--preset", choices=["smoke", "quick", "paper"], default="smoke")
     b.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
-    b.add_argument("--algos", nargs="+", default=["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
+    b.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
     b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")
     b.add_argument("--steps", type=_int_in(1), default=None,
                    help="environment steps per trial (default: the preset's)")
