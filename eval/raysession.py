@@ -97,7 +97,15 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
     kwargs = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False,
               "runtime_env": {"env_vars": TRIAL_ENV}}
     if address:
-        ray.init(address=address, **kwargs)
+        try:
+            ray.init(address=address, **kwargs)
+        except (ConnectionError, RuntimeError) as exc:
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[-1][:200]
+            raise RayError(
+                f"could not join the Ray cluster at {address} ({first}); with token "
+                "authentication (Ray's default) RAY_AUTH_TOKEN or ~/.ray/auth_token here must "
+                "hold the head's token"
+            ) from None
     else:
         ray.init(num_cpus=num_cpus or os.cpu_count() or 1, _node_ip_address="127.0.0.1", **kwargs)
     log.info("ray: %s", ray.cluster_resources())
