@@ -219,6 +219,7 @@ BENCH = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", 
 
 
 @needs_ray
+@pytest.mark.slow  # ~50 s: with the PBT test the default run would pass its ~2 minute budget
 def test_benchmark_with_ray_and_without_gives_the_same_checkpoints(tmp_path, ray_tmp):
     with_ray = cosim([*BENCH, "--train-only", "--concurrent", "2", "--out", str(tmp_path / "ray")],
                      ray_tmp)
