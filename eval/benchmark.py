@@ -253,7 +253,9 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                 trainable,
                 param_space={"cell": tune.grid_search([c.to_dict() for c in cells]),
                              "scratch": str(out / "trials")},
-                tune_config=tune.TuneConfig(max_concurrent_trials=concurrent or None,
+                # a finished trial's worker takes the next trial: no process start and torch
+                # import per trial (each trial reseeds and sets its torch threads itself)
+                tune_config=tune.TuneConfig(max_concurrent_trials=concurrent or None, reuse_actors=True,
                                             trial_name_creator=lambda t: cell_name(t.config["cell"]),
                                             trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
                 run_config=tune.RunConfig(
@@ -285,7 +287,7 @@ def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
     if unfinished:
         raise BenchmarkError(f"interrupted with {len(unfinished)} trial(s) unfinished "
                              f"({', '.join(unfinished[:4])}{', ...' if len(unfinished) > 4 else ''}); "
-                             f"continue with: cosim benchmark --resume --out {out}")
+                             f"continue with the same command and --resume (--out {out})")
     return done
 
 

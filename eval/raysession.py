@@ -91,6 +91,8 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
         os.environ.setdefault(key, value)
     import ray
 
+    # Tune's TensorBoard logger warns at every -inf score (no episode finished yet)
+    logging.getLogger("tensorboardX.x2num").setLevel(logging.ERROR)
     if ray.is_initialized():  # a caller's own session (a notebook): use it, leave it running
         yield
         return

@@ -314,3 +314,29 @@ def test_ray_start_head_on_loopback_and_benchmark_on_it(tmp_path, ray_tmp):
             deadline = time.monotonic() + 10
             while ray_pids(ray_tmp) and time.monotonic() < deadline:
                 time.sleep(0.5)
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ctrl_c_during_pbt_leaves_no_ray_process_and_resume_finishes_it(tmp_path, ray_tmp):
+    args = ["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps", "240",
+            "--pbt", "2", "--pbt-interval", "60", "--out", str(tmp_path)]
+    env = {**os.environ, "RAY_TMPDIR": str(ray_tmp)}
+    proc = subprocess.Popen([sys.executable, "-m", "cosim.cli", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and sum(
+            len(p.read_text().splitlines()) for p in tmp_path.glob("*/pbt/history/*.jsonl")) < 3:
+        time.sleep(0.5)
+    assert proc.poll() is None
+    os.killpg(proc.pid, signal.SIGINT)
+    log, _ = proc.communicate(timeout=120)
+    assert proc.returncode != 0 and "--resume" in log, log[-2000:]
+    assert not wait_gone(ray_tmp), "Ray processes left after Ctrl-C"
+    (folder,) = tmp_path.glob("env_1__ppo__0__pbt2-*")
+    assert not (folder / "lineage.csv").exists()
+    resumed = cosim(["train", "--resume", str(folder)], ray_tmp)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert (folder / "lineage.csv").exists() and (folder / "lineage.png").exists()
+    assert json.loads((folder / "state.json").read_text())["env_steps"] == 240
