@@ -1,15 +1,20 @@
 """Full environment step with cameras: steps/s and AC-frames/s, a time breakdown, RSS over resets.
 
 env_3 (four-way, background cars, pedestrians), 84x84 cameras, TinyRenderer on one
-core, a cheap fixed policy (the policy's cost is not the env's). Prints a
-Markdown table; medians of --repeats runs.
+core. The ACs drive with the autopilot by default (its time is not counted: the
+policy's cost is not the env's), so the cameras see what a car on the road sees;
+``--policy forward`` is the old fixed half-throttle policy, which in the solid town
+(docs/scenarios.md) parks most cars nose-first against a wall that fills their
+camera. ``--no-solid`` drops the walls and the island for an A/B comparison.
+Prints a Markdown table; medians of --repeats runs.
 
-    python bench/env_step.py [--steps 600] [--repeats 3] [--resets 200]
+    python bench/env_step.py [--steps 600] [--repeats 3] [--resets 200] [--policy forward] [--no-solid]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import time
@@ -17,6 +22,8 @@ import time
 import numpy as np
 
 import cosim
+from cosim.controller import Autopilot
+from cosim.scenario import load_scenario
 
 
 def rss_mb() -> float:
@@ -27,12 +34,21 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def run(n: int, steps: int, seed: int) -> dict:
-    env = cosim.parallel_env("env_3", num_agents=n, action_types="continuous",
+def scenario(solid: bool):
+    sc = load_scenario("env_3")
+    if solid:
+        return sc
+    return dataclasses.replace(sc, additional=tuple(p for p in sc.additional
+                                                    if p.name != "solid.add.xml"))
+
+
+def run(n: int, steps: int, seed: int, policy: str = "autopilot", solid: bool = True) -> dict:
+    env = cosim.parallel_env(scenario(solid), num_agents=n, action_types="continuous",
                              terminate_on_collision=False, seed=seed)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     w = env.world
+    pilots = {a: Autopilot(w, a) for a in env.agents}
     phases = dict.fromkeys(["dynamics", "sumo", "snapshot", "events", "mirror_sync", "render"], 0.0)
     elapsed, done, frames = 0.0, 0, 0
     while done < steps:
@@ -40,7 +56,11 @@ def run(n: int, steps: int, seed: int) -> dict:
             for k in ("dynamics", "sumo", "snapshot", "events"):
                 phases[k] += getattr(w.times, k)
             env.reset(seed=seed + done)
-        actions = {a: np.array([0.5, rng.normal(0, 0.05)], np.float32) for a in env.agents}
+            pilots = {a: Autopilot(w, a) for a in env.agents}
+        if policy == "autopilot":
+            actions = {a: pilots[a].act() for a in env.agents}
+        else:
+            actions = {a: np.array([0.5, rng.normal(0, 0.05)], np.float32) for a in env.agents}
         frames += len(env.agents)
         t0 = time.perf_counter()
         env.step(actions)
@@ -73,12 +93,15 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=600)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--resets", type=int, default=200)
+    parser.add_argument("--policy", choices=["autopilot", "forward"], default="autopilot")
+    parser.add_argument("--no-solid", action="store_true", help="without walls and island")
     args = parser.parse_args()
     print("| ACs | env steps/s | AC-frames/s | dynamics+moveToXY | SUMO | snapshot | events+reward "
           "| mirror sync | render | triangles |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for n in (1, 3, 6):
-        runs = [run(n, args.steps, seed=20 + r) for r in range(args.repeats)]
+        runs = [run(n, args.steps, 20 + r, args.policy, not args.no_solid)
+                for r in range(args.repeats)]
         med = sorted(runs, key=lambda r: r["steps_per_s"])[len(runs) // 2]
         ms = med["ms"]
         print(f"| {n} | {statistics.median(r['steps_per_s'] for r in runs):.0f} | "

@@ -37,7 +37,8 @@ WALL_THICKNESS = 0.4  # metres
 WALL_GAP = 0.3  # metres between a sidewalk's outer edge and the wall
 VERGE = 1.0  # metres between a lane edge and a verge wall (no sidewalk)
 CLEARANCE = 0.6  # metres a wall keeps from any carriageway, junction or sidewalk
-PIECE = 8.0  # metres: walls are cut into convex pieces at most this long
+PIECE = 8.0  # metres: walls are laid (and checked for clearance) in pieces this long
+MERGED = 60.0  # metres: collinear pieces are then joined into boxes up to this long
 EXTEND = 15.0  # metres a wall may be extended at each end to close a corner
 ISLAND_CLEARANCE = 1.5  # metres between the ring lane's inner edge and the island kerb
 MONUMENT_RADIUS = 3.0
@@ -66,6 +67,22 @@ def cut(points: np.ndarray, piece: float = PIECE) -> list[tuple[np.ndarray, np.n
         k = max(1, math.ceil(length / piece))
         for i in range(k):
             out.append((a + (b - a) * i / k, a + (b - a) * (i + 1) / k))
+    return out
+
+
+def merge(pieces: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Join consecutive collinear pieces (up to MERGED metres): the same wall in fewer
+    boxes, so the cameras draw fewer triangles (TinyRenderer pays per triangle)."""
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    for a, b in pieces:
+        if out:
+            pa, pb = out[-1]
+            d0, d1 = (pb - pa) / np.hypot(*(pb - pa)), (b - a) / np.hypot(*(b - a))
+            joined = np.hypot(*(pb - a)) < 1e-6 and float(d0 @ d1) > math.cos(math.radians(1.0))
+            if joined and np.hypot(*(b - pa)) <= MERGED:
+                out[-1] = (pa, b)
+                continue
+        out.append((a, b))
     return out
 
 
@@ -177,7 +194,7 @@ def build(net_path: Path, objects_path: Path) -> list[tuple[str, str, np.ndarray
 
     pieces = []
     for line in wall_lines(net):
-        kept = [(a, b) for a, b in cut(line) if town.free(a, b)]
+        kept = merge([(a, b) for a, b in cut(line) if town.free(a, b)])
         for a, b in kept:
             town.place(a, b)
         pieces.append(kept)
