@@ -22,7 +22,13 @@ import torch.nn.functional as F
 
 from agents.base import Agent, AgentConfig, check_range, due
 from agents.buffers import ReplayBuffer
-from agents.networks import DeterministicActor, QEnsemble, encoder_features_dim, obs_to_tensor, polyak_update
+from agents.networks import (
+    DeterministicActor,
+    QEnsemble,
+    encoder_features_dim,
+    obs_to_tensor,
+    polyak_update,
+)
 
 __all__ = ["TD3", "TD3Config"]
 
