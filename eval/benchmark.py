@@ -4,8 +4,8 @@ a Ray Tune trial, then the test protocol on the trained policies and its report.
 A benchmark folder (``--out``)::
 
     benchmark.json     the plan (preset, envs, algos, seeds) that --resume reads back
-    tune/grid/         Ray Tune's experiment: trial results and checkpoints (4 kept per trial)
-    trials/<cell>/     where each trial trains (a normal run folder inside)
+    tune/grid/         Ray Tune's experiment: trial results and checkpoints (2 kept per trial)
+    trials/<cell>/     where a trial trains (a normal run folder inside; gone once finished)
     runs/<cell>/       the finished run folders, <env>__<algo>__<seed>__bench (what `cosim test` loads)
     report/            the `cosim test` report: Scenario 1 and 2 in every environment
 
@@ -159,17 +159,22 @@ def _tune_trial(config: dict) -> None:
     checkpoint = tune.get_checkpoint()
     if checkpoint is None:
         train_cell(cfg, folder, None, report)
-        return
-    with checkpoint.as_directory() as restored:
-        train_cell(cfg, folder, Path(restored), report)
+    else:
+        with checkpoint.as_directory() as restored:
+            train_cell(cfg, folder, Path(restored), report)
+    shutil.rmtree(folder, ignore_errors=True)  # its last checkpoint holds the finished run
 
 
 # -- the grid ----------------------------------------------------------------------------
-def _export(run: Path, dest: Path) -> None:
-    """Copy a finished run folder to ``runs/<cell>`` (renamed into place: exists = complete)."""
+def _export(run: Path, dest: Path, move: bool = False) -> None:
+    """Copy (or move) a finished run folder to ``runs/<cell>``, renamed into place last, so
+    that ``runs/<cell>`` exists only complete."""
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(run, tmp, ignore=shutil.ignore_patterns("run.lock"))
+    if move:
+        shutil.move(run, tmp)
+    else:
+        shutil.copytree(run, tmp, ignore=shutil.ignore_patterns("run.lock"))
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)
 
@@ -212,7 +217,7 @@ def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
                 run = train(None, resume=runs[-1], quiet=True, progress=False)
             else:
                 run = train_cell(cfg, folder)
-            _export(run, dest)
+            _export(run, dest, move=True)
         done[name] = dest
         if progress:
             progress(name)
@@ -260,7 +265,9 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                                             trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
                 run_config=tune.RunConfig(
                     name="grid", storage_path=str(out / "tune"), verbose=0,
-                    checkpoint_config=tune.CheckpointConfig(num_to_keep=4),
+                    # a run folder is ~80 MB at 2 ACs (weights and Adam moments, latest and
+                    # best): 2 kept per trial (PBT, which clones, keeps 4)
+                    checkpoint_config=tune.CheckpointConfig(num_to_keep=2),
                     failure_config=tune.FailureConfig(max_failures=0)),
             )
         grid = tuner.fit()
