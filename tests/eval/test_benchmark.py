@@ -263,7 +263,12 @@ def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp):
     grid = out / "tune" / "grid"
     deadline = time.monotonic() + 300
     # interrupt once the first trial finished and the second has a checkpoint
-    while time.monotonic() < deadline and len(list(grid.glob("*/checkpoint_*"))) < 5:
+    def reports(cell: str) -> int:
+        path = grid / cell / "result.json"
+        return len(path.read_text().splitlines()) if path.exists() else 0
+
+    while time.monotonic() < deadline and not (reports("env_1__ppo__0__bench") >= 4
+                                               and reports("env_1__dqn__0__bench") >= 1):
         time.sleep(0.5)
     first = grid / "env_1__ppo__0__bench" / "result.json"  # one line per report
     assert first.exists() and proc.poll() is None
