@@ -239,15 +239,11 @@ def _int_in(low: int, high: int | None = None):
 def _output_folder(path: Path, flag: str) -> Path:
     """Create `path` (a folder for results) now, so a bad --out fails before any work."""
     from cosim.errors import OptionError
+    from eval.runfolder import unwritable_reason
 
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = path / f".write-test-{os.getpid()}"
-        probe.write_text("ok")
-        probe.unlink()
-    except OSError as exc:
-        raise OptionError(f"{flag} {path}: cannot write there ({exc.strerror or exc}); "
-                          f"choose another {flag}") from None
+    reason = unwritable_reason(path)
+    if reason:
+        raise OptionError(f"{flag} {path}: cannot write there ({reason}); choose another {flag}")
     return path
 
 

@@ -170,7 +170,7 @@ class World:
         idx = np.array([self.index[a] for a in self.active])
         tb = np.array([controls[a][0] for a in self.active], dtype=float)
         steer = np.array([controls[a][1] for a in self.active], dtype=float)
-        s = self._state[idx].copy()
+        s = self._state[idx]  # a copy (fancy indexing): the pose before the step
         # 2. ego dynamics
         nx, ny, nh, nv = bicycle_step(
             s[:, 0], s[:, 1], s[:, 2], s[:, 3], tb, steer, self.vehicle, self.scenario.dt

@@ -54,17 +54,25 @@ from eval.config import ALGORITHMS, TrainConfig, TrainError
 log = logging.getLogger(__name__)
 
 
-def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
-    """Create ``out/<env>__<algo>__<seed>__<timestamp>/``; fail early if unwritable."""
-    out = Path(out)
+def unwritable_reason(folder: Path) -> str | None:
+    """Create `folder` and write a probe file in it: None if that works, else why not.
+    Output folders are checked this way before any work, so a bad --out fails at once."""
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write-test-{os.getpid()}"
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write-test-{os.getpid()}"
         probe.write_text("ok")
         probe.unlink()
     except OSError as exc:
-        raise TrainError(f"cannot write to output folder {out}: {exc.strerror or exc}; "
-                         "choose another --out") from exc
+        return str(exc.strerror or exc)
+    return None
+
+
+def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
+    """Create ``out/<env>__<algo>__<seed>__<timestamp>/``; fail early if unwritable."""
+    out = Path(out)
+    reason = unwritable_reason(out)
+    if reason:
+        raise TrainError(f"cannot write to output folder {out}: {reason}; choose another --out")
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     env = Path(cfg.env).stem  # a scenario given by path: name the folder after the file
     run = out / f"{env}__{cfg.algo}__{cfg.seed}__{stamp}"
