@@ -106,7 +106,6 @@ def speed_grid(records: pd.DataFrame, out: Path, labels: Mapping[str, str], dt: 
     scenarios = sorted(records["scenario"].unique())
     envs = sorted(records["env"].unique())
     algos = algo_order(records["algorithm"].unique())
-    from eval.report import env_title
 
     fig, axes = plt.subplots(len(envs), len(scenarios), figsize=(PAGE_IN, 1.25 * len(envs) + 0.5),
                              squeeze=False, sharex=True)
@@ -124,15 +123,23 @@ def speed_grid(records: pd.DataFrame, out: Path, labels: Mapping[str, str], dt: 
                 if per.shape[1] > 1:
                     ax.fill_between(t, per.min(axis=1), per.max(axis=1), color=colour(a),
                                     alpha=0.18, lw=0)
-            ax.set_title(f"{env_title(env)}, {SCENARIO_NAMES.get(s, s)}", loc="left")
-            ax.grid(lw=0.3)
-            if j == 0:
-                ax.set_ylabel("speed (km/h)")
-            if i == len(envs) - 1:
-                ax.set_xlabel("time (s)")
+            _label_panel(ax, env, s, ylabel="speed (km/h)" if j == 0 else None,
+                         xlabel=i == len(envs) - 1)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
     _legend(fig, algos, labels, ncol=6)
     return _save(fig, out, "speed_per_timestep")
+
+
+def _label_panel(ax, env: str, scenario, ylabel: str | None, xlabel: bool) -> None:
+    """Title, grid and axis labels of one panel of an environment x scenario grid."""
+    from eval.report import env_title
+
+    ax.set_title(f"{env_title(env)}, {SCENARIO_NAMES.get(scenario, scenario)}", loc="left")
+    ax.grid(lw=0.3)
+    if ylabel:
+        ax.set_ylabel(ylabel)
+    if xlabel:
+        ax.set_xlabel("time (s)")
 
 
 def survival(per: pd.DataFrame, out: Path, labels: Mapping[str, str], steps_s: float) -> list[Path]:
@@ -142,7 +149,6 @@ def survival(per: pd.DataFrame, out: Path, labels: Mapping[str, str], steps_s: f
     scenarios = sorted(per["scenario"].unique())
     envs = sorted(per["env"].unique())
     algos = algo_order(per["algorithm"].unique())
-    from eval.report import env_title
 
     fig, axes = plt.subplots(len(envs), len(scenarios), figsize=(PAGE_IN, 1.2 * len(envs) + 0.5),
                              squeeze=False, sharex=True, sharey=True)
@@ -162,12 +168,8 @@ def survival(per: pd.DataFrame, out: Path, labels: Mapping[str, str], steps_s: f
                                         [1.0 - len(hits) / n]])
                 ax.step(t, alive + 0.006 * (k - len(algos) / 2), where="post", color=colour(a), lw=0.9)
             ax.set_ylim(-0.05, 1.08)
-            ax.set_title(f"{env_title(env)}, {SCENARIO_NAMES.get(s, s)}", loc="left")
-            ax.grid(lw=0.3)
-            if j == 0:
-                ax.set_ylabel("no collision yet")
-            if i == len(envs) - 1:
-                ax.set_xlabel("time (s)")
+            _label_panel(ax, env, s, ylabel="no collision yet" if j == 0 else None,
+                         xlabel=i == len(envs) - 1)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
     _legend(fig, algos, labels, ncol=6)
     return _save(fig, out, "ttfc_survival")
