@@ -153,7 +153,6 @@ class Autopilot:
         """Gaps (metres from the AC's centre) to everything it must stop behind."""
         snap = self.world.snapshot
         half = self.world.vehicle.length / 2
-        half_w = self.world.vehicle.width / 2
         gaps = []
         # whatever stands on our path blocks us, whoever has priority (a car in the way is
         # in the way); priority only decides whom we yield to before they get there
@@ -185,50 +184,7 @@ class Autopilot:
                     gaps.append(float(sc[row][inside[row]].min()) - s - half)
                 rest = [j for j in idx[~blocking] if self._respects(snap.vehicle_ids[j], j, heading)]
                 gaps += self._crossing_gaps(x, y, v, path, s, np.array(rest, dtype=int))
-        if len(snap.person_xy):
-            near = np.hypot(snap.person_xy[:, 0] - x, snap.person_xy[:, 1] - y) < 35.0
-            if near.any():
-                # where they are and where they will be in the next 3 s at walking speed:
-                # SUMO pedestrians do not avoid cars, so stop before their path, not in it
-                ph, pv = snap.person_heading[near], snap.person_speed[near]
-                step = np.stack([np.cos(ph), np.sin(ph)], axis=1) * pv[:, None]
-                pts = np.concatenate([snap.person_xy[near] + t * step for t in (0.0, 1.0, 2.0, 3.0)])
-                # people standing still (waiting at the kerb for us) block only right in front
-                reach = np.tile(np.where(pv > 0.2, 1.8, half_w + 0.3), 4)
-                half_len = self.world.vehicle.length / 2
-                if self._creep > 0 or any(c0 - half_len <= s <= c1 + half_len
-                                          for c0, c1 in self._crossings):
-                    # squeezing past, or inside a junction's crossings (where it must not
-                    # wait, see _off_crossings): only what the body would touch
-                    reach = np.full(len(pts), half_w + PERSON_RADIUS + CREEP_MARGIN)
-                sp, lat = path.project_many(pts)
-                # people on the sidewalk beside the road do not stop us, unless our body
-                # would brush them (a right turn sweeps over the kerb's corner)
-                on_road = self.world.roadmap.drivable.lookup(pts)
-                near_body = np.abs(lat) < half_w + PERSON_RADIUS + 0.4
-                ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < reach) & (on_road | near_body)
-                gaps += list(sp[ahead] - s - half - 1.5)
-                # before entering a junction's crossings, the whole span must stay clear of
-                # people for the next JUNCTION_LOOKAHEAD s: once inside it does not stop
-                # for them there (see _off_crossings), so it must not enter to wait
-                for c0, c1 in self._crossings:
-                    entry = c0 - half - 0.5
-                    if 0.0 <= entry - s < 15.0:
-                        later = np.concatenate([snap.person_xy[near] + t * step
-                                                for t in np.arange(0.0, JUNCTION_LOOKAHEAD, 0.5)])
-                        ls, ll = path.project_many(later)
-                        if np.any((ls > c0 - 1.0) & (ls < c1 + 1.0) & (np.abs(ll) < 1.8)):
-                            gaps.append(entry - s + STOP_MARGIN)
-                # someone walking right beside the car (they walk into its side): stand still
-                now = len(pv)  # the first rows of pts are where they are now
-                along = np.abs(sp[:now] - s) <= half + 0.5
-                walking = (pv > 0.2) & (np.abs(lat[:now]) < half_w + 0.8)
-                # one standing against the car: wait, even when creeping (a car never drives
-                # into a person, even one that stepped into its side and waits for it)
-                touching = np.abs(lat[:now]) < half_w + PERSON_RADIUS + 0.2
-                beside = along & (walking | touching)
-                if beside.any():
-                    gaps.append(0.0)
+        gaps += self._pedestrian_gaps(x, y, path, s)
         gaps += self._ac_conflict_gaps(s)
         tls = self.world.next_tls(self.ac)
         if tls is not None:
@@ -239,6 +195,59 @@ class Autopilot:
                     pass
                 else:
                     gaps.append(dist + STOP_MARGIN - 1.0)
+        return gaps
+
+    def _pedestrian_gaps(self, x, y, path, s) -> list[float]:
+        """Gaps to people: on or about to cross our path, beside the car, or about to be
+        on a junction's crossings we are going to enter."""
+        snap = self.world.snapshot
+        half = self.world.vehicle.length / 2
+        half_w = self.world.vehicle.width / 2
+        gaps: list[float] = []
+        if not len(snap.person_xy):
+            return gaps
+        near = np.hypot(snap.person_xy[:, 0] - x, snap.person_xy[:, 1] - y) < 35.0
+        if near.any():
+            # where they are and where they will be in the next 3 s at walking speed:
+            # SUMO pedestrians do not avoid cars, so stop before their path, not in it
+            ph, pv = snap.person_heading[near], snap.person_speed[near]
+            step = np.stack([np.cos(ph), np.sin(ph)], axis=1) * pv[:, None]
+            pts = np.concatenate([snap.person_xy[near] + t * step for t in (0.0, 1.0, 2.0, 3.0)])
+            # people standing still (waiting at the kerb for us) block only right in front
+            reach = np.tile(np.where(pv > 0.2, 1.8, half_w + 0.3), 4)
+            if self._creep > 0 or any(c0 - half <= s <= c1 + half
+                                      for c0, c1 in self._crossings):
+                # squeezing past, or inside a junction's crossings (where it must not
+                # wait, see _off_crossings): only what the body would touch
+                reach = np.full(len(pts), half_w + PERSON_RADIUS + CREEP_MARGIN)
+            sp, lat = path.project_many(pts)
+            # people on the sidewalk beside the road do not stop us, unless our body
+            # would brush them (a right turn sweeps over the kerb's corner)
+            on_road = self.world.roadmap.drivable.lookup(pts)
+            near_body = np.abs(lat) < half_w + PERSON_RADIUS + 0.4
+            ahead = (sp > s) & (sp - s < 30.0) & (np.abs(lat) < reach) & (on_road | near_body)
+            gaps += list(sp[ahead] - s - half - 1.5)
+            # before entering a junction's crossings, the whole span must stay clear of
+            # people for the next JUNCTION_LOOKAHEAD s: once inside it does not stop
+            # for them there (see _off_crossings), so it must not enter to wait
+            for c0, c1 in self._crossings:
+                entry = c0 - half - 0.5
+                if 0.0 <= entry - s < 15.0:
+                    later = np.concatenate([snap.person_xy[near] + t * step
+                                            for t in np.arange(0.0, JUNCTION_LOOKAHEAD, 0.5)])
+                    ls, ll = path.project_many(later)
+                    if np.any((ls > c0 - 1.0) & (ls < c1 + 1.0) & (np.abs(ll) < 1.8)):
+                        gaps.append(entry - s + STOP_MARGIN)
+            # someone walking right beside the car (they walk into its side): stand still
+            now = len(pv)  # the first rows of pts are where they are now
+            along = np.abs(sp[:now] - s) <= half + 0.5
+            walking = (pv > 0.2) & (np.abs(lat[:now]) < half_w + 0.8)
+            # one standing against the car: wait, even when creeping (a car never drives
+            # into a person, even one that stepped into its side and waits for it)
+            touching = np.abs(lat[:now]) < half_w + PERSON_RADIUS + 0.2
+            beside = along & (walking | touching)
+            if beside.any():
+                gaps.append(0.0)
         return gaps
 
     def _ac_conflict_gaps(self, s: float) -> list[float]:

@@ -148,9 +148,7 @@ class SumoBridge:
         self._type_size: dict[str, tuple[float, float]] = {}
         self._acs: dict[str, tuple[str, int, float]] = {}  # id -> (route id, lane, pos)
         self._pinned: dict[str, tuple[float, float, str]] = {}  # person id -> (x, y, edge)
-        self._steps = 0
-        self.gridlock_removals = 0
-        """Background cars removed by the gridlock breaker since the last start."""
+        self._steps = 0  # SUMO steps since the last start (paces the gridlock check)
         self.time = 0.0
 
     # -- lifecycle -----------------------------------------------------------
@@ -195,7 +193,7 @@ class SumoBridge:
             self._acs.clear()
             self._pinned.clear()
             self.time = 0.0
-            self._steps = self.gridlock_removals = 0
+            self._steps = 0
             return
         global _owner
         owner = _owner() if _owner is not None else None
@@ -224,7 +222,7 @@ class SumoBridge:
         self._acs.clear()
         self._pinned.clear()
         self.time = 0.0
-        self._steps = self.gridlock_removals = 0
+        self._steps = 0
 
     def _start_traci(self, seed: int) -> None:
         _libsumo()  # sets SUMO_HOME from the wheel, reports a missing install
@@ -474,7 +472,6 @@ class SumoBridge:
             if (ls.vehicle.getRoadID(vid).startswith(":")
                     and ls.vehicle.getWaitingTime(vid) > GRIDLOCK_WAIT):
                 ls.vehicle.remove(vid)
-                self.gridlock_removals += 1
 
     def background_actors(self) -> tuple:
         """(car ids, centres, headings, speeds, lengths, widths, person ids, xy, headings, speeds)."""
