@@ -22,7 +22,7 @@ from pathlib import Path
 
 def timed(args: list[str]) -> float:
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "cosim.cli", *args], check=True,
+    subprocess.run([sys.executable, "-m", "eval.cli", *args], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     return time.perf_counter() - start
 

@@ -265,3 +265,13 @@ def read_state(run: Path) -> dict | None:
         raise TrainError(f"{path} is unreadable ({type(exc).__name__}: {exc}); delete it to restart "
                          "the run from step 0, or start a new run") from None
     return state
+
+
+def output_folder(path: Path, flag: str) -> Path:
+    """Create `path` (a folder for results) now, so a bad --out fails before any work."""
+    from cosim.errors import OptionError
+
+    reason = unwritable_reason(path)
+    if reason:
+        raise OptionError(f"{flag} {path}: cannot write there ({reason}); choose another {flag}")
+    return path

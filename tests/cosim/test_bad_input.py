@@ -1,6 +1,6 @@
 """Every input a user can get wrong ends in one line that names it and the fix.
 
-The CLI cases run `cosim.cli.main` in this process with the file descriptors
+The CLI cases run `eval.cli.main` in this process with the file descriptors
 captured (SUMO's own C++ messages included): the exit is non-zero, the last line
 of stderr names the offending input, and no traceback is printed. API cases (an
 environment's actions and reset options) raise a CosimError naming the input.
@@ -18,9 +18,9 @@ import yaml
 
 from agents.a3c import A3C
 from agents.td3 import TD3
-from cosim.cli import main
 from cosim.errors import ActionError, CosimError, OptionError, ScenarioError
 from cosim.scenario import load_scenario, scenarios_dir
+from eval.cli import main
 
 OBS = gymnasium.spaces.Box(0, 255, (84, 84, 3), np.uint8)
 
@@ -223,12 +223,12 @@ def test_every_deliberate_error_shares_one_root():
 
 
 def test_a_bug_prints_one_line_and_the_log_holding_its_traceback(capfd, monkeypatch):
-    import cosim.cli
+    import eval.cli_sim
 
     def broken(args):
         raise RuntimeError("something deep inside\nwith a second line")
 
-    monkeypatch.setattr(cosim.cli, "cmd_scenarios", broken)
+    monkeypatch.setattr(eval.cli_sim, "cmd_scenarios", broken)
     code, err = run_cli(["scenarios"], capfd)
     assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
     assert "unexpected error RuntimeError: something deep inside" in err
@@ -238,13 +238,13 @@ def test_a_bug_prints_one_line_and_the_log_holding_its_traceback(capfd, monkeypa
 
 
 def test_a_multi_line_error_prints_its_first_line_and_keeps_the_rest_in_a_log(capfd, monkeypatch):
-    import cosim.cli
+    import eval.cli_sim
     from agents.workers import WorkerError
 
     def worker_died(args):
         raise WorkerError(1, "exited with code 1", "Traceback (most recent call last):\n  boom")
 
-    monkeypatch.setattr(cosim.cli, "cmd_scenarios", worker_died)
+    monkeypatch.setattr(eval.cli_sim, "cmd_scenarios", worker_died)
     code, err = run_cli(["scenarios"], capfd)
     assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
     assert err.startswith("cosim: error: worker 1 failed: exited with code 1 (details in ")

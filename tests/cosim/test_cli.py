@@ -2,7 +2,7 @@
 
 import imageio.v3 as iio
 
-from cosim.cli import main
+from eval.cli import main
 
 
 def test_scenarios_lists_the_five(capsys):

@@ -21,7 +21,7 @@ import torch
 
 import agents.checkpoint
 import eval.runlog
-from cosim.cli import main
+from eval.cli import main
 
 calls = {"checkpoint": 0}
 moment, nth, sig = "", 0, signal.SIGKILL

@@ -79,7 +79,7 @@ def cosim(args: list[str], ray_tmp: Path | None = None, timeout: float = 600,
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env_extra or {})}
     if ray_tmp is not None:
         env["RAY_TMPDIR"] = str(ray_tmp)
-    return subprocess.run([sys.executable, "-m", "cosim.cli", *args], env=env, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "eval.cli", *args], env=env, capture_output=True,
                           text=True, timeout=timeout, **kwargs)
 
 
@@ -103,15 +103,15 @@ def tensors(path: Path) -> dict:
 
 # -- without Ray ---------------------------------------------------------------------
 def test_commands_without_a_grid_never_import_ray():
-    code = ("import sys, cosim.cli, eval.benchmark, eval.pbt, eval.raysession; "
-            "cosim.cli.build_parser().parse_args(['benchmark', '--no-ray']); "
+    code = ("import sys, eval.cli, eval.benchmark, eval.pbt, eval.raysession; "
+            "eval.cli.build_parser().parse_args(['benchmark', '--no-ray']); "
             "eval.raysession.ray_available(); assert 'ray' not in sys.modules, 'ray imported'")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
 def test_benchmark_without_ray_says_how_to_install(monkeypatch, capsys, tmp_path):
     import eval.raysession
-    from cosim.cli import main
+    from eval.cli import main
 
     monkeypatch.setattr(eval.raysession, "ray_available", lambda: False)
     assert main(["benchmark", "--out", str(tmp_path)]) == 2
@@ -257,7 +257,7 @@ def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp):
     args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn",
             "--steps", "160", "--concurrent", "1", "--train-only", "--out", str(out)]
     env = {**os.environ, "RAY_TMPDIR": str(ray_tmp)}
-    proc = subprocess.Popen([sys.executable, "-m", "cosim.cli", *args], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "eval.cli", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
     grid = out / "tune" / "grid"
@@ -329,7 +329,7 @@ def test_ctrl_c_during_pbt_leaves_no_ray_process_and_resume_finishes_it(tmp_path
     args = ["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps", "240",
             "--pbt", "2", "--pbt-interval", "60", "--out", str(tmp_path)]
     env = {**os.environ, "RAY_TMPDIR": str(ray_tmp)}
-    proc = subprocess.Popen([sys.executable, "-m", "cosim.cli", *args], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "eval.cli", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
     deadline = time.monotonic() + 300

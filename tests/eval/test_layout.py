@@ -112,3 +112,15 @@ def test_the_td3_quick_learning_rate_is_written_once():
             if "actor_learning_rate: 1.0e-4" in p.read_text() or '"actor_learning_rate": 1e-4' in p.read_text()]
     assert sorted(hits) == ["ddpg.yaml", "td3.yaml"]
     assert config.make_config("td3", preset="quick").agent_config["actor_learning_rate"] == 1e-4
+
+
+def test_the_cli_sits_on_top_and_the_lower_packages_never_import_eval():
+    root = Path(eval.__file__).parents[1]
+    assert not (root / "cosim" / "cli.py").exists()
+    for package in ("cosim", "agents"):
+        for path in (root / package).rglob("*.py"):
+            text = path.read_text()
+            assert "import eval" not in text and "from eval" not in text, path
+    for module in ("cli", "cli_sim", "cli_learn"):
+        path = Path(eval.__file__).with_name(f"{module}.py")
+        assert len(path.read_text().splitlines()) <= 300, path

@@ -6,7 +6,7 @@ import pytest
 from gymnasium import spaces
 
 from agents.registry import get_agent_class
-from cosim.cli import main
+from eval.cli import main
 from eval.protocol import (
     ProtocolError,
     ProtocolPlan,

@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 from gymnasium import spaces
 
-from cosim.cli import main
 from eval import replay, selection
+from eval.cli import main
 from eval.protocol import ProtocolPlan, run_protocol
 from eval.report import TABLE_METRICS, bootstrap_ci, cell, provenance, sha256, write_paper_report
 

@@ -21,11 +21,11 @@ from pathlib import Path
 import pytest
 
 import agents
-from cosim.cli import main
+from eval.cli import main
 from eval.train import RunLock, TrainError, train
 
 INTERRUPT = [sys.executable, str(Path(__file__).with_name("_interrupt.py"))]
-COSIM = [sys.executable, "-m", "cosim.cli"]
+COSIM = [sys.executable, "-m", "eval.cli"]
 STEPS = 160  # smoke preset: a checkpoint every 40 steps, episodes of at most 60 steps
 
 

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 import agents
-from cosim.cli import main
+from eval.cli import main
 from eval.train import ALGORITHMS, TrainError, make_config, train
 
-COSIM = [sys.executable, "-m", "cosim.cli"]
+COSIM = [sys.executable, "-m", "eval.cli"]
 
 
 def _rows(run: Path) -> list[dict]:

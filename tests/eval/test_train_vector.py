@@ -19,7 +19,7 @@ import agents
 from agents.workers import live_pids
 from eval.train import train
 
-COSIM = [sys.executable, "-m", "cosim.cli"]
+COSIM = [sys.executable, "-m", "eval.cli"]
 pytestmark = pytest.mark.slow
 
 

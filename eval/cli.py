@@ -1,0 +1,236 @@
+"""The `cosim` command line: the top layer: the only place that wires environments, agents and evaluation.
+
+    cosim scenarios                         list the driving environments
+    cosim drive env_3 --agents 6            run the scripted drivers, print events (no cameras)
+    cosim view env_3 --out view/            camera mosaic PNG + GIFs of what the ACs see
+    cosim nets build | check                rebuild / check the SUMO networks
+    cosim train --algo ppo --env env_1      train N ACs of one algorithm together
+    cosim test --agents 6                   the test protocol (Scenario 1 and 2) and its report
+    cosim benchmark --preset smoke          train the grid on Ray Tune, test it, write the report
+    cosim replay REPORT/replays/X/state.json  reopen a failure replay's SUMO state
+    cosim check-scenarios env_4             degenerate-policy suite: does a scenario measure driving?
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+from eval import cli_learn, cli_sim
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if not args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not hasattr(args, "func"):
+        parser.print_help()
+        return 2
+    from cosim.errors import CosimError
+
+    try:
+        return int(args.func(args) or 0)
+    except CosimError as exc:
+        # the project's one error root (cosim, agents and eval): the message names the
+        # input and the fix; a multi-line one (a worker's traceback) goes to a log file
+        lines = str(exc).strip().splitlines() or [type(exc).__name__]
+        more = f" (details in {_write_log(str(exc))})" if len(lines) > 1 else ""
+        print(f"cosim: error: {lines[0]}{more}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("cosim: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a bug: one line here, the traceback in a log file
+        import traceback
+
+        path = _write_log(traceback.format_exc())
+        first = (str(exc).strip().splitlines() or [""])[0][:200]
+        print(f"cosim: unexpected error {type(exc).__name__}: {first} (traceback in {path}; "
+              "please report it)", file=sys.stderr)
+        return 1
+
+
+def _write_log(text: str) -> Path:
+    """Write `text` to a fresh log file under the temp folder and return its path."""
+    import datetime as dt
+    import tempfile
+
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    path = Path(tempfile.gettempdir()) / f"cosim-error-{stamp}-{os.getpid()}.log"
+    path.write_text(f"cosim {' '.join(sys.argv[1:])}\n{text}")
+    return path
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cosim", description=__doc__.split("\n\n")[0])
+    p.add_argument("-v", "--verbose", action="store_true", help="log library messages")
+    sub = p.add_subparsers(metavar="COMMAND")
+
+    s = sub.add_parser("scenarios", help="list the driving environments")
+    s.set_defaults(func=cli_sim.cmd_scenarios)
+
+    d = sub.add_parser("drive", help="drive ACs with the scripted controller and print events")
+    _scenario_args(d, steps=300)
+    d.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.add_argument("--gui", action="store_true", help="watch it in sumo-gui (needs a display)")
+    d.set_defaults(func=cli_sim.cmd_drive)
+
+    v = sub.add_parser("view", help="write camera mosaics and GIFs of what the ACs see")
+    _scenario_args(v, steps=200)
+    v.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    v.add_argument("--out", type=Path, default=Path("view"), help="output folder")
+    v.add_argument("--image-size", type=_int_in(8, 512), default=84, help="camera pixels (8-512)")
+    v.add_argument("--moments", type=_int_in(1), default=3, help="mosaics taken along the run")
+    v.add_argument("--extent", type=float, default=100.0,
+                   help="metres across the top-down view beside the mosaic")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
+    v.set_defaults(func=cli_sim.cmd_view)
+
+    n = sub.add_parser("nets", help="build or check the SUMO networks")
+    n.add_argument("action", choices=["build", "check"])
+    n.add_argument("--config", type=Path, action="append",
+                   help="a netconvert .netccfg (default: every bundled network)")
+    n.set_defaults(func=cli_sim.cmd_nets)
+
+    from agents.registry import ALGORITHMS, DISCRETE  # the catalogue (no algorithm imported)
+
+    t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
+    t.add_argument("--algo", default="ppo",
+                   help=f"{', '.join(ALGORITHMS)}, or all (every one, in parallel where CPUs allow)")
+    t.add_argument("--env", default="env_1", help="env_1..env_5 or a scenario .yaml")
+    t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
+    t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--preset", default="quick", help="smoke, quick or paper")
+    t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
+                   help=f"must match the algorithm (discrete: {' '.join(DISCRETE)})")
+    t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
+    t.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="hyper",
+                   help="change one agent hyperparameter, e.g. --set learning_rate=3e-4 (repeatable)")
+    t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
+    t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
+                   help="continue an interrupted run from its last checkpoint")
+    t.add_argument("--envs", type=int, default=1,
+                   help="environments stepped together, one process each when > 1 (ppo dqn ddpg td3)")
+    t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="torch device of the learners (auto: cuda when available)")
+    t.add_argument("--torch-threads", type=int, default=0, metavar="K",
+                   help="torch threads in the trainer (0: the CPUs the env workers leave, or torch's default)")
+    t.add_argument("--pbt", type=_int_in(2), default=None, metavar="P",
+                   help="Population Based Training on Ray Tune with P trials (eval/pbt.py)")
+    t.add_argument("--pbt-interval", type=_int_in(1), default=None, metavar="STEPS",
+                   help="environment steps between PBT exploit/explore decisions (default: the "
+                        "preset's checkpoint interval)")
+    t.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --pbt: an existing Ray cluster (default: local Ray)")
+    t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
+    t.set_defaults(func=cli_learn.cmd_train)
+    e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
+    e.add_argument("--agents", type=int, default=6,
+                   help="ACs in Scenario 1, one per algorithm in the order ppo a3c impala dqn ddpg td3")
+    e.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
+    e.add_argument("--scenario", choices=["1", "2", "both"], default="both")
+    e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
+    e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
+                   help="trained checkpoints from --runs, or a reference driver")
+    e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")
+    e.add_argument("--checkpoint", action="append", default=[], metavar="ALGO=PATH",
+                   help="the checkpoint of one algorithm's AC instead of the newest under --runs "
+                        "(repeatable), e.g. --checkpoint ppo=runs/x/checkpoints/ac_0/best.pt")
+    e.add_argument("--out", type=Path, default=Path("reports"), help="report folder")
+    e.add_argument("--references", default="all",
+                   help="reference rows added to the report: 'all' (autopilot, random and the "
+                        "degenerate suite of `cosim check-scenarios`), 'none', or a comma list")
+    e.add_argument("--cross-play", action="store_true",
+                   help="also the cross-play matrix: each algorithm's AC among ACs of each other "
+                        "algorithm and among autopilots (eval/robustness.py)")
+    e.add_argument("--cross-play-group", type=_int_in(2, 6), default=3, metavar="N",
+                   help="ACs per cross-play episode: the ego and N-1 partners (default 3)")
+    e.add_argument("--sweep", action="append", default=[], metavar="KIND=L1,L2",
+                   help="also a robustness sweep (repeatable): density=0.5,1,2, camera_noise=0,0.05, "
+                        "action_noise=0,0.2, dropout=0,0.3")
+    e.add_argument("--no-replays", action="store_true",
+                   help="skip the failure replays (clips and SUMO state of each first collision)")
+    e.add_argument("--quiet", action="store_true")
+    e.set_defaults(func=cli_learn.cmd_test)
+
+    _benchmark_parser(sub)
+
+    rp = sub.add_parser("replay", help="reopen a failure replay's SUMO state (from a cosim test report)")
+    rp.add_argument("state", type=Path, help="replays/<...>/state.json (or state.xml) of a report")
+    rp.add_argument("--plot", type=Path, default=None, metavar="PNG",
+                    help="also draw the reloaded positions into this PNG")
+    rp.set_defaults(func=cli_learn.cmd_replay)
+
+    c = sub.add_parser("check-scenarios",
+                       help="run the degenerate-policy suite: does a scenario measure driving?")
+    c.add_argument("scenarios", nargs="*", default=["env_1", "env_2", "env_3", "env_4", "env_5"],
+                   help="env_1..env_5 or scenario .yaml files (default: the five)")
+    c.add_argument("--agents", type=int, nargs="+", default=[3, 6], help="AC counts to check")
+    c.add_argument("--episodes", type=int, default=5, help="held-out episodes per policy")
+    c.add_argument("--steps", type=int, default=None, help="steps per episode (default: horizon)")
+    c.add_argument("--out", type=Path, default=None, help="also write the per-episode rows (CSV)")
+    c.set_defaults(func=cli_sim.cmd_check_scenarios)
+    return p
+
+
+def _benchmark_parser(sub) -> None:
+    from agents.registry import ALGORITHMS
+
+    b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
+                                         "trial, then test them and write the report")
+    b.add_argument("--preset", choices=["smoke", "quick", "paper"], default="smoke")
+    b.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
+    b.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
+    b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")
+    b.add_argument("--steps", type=_int_in(1), default=None,
+                   help="environment steps per trial (default: the preset's)")
+    b.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
+    b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",
+                   help="trials at once (default: the CPUs here, or unlimited on a cluster)")
+    b.add_argument("--gpus-per-trial", type=float, default=0.0, help="GPU share of each trial")
+    b.add_argument("--no-ray", action="store_true",
+                   help="train the same grid one trial after another in this process")
+    b.add_argument("--train-only", action="store_true", help="train the grid, skip the test and report")
+    b.add_argument("--out", type=Path, default=Path("benchmark"), help="benchmark folder")
+    b.add_argument("--resume", action="store_true",
+                   help="continue an interrupted benchmark in --out without redoing finished trials")
+    b.add_argument("--quiet", action="store_true")
+    b.set_defaults(func=cli_learn.cmd_benchmark)
+
+
+def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
+    p.add_argument("scenario", nargs="?", default="env_3", help="env_1..env_5 or a scenario .yaml")
+    p.add_argument("--agents", type=_int_in(1, 6), default=None,
+                   help="learning cars (default: every spawn point of the scenario)")
+    p.add_argument("--steps", type=_int_in(1), default=steps)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-background", action="store_true", help="no background cars")
+    p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
+
+
+def _int_in(low: int, high: int | None = None):
+    """An argparse type: an int in [low, high]; the error names the value and the range."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            span = f"{low}..{high}" if high is not None else f">= {low}"
+            raise argparse.ArgumentTypeError(f"must be {span}, got {value}")
+        return value
+
+    return parse
+
+
+if __name__ == "__main__":
+    sys.exit(main())
