@@ -60,7 +60,17 @@ class TD3Config(AgentConfig):
     tau: float = 0.005
     """Polyak factor of the target networks (paper: 0.0002)."""
     learning_starts: int = 5_000
-    """transitions of uniform random actions before learning starts."""
+    """transitions before learning starts (acting uniformly at random until then)."""
+    random_steps: int = 0
+    """transitions of uniform random actions at the start, per agent (the TD3 paper's
+    ``start_timesteps``); the random phase lasts max(random_steps, learning_starts)
+    transitions, so 0 keeps the warm-up of ``learning_starts`` alone. Learning starts at
+    ``learning_starts`` either way: a longer phase trains the critic on random data first."""
+    random_low: tuple[float, ...] = ()
+    """lower end of the random phase's uniform draw, per action component (empty: the
+    action space's low). The driving presets raise the throttle/brake floor to -0.6:
+    drawn over [-1, 1] the car brakes harder (8 m/s^2) than it accelerates (3.5), so it
+    stands still most of the phase (README, Training)."""
     train_freq: int = 1
     """env steps between training phases."""
     gradient_steps: int = 1
@@ -99,6 +109,7 @@ class TD3Config(AgentConfig):
         check_range("gamma", self.gamma, 0, 1)
         check_range("tau", self.tau, 0, 1, low_inclusive=False)
         check_range("learning_starts", self.learning_starts, 0)
+        check_range("random_steps", self.random_steps, 0)
         check_range("train_freq", self.train_freq, 1)
         check_range("gradient_steps", self.gradient_steps, 1)
         check_range("exploration_noise", self.exploration_noise, 0)
@@ -150,6 +161,14 @@ class TD3(Agent):
         self.low = self.action_space.low.astype(np.float32)
         self.high = self.action_space.high.astype(np.float32)
         self.half_range = (self.high - self.low) / 2.0
+        self.random_low = self.low.copy()
+        if cfg.random_low:
+            floor = np.asarray(cfg.random_low, np.float32)
+            if floor.shape != self.low.shape or np.any(floor < self.low) or np.any(floor >= self.high):
+                raise ValueError(f"random_low {cfg.random_low} must give one value per action component "
+                                 f"in [low, high) of {self.action_space}")
+            self.random_low = floor
+        self.random_until = max(cfg.random_steps, cfg.learning_starts)
         self.steps = 0
         self._updated_to = 0  # self.steps at the last update() call
         self.gradient_updates = 0
@@ -168,9 +187,9 @@ class TD3(Agent):
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         cfg = self.config
-        if not deterministic and self.steps < cfg.learning_starts:
+        if not deterministic and self.steps < self.random_until:
             # Uniform random warm-up fills the buffer with diverse actions (Fujimoto et al.).
-            return self.rng.uniform(self.low, self.high).astype(np.float32)
+            return self.rng.uniform(self.random_low, self.high).astype(np.float32)
         action = self.actor(self.critic.encode(self.obs_batch(obs)))[0].cpu().numpy()
         if not deterministic:
             action = action + self.rng.normal(0.0, cfg.exploration_noise, action.shape) * self.half_range
@@ -179,8 +198,8 @@ class TD3(Agent):
     @torch.no_grad()
     def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
         cfg, n = self.config, len(obs)
-        if not deterministic and self.steps < cfg.learning_starts:
-            return self.rng.uniform(self.low, self.high, (n, *self.low.shape)).astype(np.float32)
+        if not deterministic and self.steps < self.random_until:
+            return self.rng.uniform(self.random_low, self.high, (n, *self.low.shape)).astype(np.float32)
         actions = self.actor(self.critic.encode(obs_to_tensor(np.asarray(obs), self.device))).cpu().numpy()
         if not deterministic:
             actions = actions + self.rng.normal(0.0, cfg.exploration_noise, actions.shape) * self.half_range

@@ -29,6 +29,7 @@ import agents
 import cosim
 from cosim.scenario import nets_dir
 from eval.metrics import episode_metrics
+from eval.protocol import drive
 from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
 from eval.train import DISCRETE_ALGOS, make_config, parse_set, train
 
@@ -82,7 +83,8 @@ def evaluate_run(run: Path, episodes: int, scenario: str = "env_1") -> dict:
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     action_type = "discrete" if cfg["algo"] in DISCRETE_ALGOS else "continuous"
     n = cfg["agents"]
-    ckpts = {f"ac_{k}": agents.load(run / "checkpoints" / f"ac_{k}" / "best.pt") for k in range(n)}
+    # drive(): a checkpoint trained on K stacked frames gets K (its own frame history per AC)
+    ckpts = {f"ac_{k}": drive(agents.load(run / "checkpoints" / f"ac_{k}" / "best.pt")) for k in range(n)}
     trained = evaluate(lambda env: ckpts, action_type, episodes, cfg["horizon"], n, scenario)
     rand = random_reference(action_type, episodes, cfg["horizon"], n, scenario)
     return {"algo": cfg["algo"], "steps": cfg["steps"], "trained": trained, "random": rand, "run": str(run)}

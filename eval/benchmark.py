@@ -35,6 +35,7 @@ import numpy as np
 
 from cosim.errors import CosimError
 from eval.train import ALGORITHMS, ASYNC_ALGOS, TrainConfig, make_config, train
+from eval.validity import POLICIES
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +61,8 @@ class TestSettings:
 TEST_SETTINGS = {
     "smoke": TestSettings(episodes=1, steps=60),
     "quick": TestSettings(episodes=3, steps=500, references=("autopilot", "random")),
+    # the scenarios' 600-step horizon and the whole reference suite of `cosim check-scenarios`
+    "standard": TestSettings(episodes=5, steps=600, references=POLICIES),
     "paper": TestSettings(episodes=3, steps=500, references=("autopilot", "random")),
 }
 
@@ -68,7 +71,7 @@ TEST_SETTINGS = {
 class BenchmarkPlan:
     """The grid: every (algorithm, environment, seed) of a preset."""
 
-    preset: str = "smoke"
+    preset: str = "standard"
     envs: tuple[str, ...] = ENVS
     algos: tuple[str, ...] = ALGORITHMS
     seeds: int = 1

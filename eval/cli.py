@@ -98,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.set_defaults(func=cli_sim.cmd_nets)
 
     from agents.registry import ALGORITHMS, DISCRETE  # the catalogue (no algorithm imported)
+    from eval.presets import preset_names
 
     t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
     t.add_argument("--algo", default="ppo",
@@ -106,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
     t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--preset", default="quick", help="smoke, quick or paper")
+    t.add_argument("--preset", default="quick", choices=preset_names(),
+                   help=f"run preset, from eval/hyperparams/runs.yaml: {', '.join(preset_names())}")
     t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
                    help=f"must match the algorithm (discrete: {' '.join(DISCRETE)})")
     t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
@@ -115,8 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
     t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
                    help="continue an interrupted run from its last checkpoint")
-    t.add_argument("--envs", type=int, default=1,
-                   help="environments stepped together, one process each when > 1 (ppo dqn ddpg td3)")
+    t.add_argument("--envs", type=int, default=None,
+                   help="environments stepped together, one process each when > 1 (ppo dqn ddpg td3; "
+                        "default: the preset's)")
+    t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
+                   help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
+                        "preset's, 1 = the paper's single frame); tests of the run stack K too")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",
@@ -183,10 +189,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _benchmark_parser(sub) -> None:
     from agents.registry import ALGORITHMS
+    from eval.presets import preset_names
 
     b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
                                          "trial, then test them and write the report")
-    b.add_argument("--preset", choices=["smoke", "quick", "paper"], default="smoke")
+    b.add_argument("--preset", choices=preset_names(), default="standard",
+                   help="run preset (eval/hyperparams/runs.yaml); standard: ~15 min per trial here")
     b.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
     b.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
     b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")

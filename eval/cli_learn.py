@@ -28,9 +28,8 @@ def cmd_train(args) -> int:
         configs = [
             make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
-                        hyper=hyper, envs=1 if a in ASYNC_ALGOS and args.algo == "all" else args.envs,
-                        device=args.device,
-                        torch_threads=args.torch_threads)
+                        hyper=hyper, envs=None if a in ASYNC_ALGOS and args.algo == "all" else args.envs,
+                        device=args.device, torch_threads=args.torch_threads, frame_stack=args.frame_stack)
             for a in algos
         ]
     except TrainError as exc:
@@ -59,13 +58,15 @@ def cmd_train(args) -> int:
         base += ["--steps", str(args.steps)]
     if args.agent_preset is not None:
         base += ["--agent-preset", args.agent_preset]
+    if args.frame_stack is not None:
+        base += ["--frame-stack", str(args.frame_stack)]
     for item in args.hyper:
         base += ["--set", item]
     try:
         while pending or running:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
-                envs = [] if algo in ASYNC_ALGOS else ["--envs", str(args.envs)]
+                envs = [] if algo in ASYNC_ALGOS or args.envs is None else ["--envs", str(args.envs)]
                 running[algo] = subprocess.Popen(base + envs + ["--algo", algo])
             for algo, proc in list(running.items()):
                 try:
@@ -100,7 +101,8 @@ def _train_pbt(args) -> int:
             cfg = make_config(args.algo, args.env, args.preset, agents=args.agents, steps=args.steps,
                               seed=args.seed, action_type=args.action_type,
                               agent_preset=args.agent_preset, hyper=parse_set(args.hyper),
-                              envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1)
+                              envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
+                              frame_stack=args.frame_stack)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:

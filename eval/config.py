@@ -54,6 +54,10 @@ class TrainConfig:
     torch_threads: int = 0
     """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers
     (cpu_count - envs, at least 1) when envs > 1, else torch's default."""
+    frame_stack: int = 1
+    """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
+    1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)
+    and every test of a checkpoint does too, read from its observation shape."""
 
     @property
     def action_type(self) -> str:
@@ -66,12 +70,14 @@ class TrainConfig:
 def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents: int | None = None,
                 steps: int | None = None, seed: int = 0, action_type: str | None = None,
                 image_size: int = 84, agent_preset: str | None = None,
-                hyper: Mapping[str, str] | None = None, envs: int = 1, device: str = "auto",
-                torch_threads: int = 0) -> TrainConfig:
+                hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
+                torch_threads: int = 0, frame_stack: int | None = None) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
-    (``cosim train --set actor_learning_rate=1e-4``).
+    (``cosim train --set actor_learning_rate=1e-4``). ``envs`` and ``frame_stack``
+    default to the preset's (``envs`` only for the sync algorithms; A3C and IMPALA
+    always run one environment per worker).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -102,6 +108,11 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     total = p.steps[algo] if steps is None else int(steps)
     if total < 1:
         raise TrainError(f"--steps must be >= 1, got {total}")
+    if envs is None:
+        envs = p.envs if algo not in ASYNC_ALGOS else 1
+    frame_stack = p.frame_stack if frame_stack is None else int(frame_stack)
+    if frame_stack < 1:
+        raise TrainError(f"--frame-stack must be >= 1 (1: a single camera frame), got {frame_stack}")
     if int(envs) < 1 or int(torch_threads) < 0:
         raise TrainError(f"--envs must be >= 1 and --torch-threads >= 0, got {envs} and {torch_threads}")
     if int(envs) > 1 and algo in ASYNC_ALGOS:
@@ -121,7 +132,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
         image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
-        torch_threads=int(torch_threads),
+        torch_threads=int(torch_threads), frame_stack=frame_stack,
     )
 
 

@@ -1,7 +1,7 @@
-"""Run presets (smoke, quick, paper) read from YAML, rl-zoo style.
+"""Run presets (smoke, quick, standard, paper: the names in runs.yaml) read from YAML, rl-zoo style.
 
 ``eval/hyperparams/runs.yaml`` holds what every algorithm of a preset shares (ACs,
-episode horizon, checkpoint interval, agent preset, workers);
+episode horizon, checkpoint interval, agent preset, workers, envs, frame stack);
 ``eval/hyperparams/<algo>.yaml`` holds, per preset, the algorithm's step budget and
 the hyperparameters it changes on top of the agent preset (the agent config
 dataclass's ``PRESETS``, e.g. ``TD3Config`` in agents/td3.py). Adding an algorithm
@@ -21,7 +21,7 @@ import yaml
 
 from agents.registry import ALGORITHMS
 
-__all__ = ["HYPERPARAMS", "TrainPreset", "load_presets"]
+__all__ = ["HYPERPARAMS", "TrainPreset", "load_presets", "preset_names"]
 
 HYPERPARAMS = Path(__file__).with_name("hyperparams")
 """The folder of the preset YAML files (package data)."""
@@ -42,9 +42,16 @@ class TrainPreset:
     agent_preset: str
     """The agents' hyperparameter preset ("default" or "paper")."""
     workers: int
-    """Worker/actor processes for A3C and IMPALA."""
+    """A3C's and IMPALA's environments when ``--envs`` is not given (one vector env;
+    A3C runs one learner thread per environment)."""
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Per-algorithm hyperparameter changes on top of agent_preset."""
+    envs: int = 1
+    """Environments stepped together by PPO, DQN, DDPG and TD3 (A3C and IMPALA default
+    to ``workers`` environments instead); ``cosim train --envs`` overrides both."""
+    frame_stack: int = 1
+    """Camera frames per observation (1: the paper's single frame); ``--frame-stack``
+    overrides it (eval/config.py TrainConfig.frame_stack)."""
     reward_scale: float = 0.01
     """Every algorithm learns on reward x this: the driving reward is worth up to ~24
     per step and -50 per collision, so unscaled returns run to thousands and the value
@@ -65,6 +72,11 @@ def _check_keys(path: Path, where: str, keys, valid) -> None:
     unknown = sorted(set(keys) - set(valid))
     if unknown:
         raise ValueError(f"{path}: {where}: unknown key(s) {unknown}; valid keys: {sorted(valid)}")
+
+
+def preset_names() -> tuple[str, ...]:
+    """The run presets' names in runs.yaml order (what ``--preset`` accepts)."""
+    return tuple(load_presets())
 
 
 @functools.cache

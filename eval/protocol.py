@@ -25,7 +25,7 @@ from cosim.errors import CosimError
 from eval import selection
 from eval.metrics import METRICS, episode_metrics, speed_curve, success_rates, summarize
 from eval.records import save
-from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
+from eval.rollout import AutopilotPolicy, RandomPolicy, StackedPolicy, run_episodes
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,8 @@ PolicyFactory = Callable[[object, str, str], object]  # (env, agent id, algorith
 
 
 def load_for_slot(path: Path, algo: str, image_size: int = 84):
-    """Load the checkpoint given for `algo`'s AC, refusing one that cannot drive it.
+    """Load the checkpoint given for `algo`'s AC, refusing one that cannot drive it
+    (a checkpoint trained on K stacked frames is tested on K: :func:`drive`).
 
     Raises:
         agents.CheckpointError: the file is missing or corrupt.
@@ -101,20 +102,34 @@ def load_for_slot(path: Path, algo: str, image_size: int = 84):
             f"checkpoint {path} acts in {agent.action_space}, but the {algo} AC needs a {want} "
             "action space; give a checkpoint trained with that action type"
         )
-    expected = (image_size, image_size, 3)
-    if tuple(agent.observation_space.shape) != expected:
+    shape = tuple(agent.observation_space.shape)
+    if len(shape) != 3 or shape[:2] != (image_size, image_size) or shape[2] % 3 or not shape[2]:
         raise ProtocolError(
-            f"checkpoint {path} sees observations of shape {agent.observation_space.shape}, the "
-            f"test environments give {expected} camera images; give a checkpoint trained on them"
+            f"checkpoint {path} sees observations of shape {shape}, the test environments give "
+            f"{(image_size, image_size, 3)} camera images (or K of them stacked, "
+            f"{(image_size, image_size, '3K')}); give a checkpoint trained on them"
         )
     return agent
+
+
+def frame_stack_of(agent) -> int:
+    """Camera frames a checkpoint's agent observes at once: its observation channels / 3
+    (a run trained with ``frame_stack`` K has 84x84x3K observations)."""
+    return int(agent.observation_space.shape[-1]) // 3
+
+
+def drive(agent):
+    """The policy of one AC from a loaded checkpoint: the agent itself for one frame, else
+    a :class:`~eval.rollout.StackedPolicy` with that AC's own frame history."""
+    k = frame_stack_of(agent)
+    return StackedPolicy(agent, k) if k > 1 else agent
 
 
 def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None) -> PolicyFactory:
     """How each AC gets its policy: trained checkpoints, the autopilot, or random."""
     if kind == "trained":
         loaded = {algo: load_for_slot(path, algo) for algo, path in (checkpoints or {}).items()}
-        return lambda env, agent, algo: loaded[algo]
+        return lambda env, agent, algo: drive(loaded[algo])  # one frame history per AC
     if kind == "autopilot":
         return lambda env, agent, algo: AutopilotPolicy(env, agent)
     if kind == "random":
@@ -320,5 +335,5 @@ def _save(fig, title: str, path: Path) -> Path:
     return path
 
 
-__all__ = ["METRICS", "ProtocolPlan", "find_checkpoints", "metrics_table", "policy_factory",
+__all__ = ["METRICS", "ProtocolPlan", "drive", "find_checkpoints", "frame_stack_of", "metrics_table", "policy_factory",
            "rq1_table", "run_protocol", "write_report"]

@@ -2,7 +2,8 @@
 
 A policy is anything with ``act(obs, deterministic=True)`` (every trained agent)
 or a callable ``policy(obs) -> action``. :class:`RandomPolicy` and
-:class:`AutopilotPolicy` are the two references.
+:class:`AutopilotPolicy` are the two references; :class:`StackedPolicy` feeds a
+policy trained on stacked frames its own frame history.
 """
 
 from __future__ import annotations
@@ -48,6 +49,35 @@ class AutopilotPolicy:
 
     def reset(self) -> None:
         self._pilot = None
+
+
+class StackedPolicy:
+    """A policy trained on ``k`` stacked camera frames, driving one AC of a test env.
+
+    It keeps that AC's frame history itself (cosim.wrappers.FrameHistory, the stacking the
+    training env's FrameStack does), so ACs of runs with different ``k`` share one test
+    environment; ``reset()`` (called by :func:`run_episodes` at every episode start)
+    clears it, and the first frame of an episode fills all ``k`` slots, as in training.
+    """
+
+    def __init__(self, policy, k: int):
+        from cosim.wrappers import FrameHistory
+
+        self.policy, self.history = policy, FrameHistory(k)
+        self.algo = getattr(policy, "algo", None)
+        self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    @property
+    def frame_stack(self) -> int:
+        return self.history.k
+
+    def reset(self) -> None:
+        self.history.clear()
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def act(self, obs, deterministic: bool = True):
+        return _act(self.policy, self.history.push(obs))
 
 
 def _act(policy, obs):
@@ -101,4 +131,4 @@ def mean_return(records: pd.DataFrame) -> float:
     return float(records.groupby(["episode", "agent"])["reward"].sum().mean())
 
 
-__all__ = ["AutopilotPolicy", "RandomPolicy", "mean_return", "run_episodes", "np"]
+__all__ = ["AutopilotPolicy", "RandomPolicy", "StackedPolicy", "mean_return", "run_episodes", "np"]

@@ -3,7 +3,7 @@
 The layer, one concern per module:
 
     agents/registry.py    the algorithm catalogue: name, class, action kind, sync/async loop
-    eval/presets.py       run presets (smoke, quick, paper) from eval/hyperparams/*.yaml
+    eval/presets.py       run presets (smoke, quick, standard, paper) from eval/hyperparams/*.yaml
     eval/config.py        TrainConfig, make_config, --set parsing
     eval/runfolder.py     the run folder: layout, config.yaml, manifest, lock, resume recovery
     eval/runlog.py        episodes.csv (columns from the event and reward-term catalogues),

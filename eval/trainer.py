@@ -226,15 +226,18 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
 
 
 def make_env(cfg_dict: dict, worker_seed: int | None = None):
-    """Build the training env of a config (top-level, so worker processes can pickle it)."""
+    """Build the training env of a config (top-level, so worker processes can pickle it);
+    with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack)."""
     from cosim.env import CosimParallelEnv
+    from cosim.wrappers import FrameStack
 
     cfg = TrainConfig(**cfg_dict)
-    return CosimParallelEnv(
+    env = CosimParallelEnv(
         cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
         horizon=cfg.horizon, terminate_on_collision=True,
     )
+    return FrameStack(env, cfg.frame_stack) if cfg.frame_stack > 1 else env
 
 
 class _EpisodeTap:

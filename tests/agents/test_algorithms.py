@@ -129,6 +129,39 @@ def test_td3_actions_stay_in_bounds_and_warm_up_is_uniform():
     assert noisy.min() >= -2 and noisy.max() <= 2 and noisy.dtype == np.float32
 
 
+@pytest.mark.parametrize("cls", [TD3, DDPG])
+def test_random_phase_lasts_random_steps_draws_from_random_low_and_learning_starts_inside_it(cls):
+    config = cls.config_class(learning_starts=20, random_steps=60, random_low=(1.0,), batch_size=8,
+                              buffer_size=200)
+    agent, twin = (cls.from_spaces(*SPACES[cls.algo], config, seed=3) for _ in range(2))
+    obs = np.zeros(3, np.float32)
+    drawn = []
+    while agent.steps < 60:  # random until the 60th transition, from [1, 2] (Pendulum: [-2, 2])
+        action = agent.act(obs)
+        assert np.array_equal(action, twin.act(obs))  # seeded
+        drawn.append(float(action[0]))
+        batch = agent.act_batch(np.zeros((2, 3), np.float32), np.arange(2))
+        assert np.array_equal(batch, twin.act_batch(np.zeros((2, 3), np.float32), np.arange(2)))
+        assert batch.shape == (2, 1) and batch.min() >= 1.0
+        agent.observe(obs, action, -1.0, obs, False, False)
+        agent.update()
+    assert min(drawn) >= 1.0 and max(drawn) <= 2.0 and np.std(drawn) > 0.2
+    assert agent.gradient_updates > 0  # learning started at 20, inside the random phase
+    agent.actor.mu.weight.data.zero_(), agent.actor.mu.bias.data.fill_(-5.0)  # the actor says -2
+    assert agent.act(obs, deterministic=True)[0] == pytest.approx(-2.0, abs=1e-3)
+    assert min(agent.act(obs)[0] for _ in range(20)) < 0  # past the phase: the actor's action
+
+
+def test_random_steps_zero_keeps_the_learning_starts_warm_up_and_bad_floors_are_refused():
+    agent = TD3.from_spaces(*SPACES["td3"], TD3Config(learning_starts=50))
+    assert agent.random_until == 50 and np.array_equal(agent.random_low, agent.low)
+    for floor in ((1.0, 1.0), (-3.0,), (2.0,)):  # wrong length, below low, not below high
+        with pytest.raises(ValueError, match="random_low"):
+            TD3.from_spaces(*SPACES["td3"], TD3Config(random_low=floor))
+    with pytest.raises(ValueError, match="random_steps=.*valid range"):
+        TD3Config(random_steps=-1)
+
+
 @pytest.mark.parametrize(
     ("cls", "kwargs", "field"),
     [

@@ -83,10 +83,51 @@ def test_every_preset_yaml_loads_into_the_agent_config(algo):
         assert not unknown, f"{algo}.yaml {name}: unknown hyperparameters {unknown}"
         for key, value in hyper.items():  # YAML reads 1e-4 as text: write 1.0e-4
             kind = type(defaults[key])
-            assert isinstance(value, kind) or (kind is float and type(value) is int), (algo, name, key)
+            assert (isinstance(value, kind) or (kind is float and type(value) is int)
+                    or (kind is tuple and isinstance(value, list))), (algo, name, key)
         built = config_cls.preset(preset.agent_preset, reward_scale=preset.reward_scale, **hyper)
-        assert {k: getattr(built, k) for k in hyper} == pytest.approx(hyper)
+        plain = {k: list(v) if isinstance(v, tuple) else v for k, v in hyper.items()}
+        assert {k: (list(getattr(built, k)) if isinstance(getattr(built, k), tuple) else getattr(built, k))
+                for k in hyper} == pytest.approx(plain)
         assert preset.steps[algo] >= 1
+
+
+def test_every_command_takes_the_presets_from_the_yaml():
+    from eval import benchmark
+    from eval.cli import build_parser
+
+    names = presets.preset_names()
+    assert names == ("smoke", "quick", "standard", "paper")
+    parser = build_parser()
+    for command in ("train", "benchmark"):
+        assert parser.parse_args([command, "--preset", "standard"]).preset == "standard"
+        with pytest.raises(SystemExit):
+            parser.parse_args([command, "--preset", "standrad"])
+    assert parser.parse_args(["benchmark"]).preset == "standard"  # the benchmark's default
+    assert benchmark.BenchmarkPlan().preset == "standard"
+    assert set(benchmark.TEST_SETTINGS) == set(names)  # every preset says how it is tested
+    root = Path(eval.__file__).resolve().parent
+    for path in root.glob("*.py"):  # no second list of the names to keep in step
+        text = path.read_text()
+        assert '"smoke", "quick"' not in text and "smoke, quick or paper" not in text, path
+
+
+def test_the_standard_budgets_are_15_minutes_at_the_readme_rates():
+    """README "Training throughput per algorithm": env steps/s per algorithm, quiet machine."""
+    readme = (Path(eval.__file__).resolve().parents[1] / "README.md").read_text()
+    table = readme.split("### Training throughput per algorithm")[1].split("\n\n")[2]
+    rates = {}
+    for line in table.splitlines()[2:]:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rates[cells[0].split()[0].lower()] = float(cells[1])
+    standard = presets.load_presets()["standard"]
+    assert set(rates) == set(registry.ALGORITHMS)
+    for algo, rate in rates.items():
+        minutes = standard.steps[algo] / rate / 60
+        assert 14 <= minutes <= 16, (algo, standard.steps[algo], rate, minutes)
+    assert (standard.agents, standard.horizon, standard.envs, standard.frame_stack) == (3, 600, 1, 1)
+    td3 = config.make_config("td3", preset="standard").agent_config
+    assert (td3["random_steps"], td3["random_low"]) == (4000, (-0.6, -1.0))
 
 
 def test_an_unknown_preset_key_is_refused_listing_the_valid_ones(tmp_path):

@@ -55,6 +55,39 @@ def test_trained_checkpoints_are_found_and_act(tmp_path):
         find_checkpoints(tmp_path, ["ppo", "dqn"])
 
 
+def test_a_checkpoint_trained_on_two_frames_is_tested_on_two(tmp_path):
+    """frame_stack 2 is recorded in the run's config; `cosim test`'s policies read it from
+    the checkpoint (84x84x6) and stack that AC's frames, beside a one-frame AC."""
+    import yaml
+
+    from eval.protocol import drive, load_for_slot
+    from eval.rollout import StackedPolicy
+    from eval.train import make_config, train
+
+    cfg = make_config("ppo", "env_1", "smoke", agents=1, steps=40, frame_stack=2)
+    run = train(cfg, tmp_path / "runs", quiet=True, progress=False)
+    assert yaml.safe_load((run / "config.yaml").read_text())["frame_stack"] == 2
+    dqn = tmp_path / "runs" / "env_1__dqn__0__20260101-000000" / "checkpoints" / "ac_0"
+    dqn.mkdir(parents=True)
+    get_agent_class("dqn").from_spaces(spaces.Box(0, 255, (84, 84, 3), np.uint8), spaces.Discrete(9)).save(
+        dqn / "latest.pt")
+    found = find_checkpoints(tmp_path / "runs", ["ppo", "dqn"])
+    assert load_for_slot(found["ppo"], "ppo").observation_space.shape == (84, 84, 6)
+    make = policy_factory("trained", found)
+    first, second = make(None, "ac_0", "ppo"), make(None, "ac_1", "ppo")
+    assert isinstance(first, StackedPolicy) and first.frame_stack == 2
+    assert first.history is not second.history  # each AC keeps its own frames
+    assert not isinstance(make(None, "ac_1", "dqn"), StackedPolicy)
+    assert drive(load_for_slot(found["dqn"], "dqn")).algo == "dqn"
+    plan = ProtocolPlan(envs=("env_1",), scenarios=(1,), episodes=1, steps=5, agents=2)
+    records = run_protocol(plan, make, ["ppo", "dqn"])  # a 3-channel frame would not fit PPO's CNN
+    assert sorted(records.algorithm.unique()) == ["dqn", "ppo"] and len(records) == 5 * 2
+    bad = tmp_path / "bad.pt"
+    get_agent_class("ppo").from_spaces(spaces.Box(0, 255, (84, 84, 4), np.uint8), spaces.Discrete(9)).save(bad)
+    with pytest.raises(ProtocolError, match=r"shape \(84, 84, 4\).*K of them stacked"):
+        load_for_slot(bad, "ppo")
+
+
 def test_cli_test_without_runs_says_how_to_get_them(tmp_path, capsys):
     assert main(["test", "--runs", str(tmp_path / "none"), "--quiet"]) == 2
     assert "--policy autopilot" in capsys.readouterr().err
