@@ -71,7 +71,8 @@ def protocol_rules(scenario: Scenario, steps: int | None = None) -> Scenario:
 
 def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
                steps: int | None = None, seed: int = HELD_OUT_SEED) -> pd.DataFrame:
-    """One row per (episode, AC): return, goal, DISTANCE and the step fractions CV..RL."""
+    """One row per (episode, AC): return, goal, DISTANCE, the step fractions CV..RL, TTFC
+    (s to the first collision, NaN without one) and SPEED (mean forward speed, km/h)."""
     sc = protocol_rules(scenario, steps)
     rows = []
     with World(sc, num_agents) as world:
@@ -80,7 +81,8 @@ def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
             rng = np.random.default_rng(ep_seed)
             first = world.reset(seed=ep_seed)
             act = _controller(policy, world, rng)
-            acc = {ac: dict.fromkeys(("return", "n", "cv", "co", "cp", "os", "rl", "goal"), 0.0)
+            acc = {ac: dict.fromkeys(("return", "n", "cv", "co", "cp", "os", "rl", "goal", "speed"),
+                                     0.0) | {"ttfc": np.nan}
                    for ac in world.ac_ids}
             last = {ac: (r.x, r.y) for ac, r in first.items()}
             saw = {"vehicles": False, "persons": False}
@@ -99,6 +101,9 @@ def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
                     a["os"] += ev.lane_violation
                     a["rl"] += ev.red_light
                     a["goal"] = max(a["goal"], float(ev.goal_reached))
+                    a["speed"] += ev.speed
+                    if ev.collision and np.isnan(a["ttfc"]):
+                        a["ttfc"] = a["n"] * sc.dt  # as eval.metrics: seconds to the first hit
                     last[ac] = (r.x, r.y)
             for i, ac in enumerate(world.ac_ids):
                 a, route = acc[ac], world.routes[i]
@@ -114,6 +119,7 @@ def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
                     "CO": a["co"] / n,
                     "CP": a["cp"] / n if saw["persons"] else np.nan,
                     "OS": a["os"] / n, "RL": a["rl"] / n,
+                    "TTFC": a["ttfc"], "SPEED": 3.6 * a["speed"] / n,
                     "collision_steps": a["cv"] + a["co"] + a["cp"],
                 })
     return pd.DataFrame(rows)

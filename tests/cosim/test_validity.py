@@ -194,6 +194,18 @@ def test_the_criteria_catch_a_scenario_that_an_open_loop_policy_solves():
     assert any(p.startswith("always-forward reaches") for p in problems), problems
 
 
+def test_reference_rows_carry_ttfc_and_speed_like_the_test_metrics():
+    rows = check_scenario("env_1", 2, episodes=1, steps=100,
+                          policies=("always-brake", "always-forward", "full-right"))
+    dt = load_scenario("env_1").dt
+    hit = rows["collision_steps"] > 0
+    assert rows.loc[~hit, "TTFC"].isna().all()  # no collision: no TTFC ("--")
+    assert ((rows.loc[hit, "TTFC"] >= dt) & (rows.loc[hit, "TTFC"] <= 100 * dt)).all()
+    assert hit[rows["policy"] == "full-right"].all()  # steering into the wall collides
+    speed = rows.groupby("policy")["SPEED"].mean()  # km/h
+    assert speed["always-brake"] < speed["always-forward"] and speed["always-forward"] > 20
+
+
 @pytest.mark.parametrize("speed,expected", [(0.0, False), (0.3, False), (0.6, True), (8.0, True)])
 def test_a_pedestrian_walking_into_a_standing_car_is_not_its_collision(speed, expected):
     with World(_quiet("env_1"), 1, background=False) as w:

@@ -1,0 +1,332 @@
+"""The science study (issue 14): every algorithm x environment x seed trained with
+`cosim benchmark`, tested on held-out episode seeds (collisions do not end an episode)
+beside the reference rows, with confidence intervals over seeds.
+
+    python bench/science.py                      # 6 algorithms x 5 environments x 3 seeds
+    python bench/science.py --smoke --out /tmp/s # the CI version: env_1, PPO + DQN, 2 seeds
+
+Stages, each resumable (rerun the same command after an interruption):
+
+1. training: ``cosim benchmark --train-only`` into ``OUT/bench`` (``--resume`` when that
+   folder holds a benchmark; skipped when every run is finished);
+2. test: per (environment, training seed) the test protocol (eval/protocol.py) with that
+   seed's checkpoints on episode seeds from eval.validity.HELD_OUT_SEED (10,000; training
+   uses small seeds), saved as ``OUT/test/<env>__seed<k>.parquet``;
+3. references: the autopilot, uniform random and degenerate suite (eval/validity.py) on the
+   same episode seeds, AC count and steps, saved as ``OUT/references/<env>.csv``;
+4. results (eval/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
+   seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``,
+   ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``),
+   ``summary.md`` (printed: the README's results section), ``report/`` (the `cosim test`
+   report of the held-out records, seeds pooled) and ``science.json`` (plan, checkpoints).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from a checkout
+    sys.path.insert(0, str(ROOT))
+
+import pandas as pd  # noqa: E402
+
+from cosim.errors import CosimError  # noqa: E402
+from eval import science  # noqa: E402
+from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, cell_name  # noqa: E402
+from eval.presets import load_presets  # noqa: E402
+from eval.validity import HELD_OUT_SEED, POLICIES  # noqa: E402
+
+SMOKE = {"preset": "smoke", "envs": ["env_1"], "algos": ["ppo", "dqn"], "seeds": 2, "steps": 60,
+         "scenarios": [1]}
+
+
+class ScienceError(CosimError, ValueError):
+    """The study cannot run as asked; the message says what to change."""
+
+
+def default_preset() -> str:
+    """``standard`` once eval/hyperparams defines it, else ``quick``."""
+    return "standard" if "standard" in load_presets() else "quick"
+
+
+def parse(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--smoke", action="store_true",
+                   help="the CI study: --preset smoke --envs env_1 --algos ppo dqn --seeds 2 "
+                        "--steps 60 --scenarios 1 --no-ray (options given explicitly win)")
+    p.add_argument("--preset", default=None, help=f"training budget (default: {default_preset()})")
+    p.add_argument("--envs", nargs="+", default=None, help="default: env_1 .. env_5")
+    p.add_argument("--algos", nargs="+", default=None, help="default: all six")
+    p.add_argument("--seeds", type=int, default=None, help="training seeds 0..K-1 (default 3)")
+    p.add_argument("--steps", type=int, default=None, help="environment steps per trial "
+                                                           "(default: the preset's)")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="test episodes per environment and seed (default: the preset's test)")
+    p.add_argument("--test-steps", type=int, default=None, help="steps per test episode")
+    p.add_argument("--scenarios", nargs="+", type=int, choices=[1, 2], default=None,
+                   help="test scenarios (default 1 2; the verdict and IQM use Scenario 1)")
+    p.add_argument("--no-ray", action="store_true", help="train one trial after another, no Ray")
+    p.add_argument("--concurrent", type=int, default=None, help="Ray trials at once")
+    p.add_argument("--ray-address", default=None, help="an existing Ray cluster")
+    p.add_argument("--out", type=Path, default=Path("science"), help="study folder")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args(argv)
+    given = {k for k, v in vars(args).items() if v is not None}
+    if args.smoke:
+        for k, v in SMOKE.items():
+            if k not in given:
+                setattr(args, k, v)
+        args.no_ray = True
+    args.preset = args.preset or default_preset()
+    args.envs = args.envs or list(science.ENVS)
+    args.algos = args.algos or ["ppo", "a3c", "impala", "dqn", "ddpg", "td3"]
+    args.seeds = 3 if args.seeds is None else args.seeds
+    args.scenarios = sorted(set(args.scenarios or [1, 2]))
+    return args
+
+
+def test_settings(args) -> tuple[int, int]:
+    """(episodes, steps) of the test: the options, else the preset's `cosim benchmark` test,
+    else the protocol's defaults (3 episodes of 500 steps)."""
+    from eval.protocol import ProtocolPlan
+
+    base = TEST_SETTINGS.get(args.preset)
+    episodes = args.episodes or (base.episodes if base else ProtocolPlan.episodes)
+    steps = args.test_steps or (base.steps if base else ProtocolPlan.steps)
+    if episodes < 1 or steps < 1:
+        raise ScienceError(f"--episodes and --test-steps must be >= 1, got {episodes} and {steps}")
+    return episodes, steps
+
+
+def study_plan(args, plan: BenchmarkPlan) -> dict:
+    episodes, steps = test_settings(args)
+    return {"benchmark": plan.to_dict(), "test": {
+        "episodes": episodes, "steps": steps, "scenarios": sorted(args.scenarios),
+        "episode_seeds": [HELD_OUT_SEED + e for e in range(episodes)],
+        "collisions_end_episode": False}}
+
+
+def check_plan(out: Path, study: dict) -> None:
+    """science.json: the plan a rerun must repeat (its cached test records depend on it)."""
+    saved = out / "science.json"
+    if saved.exists():
+        old = json.loads(saved.read_text())
+        if {k: old.get(k) for k in study} != study:
+            raise ScienceError(f"{out} holds a study started with {old['benchmark']} and test "
+                               f"{old['test']}; repeat those options or choose another --out")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        saved.write_text(json.dumps(study, indent=2))
+
+
+# -- 1. training -----------------------------------------------------------------------------
+def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
+    """`cosim benchmark --train-only` (with --resume once started); skipped when done."""
+    cells = [cell_name(c) for c in plan.cells()]
+    saved = bench / "benchmark.json"
+    if saved.exists() and json.loads(saved.read_text()) == plan.to_dict() and all(
+            (bench / "runs" / c).exists() for c in cells):
+        say(f"training: all {len(cells)} runs finished in {bench / 'runs'}")
+        return
+    cmd = [sys.executable, "-m", "eval.cli", "benchmark", "--preset", plan.preset,
+           "--envs", *plan.envs, "--algos", *plan.algos, "--seeds", str(plan.seeds),
+           "--out", str(bench), "--train-only"]
+    if plan.steps:
+        cmd += ["--steps", str(plan.steps)]
+    if saved.exists():
+        cmd.append("--resume")
+    if args.no_ray:
+        cmd.append("--no-ray")
+    if args.concurrent:
+        cmd += ["--concurrent", str(args.concurrent)]
+    if args.ray_address:
+        cmd += ["--ray-address", args.ray_address]
+    if args.quiet:
+        cmd.append("--quiet")
+    say("training: cosim " + " ".join(cmd[3:]))
+    done = subprocess.run(cmd, cwd=ROOT)
+    if done.returncode:
+        raise ScienceError(f"training stopped (cosim benchmark exit {done.returncode}); rerun "
+                           "the same command to continue from the finished trials")
+
+
+# -- 2. test on held-out seeds ------------------------------------------------------------------
+def checkpoints(plan: BenchmarkPlan, bench: Path, env: str, seed: int) -> dict[str, Path]:
+    from eval import selection
+
+    found = {}
+    for algo in plan.algos:
+        run = bench / "runs" / f"{env}__{algo}__{seed}__bench"
+        chosen = selection.choose(run)
+        if chosen is None:
+            raise ScienceError(f"{run}: no checkpoint; rerun the same command to train it")
+        found[algo] = chosen.path
+    return found
+
+
+def _write(df: pd.DataFrame, path: Path) -> None:
+    """Write next to ``path`` and rename into place: a cached file exists only complete."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    if path.suffix == ".parquet":
+        df.to_parquet(tmp, index=False)
+    else:
+        df.to_csv(tmp, index=False)
+    tmp.replace(path)
+
+
+def test(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame:
+    """Held-out records of every (env, training seed), from the cache where present."""
+    from eval.protocol import ProtocolPlan, policy_factory, run_protocol
+
+    t = study["test"]
+    frames = []
+    for env in plan.envs:
+        for seed in range(plan.seeds):
+            path = out / "test" / f"{env}__seed{seed}.parquet"
+            if not path.exists():
+                start = time.monotonic()
+                pp = ProtocolPlan(envs=(env,), scenarios=tuple(t["scenarios"]),
+                                  episodes=t["episodes"], steps=t["steps"], seed=HELD_OUT_SEED,
+                                  agents=len(plan.algos))
+                records = run_protocol(pp, policy_factory("trained", checkpoints(
+                    plan, out / "bench", env, seed)), list(plan.algos))
+                _write(records.assign(train_seed=seed), path)
+                say(f"tested {env} seed {seed} ({time.monotonic() - start:.0f} s)")
+            frames.append(pd.read_parquet(path))
+    return pd.concat(frames, ignore_index=True)
+
+
+def references(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame:
+    """Reference rows per environment (Scenario 1 conditions, the same episode seeds)."""
+    from eval import validity
+
+    t = study["test"]
+    frames = []
+    for env in plan.envs:
+        path = out / "references" / f"{env}.csv"
+        if not path.exists():
+            start = time.monotonic()
+            rows = validity.check_scenario(env, len(plan.algos), t["episodes"], t["steps"],
+                                           policies=POLICIES)
+            _write(rows.assign(env=env), path)
+            say(f"references {env} ({time.monotonic() - start:.0f} s)")
+        frames.append(pd.read_csv(path))
+    return pd.concat(frames, ignore_index=True)
+
+
+# -- 4. results -------------------------------------------------------------------------------
+def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.DataFrame,
+            out: Path, command: str) -> str:
+    """Every results file; returns summary.md's text."""
+    from eval.protocol import ProtocolPlan
+    from eval.report import per_episode, provenance, write_paper_report
+
+    per = pd.concat([per_episode(g).assign(train_seed=seed)
+                     for seed, g in records.groupby("train_seed", sort=True)], ignore_index=True)
+    seeds = science.seed_means(per)
+    table = science.seed_table(seeds)
+    ref_table = science.reference_table(refs)
+    verdict = science.verdict(table, ref_table)
+    iqm = science.iqm_table(seeds, ref_table)
+    bench = out / "bench"
+    runs = {(a, e, s): bench / "runs" / f"{e}__{a}__{s}__bench"
+            for e in plan.envs for a in plan.algos for s in range(plan.seeds)}
+    curves = science.convergence_curves(runs)
+
+    seeds.to_csv(out / "seeds.csv", index=False)
+    pd.concat([table, ref_table], ignore_index=True).to_csv(out / "results.csv", index=False)
+    verdict.to_csv(out / "verdict.csv", index=False)
+    iqm.to_csv(out / "iqm.csv", index=False)
+    curves.to_csv(out / "convergence.csv", index=False)
+    science.convergence_figure(curves, out)
+
+    t = study["test"]
+    b = plan.to_dict()
+    budget = f", {b['steps']} steps per trial" if b["steps"] else ""
+    how = (f"{len(plan.algos)} algorithm(s) x {len(plan.envs)} environment(s) x {plan.seeds} "
+           f"seed(s), preset `{b['preset']}`{budget}; "
+           f"tested on {t['episodes']} held-out episode(s) of {t['steps']} steps per (environment, "
+           f"seed) (episode seeds {t['episode_seeds'][0]}.., collisions do not end an episode); "
+           f"reference rows on the same episode seeds with {len(plan.algos)} ACs (Scenario 1 "
+           f"conditions). Cells: mean over training seeds [95% percentile bootstrap CI over "
+           f"seeds, {science.BOOTSTRAP} resamples]; reference rows: over episodes x ACs.")
+    full = ["# Science study: full results\n", how + "\n"]
+    for s in t["scenarios"]:
+        full.append(f"\n## Scenario {s} ({'multi-agent' if s == 1 else 'single-agent'})\n")
+        full.append(science.metrics_markdown(table, ref_table, s))
+    (out / "results.md").write_text("\n".join(full))
+    (out / "verdict.md").write_text(science.verdict_markdown(verdict))
+    (out / "iqm.md").write_text(science.iqm_markdown(iqm))
+
+    passed = int(verdict["passed"].sum())
+    summary = [
+        "### Science study results\n", f"`{command}`: {how}\n",
+        "Return, Scenario 1 (multi-agent):\n", science.grid_markdown(table, "return", 1, ref_table),
+        "\nGoal rate, Scenario 1:\n", science.grid_markdown(table, "goal", 1, ref_table),
+        f"\nValidity verdict (issue 14, item 1): {passed} of {len(verdict)} (algorithm, "
+        "environment) pairs have a mean return and goal rate above every degenerate reference "
+        f"({', '.join(science.DEGENERATE)}) with the 95% CI's lower end above the reference's "
+        "value.\n", science.verdict_markdown(verdict),
+        "\nIQM across environments (Scenario 1 return normalised per environment: uniform "
+        "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "
+        "95% stratified bootstrap CI resampling seeds within environments):\n",
+        science.iqm_markdown(iqm),
+        "\nConvergence (training return against environment steps, mean over seeds, band: "
+        "min-max over seeds): `convergence.png` / `convergence.pdf`. Every metric with "
+        "reference rows: `results.md`.\n"]
+    text = "\n".join(summary)
+    (out / "summary.md").write_text(text)
+
+    # the `cosim test` report of the held-out records, seeds pooled (episodes renumbered)
+    pooled = records.assign(episode=records["train_seed"] * t["episodes"] + records["episode"])
+    whole = ProtocolPlan(envs=tuple(plan.envs), scenarios=tuple(t["scenarios"]),
+                         episodes=t["episodes"], steps=t["steps"], seed=HELD_OUT_SEED,
+                         agents=len(plan.algos))
+    first = checkpoints(plan, bench, plan.envs[0], 0)
+    prov = provenance(policy="trained", plan=whole, algos=list(plan.algos), checkpoints=first,
+                      command=command.split()[1:])
+    write_paper_report(pooled, out / "report", prov=prov, extra_md=(
+        f"\n## Science study\n\n{plan.seeds} training seed(s) pooled: episode = seed x "
+        f"{t['episodes']} + test episode. The checkpoints under provenance are "
+        f"{plan.envs[0]}'s, seed 0; science.json lists every one.\n"))
+    study["checkpoints"] = {f"{e}__seed{s}": {a: str(p.relative_to(out)) for a, p in
+                                              checkpoints(plan, bench, e, s).items()}
+                            for e in plan.envs for s in range(plan.seeds)}
+    (out / "science.json").write_text(json.dumps(study, indent=2))
+    return text
+
+
+def main(argv=None) -> int:
+    args = parse(argv)
+    say = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    start = time.monotonic()
+    try:
+        plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos),
+                             seeds=args.seeds, steps=args.steps)
+        plan.cells()  # an unknown preset or environment fails here, before any work
+        out = args.out.resolve()
+        study = study_plan(args, plan)
+        check_plan(out, study)
+        train(args, plan, out / "bench", say)
+        records = test(plan, study, out, say)
+        refs = references(plan, study, out, say)
+        command = "python bench/science.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        text = results(plan, study, records, refs, out, command)
+    except CosimError as exc:
+        print(f"science: error: {exc}", file=sys.stderr)
+        return 2
+    print(text)
+    say(f"science study: {out} ({time.monotonic() - start:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""The science study (issue 14): its statistics (eval/science.py) against hand-computed
+values, and its smoke version (bench/science.py --smoke) end to end, rerun and refused."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from eval import science
+from eval.validity import DEGENERATE, POLICIES
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "bench" / "science.py"
+
+
+# -- statistics ------------------------------------------------------------------------------
+def test_iqm_is_the_mean_of_the_middle_half():
+    assert science.iqm(np.arange(1, 9)) == pytest.approx(4.5)     # cut 2 each end: 3, 4, 5, 6
+    assert science.iqm(np.arange(15)) == pytest.approx(7.0)       # cut 3 each end: 3 .. 11
+    assert science.iqm([5.0, -100.0, 6.0, 100.0]) == pytest.approx(5.5)  # outliers cut
+    rows = science.iqm(np.array([[1, 2, 3, 4], [0, 0, 8, 8]]), axis=1)
+    np.testing.assert_allclose(rows, [2.5, 4.0])
+
+
+def test_stratified_bootstrap_resamples_seeds_within_each_environment():
+    # no spread within an environment: every resample is the data itself
+    assert science.stratified_bootstrap({"a": [0, 0], "b": [1, 1]}) == pytest.approx((0.5, 0.5, 0.5))
+    # a: [0, 10] resamples to [0, 0] (p 1/4), [0, 10] (1/2), [10, 10] (1/4); b stays [5, 5]:
+    # pooled IQMs 2.5, 5, 7.5; both tails hold 25% > 2.5%, so the CI is [2.5, 7.5] exactly
+    assert science.stratified_bootstrap({"a": [0, 10], "b": [5, 5]}) == pytest.approx((5.0, 2.5, 7.5))
+    # one environment [0, 0, 0, 10]: IQM (middle two of four) is 0 with at most one 10 drawn
+    # (p 0.738), 5 with two (0.211), 10 with three or four (0.051 > 2.5%): CI [0, 10]
+    assert science.stratified_bootstrap({"a": [0, 0, 0, 10]}) == pytest.approx((0.0, 0.0, 10.0))
+    with pytest.raises(ValueError, match="at least one score"):
+        science.stratified_bootstrap({"a": []})
+
+
+def _seeds(values: dict[str, list[float]], algo="ppo", env="env_1") -> pd.DataFrame:
+    n = len(next(iter(values.values())))
+    base = {m: [0.5] * n for m in science.METRICS}
+    base.update(values)
+    return pd.DataFrame({"scenario": 1, "env": env, "algorithm": algo, "train_seed": range(n), **base})
+
+
+def test_seed_table_bootstraps_over_seeds():
+    seeds = _seeds({"return": [0, 0, 0, 10], "CP": [np.nan] * 4, "TTFC": [np.nan, 2, 4, np.nan]})
+    t = science.seed_table(seeds).set_index("metric")
+    # mean 2.5; resample means: 0 with no 10 drawn (p 0.316), 7.5 with three or more
+    # (0.051 > 2.5%) and 10 only with four (0.004 < 2.5%): the 95% CI is [0, 7.5]
+    assert tuple(t.loc["return", ["mean", "ci_low", "ci_high", "n"]]) == pytest.approx((2.5, 0, 7.5, 4))
+    assert t.loc["return", "cell"] == "2.5 [0.0, 7.5]"
+    assert t.loc["CP", "n"] == 0 and t.loc["CP", "cell"] == "-"
+    assert t.loc["TTFC", "n"] == 2 and t.loc["TTFC", "cell"].endswith("(n=2)")
+    assert t.loc["goal", "cell"] == "0.50 [0.50, 0.50]"  # no spread: zero width
+
+
+def _refs(env="env_1", values: dict | None = None) -> pd.DataFrame:
+    """A reference long table: every policy's mean return and goal rate in ``env``."""
+    values = values or {}
+    rows = []
+    for p in POLICIES:
+        ret, goal = values.get(p, (0.0, 0.0))
+        for m, v in (("return", ret), ("goal", goal)):
+            rows.append({"scenario": 1, "env": env, "kind": "reference", "name": p, "metric": m,
+                         "mean": v, "ci_low": v, "ci_high": v, "n": 3})
+    return pd.DataFrame(rows)
+
+
+def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
+    refs = _refs(values={"autopilot": (1000, 1.0), "always-forward": (300, 0.1)})
+    table = pd.concat([
+        science.seed_table(_seeds({"return": [400, 500, 600], "goal": [0.2, 0.4, 0.6]}, "ppo")),
+        science.seed_table(_seeds({"return": [250, 500, 900], "goal": [0.2, 0.4, 0.6]}, "dqn")),
+        science.seed_table(_seeds({"return": [400, 500, 600], "goal": [0.1, 0.1, 0.7]}, "td3")),
+    ])
+    v = science.verdict(table, refs).set_index("algorithm")
+    assert list(v.index) == ["ppo", "dqn", "td3"]  # the paper's order
+    assert v.loc["ppo", "passed"] and v.loc["ppo", "why"] == ""
+    assert v.loc["ppo", "return_best_reference"] == "always-forward"
+    assert v.loc["ppo", "return_reference"] == 300 and v.loc["ppo", "goal_reference"] == 0.1
+    # dqn's mean return (550) beats always-forward, but its CI reaches down to 250
+    assert not v.loc["dqn", "passed"] and not v.loc["dqn", "return_ok"] and v.loc["dqn", "goal_ok"]
+    assert "always-forward 300.0" in v.loc["dqn", "why"]
+    # td3's goal CI starts at 0.1 = always-forward's: not excluded
+    assert not v.loc["td3", "passed"] and v.loc["td3", "return_ok"] and not v.loc["td3", "goal_ok"]
+    assert v.loc["td3", "why"].startswith("goal rate CI low 0.10 <= always-forward 0.10")
+    assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
+
+
+def test_returns_are_normalised_between_random_and_the_autopilot():
+    refs = pd.concat([_refs("env_1", {"random": (-100, 0), "autopilot": (300, 1)}),
+                      _refs("env_2", {"random": (50, 0), "autopilot": (50, 1)})])
+    seeds = pd.concat([_seeds({"return": [-100, 100, 300, 500]}, env="env_1"),
+                       _seeds({"return": [10, 20, 30, 40]}, env="env_2")])
+    norm = science.normalise(seeds, refs).set_index(["env", "train_seed"])["score"]
+    np.testing.assert_allclose(norm.loc["env_1"], [0.0, 0.5, 1.0, 1.5])
+    assert norm.loc["env_2"].isna().all()  # the autopilot earns no more than random: no scale
+    t = science.iqm_table(seeds, refs).set_index("name")
+    assert t.loc["ppo", "iqm"] == pytest.approx(0.75) and t.loc["ppo", "envs"] == 1
+    assert t.loc["ppo", "ci_low"] <= 0.75 <= t.loc["ppo", "ci_high"]
+    assert t.loc["autopilot", "iqm"] == 1.0 and t.loc["random", "iqm"] == 0.0
+
+
+def test_convergence_curve_is_the_mean_of_the_latest_episodes():
+    episodes = pd.DataFrame({"env_step": [10, 20, 30], "return": [1.0, 2.0, 6.0]})
+    c = science.convergence_curve(episodes, budget=30, points=4, window=2)
+    np.testing.assert_allclose(c["env_step"], [0, 10, 20, 30])
+    np.testing.assert_allclose(c["return"], [np.nan, 1.0, 1.5, 4.0])
+    curves = pd.concat([c.assign(algorithm="ppo", env="env_1", seed=0),
+                        c.assign(algorithm="ppo", env="env_1", seed=1,
+                                 **{"return": c["return"] + [np.nan, np.nan, 1, 1]})])
+    b = science.convergence_bands(curves)
+    # the mean only where both seeds have a value; the band spans them
+    np.testing.assert_allclose(b["mean"], [np.nan, np.nan, 2.0, 4.5])
+    np.testing.assert_allclose(b["high"] - b["low"], [np.nan, np.nan, 1.0, 1.0])
+
+
+# -- the smoke study ---------------------------------------------------------------------------
+def _run(out: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), "--smoke", "--out", str(out), *extra],
+                          capture_output=True, text=True, timeout=400, cwd=ROOT)
+
+
+def test_smoke_study_writes_every_result_and_resumes(tmp_path):
+    out = tmp_path / "study"
+    done = _run(out)
+    assert done.returncode == 0, done.stderr[-2000:]
+    plan = json.loads((out / "science.json").read_text())
+    seeds, algos, envs = plan["benchmark"]["seeds"], plan["benchmark"]["algos"], plan["benchmark"]["envs"]
+    assert seeds == 2 and plan["test"]["episode_seeds"][0] == 10_000
+
+    results = pd.read_csv(out / "results.csv")
+    ours = results[results["kind"] == "algorithm"]
+    assert set(zip(ours["name"], ours["env"], strict=True)) == {(a, e) for a in algos for e in envs}
+    assert ours.groupby(["name", "env"])["metric"].apply(set).map(
+        lambda s: s == set(science.METRICS)).all()
+    always = ours[ours["metric"].isin(["return", "goal", "DISTANCE", "OS", "CO", "SPEED"])]
+    assert (always["n"] == seeds).all() and np.isfinite(always["mean"]).all()
+    applied = ours[ours["n"] > 0]
+    assert (applied["n"] <= seeds).all()
+    assert ((applied["ci_low"] <= applied["mean"] + 1e-9)
+            & (applied["mean"] <= applied["ci_high"] + 1e-9)).all()
+    refs = results[results["kind"] == "reference"]
+    assert set(refs["name"]) == set(POLICIES)
+
+    verdict = pd.read_csv(out / "verdict.csv")
+    assert set(zip(verdict["algorithm"], verdict["env"], strict=True)) == {(a, e) for a in algos for e in envs}
+    ref = refs[refs["name"].isin(DEGENERATE)].groupby(["env", "metric"])["mean"].max()
+    def clears(low, value):
+        return low > value and not np.isclose(low, value)
+
+    for _, r in verdict.iterrows():  # pass iff both CI lower ends clear the best degenerate row
+        expected = (clears(r["return_ci_low"], ref[(r["env"], "return")])
+                    and clears(r["goal_ci_low"], ref[(r["env"], "goal")]))
+        assert bool(r["passed"]) == expected
+        assert r["n"] == seeds
+
+    iqm = pd.read_csv(out / "iqm.csv").set_index("name")
+    for a in algos:
+        assert iqm.loc[a, "ci_low"] <= iqm.loc[a, "iqm"] <= iqm.loc[a, "ci_high"]
+        assert iqm.loc[a, "runs"] == seeds * len(envs)
+    curves = pd.read_csv(out / "convergence.csv")
+    assert curves.groupby(["algorithm", "env"])["seed"].nunique().eq(seeds).all()
+    for name in ("convergence.pdf", "convergence.png", "report/index.md", "results.md"):
+        assert (out / name).stat().st_size > 0, name
+    summary = (out / "summary.md").read_text()
+    assert "| algorithm | environment | seeds |" in summary and summary.strip() in done.stdout
+
+    # rerun: nothing is trained or tested again
+    cached = {p: p.stat().st_mtime_ns for p in (out / "test").glob("*.parquet")}
+    assert len(cached) == len(envs) * seeds
+    again = _run(out)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "all 4 runs finished" in again.stderr and "tested" not in again.stderr
+    assert {p: p.stat().st_mtime_ns for p in cached} == cached
+    assert pd.read_csv(out / "verdict.csv").equals(verdict)
+
+    # other options on the same folder: refused in one line, before any work
+    other = _run(out, "--seeds", "3")
+    assert other.returncode == 2
+    assert other.stderr.strip().startswith("science: error: ") and len(other.stderr.strip().splitlines()) == 1
+    assert "repeat those options" in other.stderr
