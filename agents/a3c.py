@@ -2,13 +2,14 @@
 
 Two ways to run the same algorithm:
 
-* **Asynchronous** (:func:`train_a3c`), the real thing: N worker processes,
-  each with its own environment and a local copy of the network, run n-step
-  rollouts, compute gradients locally, write them into the *shared* model's
-  ``.grad`` and step a *shared* Adam (its moments live in shared memory too,
-  as in ikostrikov/pytorch-a3c), lock-free ("Hogwild", Recht et al. 2011).
-  One shared model per agent id: the driving benchmark trains N cars, each
-  with its own network, all A3C.
+* **Asynchronous** (:func:`train_a3c`), the real thing: one actor-learner
+  thread per environment of ONE vector env (``agents/vector.py``, the code
+  path every algorithm steps its environments through; thread k owns env
+  index k). Each thread keeps a local copy of the network, runs n-step
+  segments, computes gradients locally and applies them to the *shared*
+  network with a *shared* Adam, lock-free ("Hogwild", Recht et al. 2011;
+  :meth:`SharedAdam.apply_gradients`). One shared model per agent id: the
+  driving benchmark trains N cars, each with its own network, all A3C.
 * **In-process** (:class:`A3C` through the :class:`~agents.base.Agent`
   interface): n-step advantage actor-critic on the caller's own transitions.
   This is how a trained policy acts in the test protocol, and how the common
@@ -26,8 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
-from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
@@ -36,24 +35,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from agents.async_env import ThreadRun, run_threads, vector_env
 from agents.base import Agent, AgentConfig, check_range
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import gae
-from agents.workers import (
-    EnvRunner,
-    Rollout,
-    RolloutBuilder,
-    TrainProgress,
-    WorkerLink,
-    WorkerPool,
-    agents_for,
-    categorical_policy,
-    get_context,
-    linear_learning_rate,
-    make_parallel_env,
-    private_copy,
-    worker_seed,
-)
+from agents.workers import Rollout, RolloutBuilder, TrainProgress, agents_for
 
 __all__ = ["A3C", "A3CConfig", "SharedAdam", "a3c_loss", "train_a3c"]
 
@@ -74,13 +60,13 @@ class A3CConfig(AgentConfig):
     gae_lambda: float = 1.0
     """GAE lambda; 1.0 gives the plain n-step returns of the A3C paper."""
     n_steps: int = 20
-    """Env steps per worker rollout between two updates (the n of n-step returns)."""
+    """Env steps per thread segment between two updates (the n of n-step returns)."""
     vf_coef: float = 0.5
     """Weight of the value loss."""
     ent_coef: float = 0.01
     """Weight of the entropy bonus."""
     max_grad_norm: float = 0.5
-    """Global gradient-norm clip applied by each worker before its shared step."""
+    """Global gradient-norm clip applied by each learner thread before its shared step."""
     adam_eps: float = 1e-5
     """Adam epsilon."""
     anneal_lr: bool = True
@@ -123,17 +109,17 @@ class A3CConfig(AgentConfig):
 
 
 class SharedAdam(torch.optim.Adam):
-    """Adam whose moment estimates can live in shared memory.
+    """Adam whose moment estimates are shared by A3C's learner threads.
 
-    The state is created eagerly (plain Adam creates it on the first step,
-    inside one process) so :meth:`share_memory` can move it to shared memory
-    before the workers start; every worker then steps the same moments
-    (ikostrikov/pytorch-a3c ``my_optim.py``).
+    The state is created eagerly (plain Adam creates it on the first step) and
+    :meth:`apply_gradients` steps it with gradients computed elsewhere (a
+    thread's local copy of the network), so no thread ever writes another's
+    ``.grad``: Hogwild (Recht et al. 2011), lock-free, as ikostrikov/pytorch-a3c
+    does across processes. ``step()`` (in-process A3C) is plain Adam.
     """
 
     def __init__(self, params, lr: float = 1e-3, eps: float = 1e-8):
-        # foreach=False: the single-tensor path updates each state tensor in
-        # place, which is what makes a shared-memory state work.
+        # foreach=False: the single-tensor path, the one apply_gradients reproduces.
         super().__init__(params, lr=lr, eps=eps, foreach=False)
         for group in self.param_groups:
             for p in group["params"]:
@@ -142,13 +128,29 @@ class SharedAdam(torch.optim.Adam):
                 state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                 state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
 
-    def share_memory(self) -> SharedAdam:
-        """Move every state tensor to shared memory; returns self."""
-        for state in self.state.values():
-            for value in state.values():
-                if torch.is_tensor(value):
-                    value.share_memory_()
-        return self
+    @torch.no_grad()
+    def apply_gradients(self, grads: Sequence[torch.Tensor | None], lr: float) -> None:
+        """One Adam step of the parameters (in ``param_groups`` order) with ``grads`` and ``lr``.
+
+        The same arithmetic as ``torch.optim.Adam.step`` (no weight decay, no
+        amsgrad), in place on the shared parameters and moments; a ``None``
+        gradient leaves its parameter alone.
+        """
+        params = [p for group in self.param_groups for p in group["params"]]
+        if len(grads) != len(params):
+            raise ValueError(f"apply_gradients got {len(grads)} gradients for {len(params)} parameters")
+        beta1, beta2 = self.param_groups[0]["betas"]
+        eps = self.param_groups[0]["eps"]
+        for param, grad in zip(params, grads, strict=True):
+            if grad is None:
+                continue
+            state = self.state[param]
+            state["step"] += 1
+            step = float(state["step"])
+            state["exp_avg"].lerp_(grad, 1 - beta1)
+            state["exp_avg_sq"].mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            denom = (state["exp_avg_sq"].sqrt() / (1 - beta2**step) ** 0.5).add_(eps)
+            param.addcdiv_(state["exp_avg"], denom, value=-lr / (1 - beta1**step))
 
 
 # ----------------------------------------------------------------------------- loss
@@ -216,7 +218,7 @@ class A3C(Agent):
     """A3C agent: acts on one observation; learns in-process as n-step A2C.
 
     Attributes:
-        model: The ``ActorCritic`` network (shared-memory after :func:`train_a3c`).
+        model: The ``ActorCritic`` network (the one :func:`train_a3c`'s threads share).
         optimizer: Its :class:`SharedAdam`.
     """
 
@@ -273,128 +275,80 @@ class A3C(Agent):
 # ----------------------------------------------------------------------------- asynchronous training
 
 
-def _a3c_worker(
-    link: WorkerLink,
-    env_fn: Callable[[], Any],
-    agent_ids: list[str],
-    config: A3CConfig,
-    shared_models: dict[str, nn.Module],
-    optimizers: dict[str, SharedAdam],
-    global_steps,
-    total_steps: int,
-    seed: int,
-) -> None:
-    """One actor-learner: its own env, local models, Hogwild updates of the shared ones."""
-    torch.manual_seed(seed)
-    env = make_parallel_env(env_fn)
-    try:
-        runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index, reward_scale=config.reward_scale)
-        local_models = {aid: private_copy(shared_models[aid]) for aid in agent_ids}
-        generator = torch.Generator().manual_seed(seed)
-        policies = {aid: categorical_policy(local_models[aid], generator) for aid in agent_ids}
-        while not link.should_stop() and global_steps.value < total_steps:
-            for aid in agent_ids:  # 1. sync the local copy with the shared weights
-                local_models[aid].load_state_dict(shared_models[aid].state_dict())
-            rollouts, episodes, env_steps = runner.collect(policies, config.n_steps)  # 2. act
-            with global_steps.get_lock():
-                global_steps.value += env_steps
-            metrics: dict[str, dict[str, float]] = {}
-            for aid, rollout in rollouts.items():  # 3. local gradients -> shared step
-                metrics[aid] = compute_gradients(local_models[aid], rollout, config)
-                for local_p, shared_p in zip(
-                    local_models[aid].parameters(), shared_models[aid].parameters(), strict=True
-                ):
-                    shared_p.grad = local_p.grad
-                if config.anneal_lr:
-                    lr = linear_learning_rate(optimizers[aid], config.learning_rate, global_steps.value, total_steps)
-                    metrics[aid]["charts/learning_rate"] = lr
-                optimizers[aid].step()
-            link.send((env_steps, episodes, metrics))
-    finally:
-        if hasattr(env, "close"):
-            env.close()
+def _segment_learner(config: A3CConfig):
+    """How a learner thread learns from a segment: local gradients, then one lock-free shared step."""
+
+    def learn(run: ThreadRun, aid: str, local: nn.Module, rollout: Rollout, done: int, seen: int) -> dict:
+        lr = config.learning_rate * (max(0.0, 1.0 - done / run.total_steps) if config.anneal_lr else 1.0)
+        metrics = compute_gradients(local, rollout, config)
+        agent = run.agents[aid]
+        agent.optimizer.apply_gradients([p.grad for p in local.parameters()], lr)
+        with run.lock:
+            agent.num_updates += 1
+            # shared updates other threads applied since this segment's weights were read
+            metrics["charts/staleness"] = float(agent.num_updates - 1 - seen)
+        metrics["charts/learning_rate"] = lr
+        return metrics
+
+    return learn
 
 
 def train_a3c(
-    env_fn: Callable[[], Any],
+    env_fn: Callable[[], Any] | Sequence[Callable[[], Any]],
     observation_space: gymnasium.Space,
     action_space: gymnasium.Space,
     agent_ids: Sequence[str] = ("agent_0",),
     config: A3CConfig | None = None,
     total_steps: int = 100_000,
-    num_workers: int = 2,
+    num_envs: int | None = None,
     seed: int = 0,
     callback: Callable[[TrainProgress], bool | None] | None = None,
     start_method: str = "spawn",
     agents: dict[str, A3C] | None = None,
+    processes: bool | None = None,
 ) -> dict[str, A3C]:
-    """Train one A3C agent per agent id with asynchronous worker processes.
+    """Train one A3C agent per agent id: one actor-learner thread per environment of one vector env.
+
+    Thread k owns env index k of the vector env (``agents/vector.py``; the env
+    steps in its worker process, or in process for N = 1), keeps a local copy of
+    each agent's network, runs n-step segments, and applies their gradients to
+    the shared network with the shared Adam (:meth:`SharedAdam.apply_gradients`),
+    lock-free, whenever it is done: asynchronous, as in the paper. Torch releases
+    the GIL inside its ops and a thread waiting for its env holds no lock, so the
+    threads overlap. Runs are not reproducible step for step for N > 1 (the order
+    of the threads' updates varies); with N = 1 they are.
 
     Args:
-        env_fn: Picklable zero-argument factory; each worker calls it once to
-            build its own env (a ParallelEnv, or a Gymnasium env for one agent).
+        env_fn: Picklable zero-argument factory (a ParallelEnv, or a Gymnasium env
+            for one agent), or one factory per environment.
         observation_space: Space of one agent's observation.
         action_space: Space of one agent's action (Discrete).
         agent_ids: The learning agents in the env; each gets its own network.
         config: Hyperparameters (default preset if None).
-        total_steps: Env steps to take, all workers counted.
-        num_workers: Number of actor-learner processes.
-        seed: Seeds network init (agent k: ``seed + k``) and the workers' envs.
-        callback: Called in the parent after each worker report with a
-            :class:`TrainProgress`; return True to stop early
-            (as in :func:`agents.loop.run_loop`).
-        start_method: ``"spawn"`` or ``"forkserver"``.
+        total_steps: Env steps to take, all environments counted (the last
+            segments may overshoot by less than ``n_steps`` per thread).
+        num_envs: Environments, one learner thread each (default: 2, or one per
+            factory in ``env_fn``).
+        seed: Seeds network init (agent k: ``seed + k``), the resets (env i,
+            episode k: ``seed + i + k * N``) and thread i's sampling.
+        callback: Called in this thread after each segment report with a
+            :class:`TrainProgress`; return True to stop early.
+        start_method: ``"spawn"`` or ``"forkserver"`` for the env worker processes.
         agents: Agents to continue training (e.g. loaded from checkpoints to resume);
             default: fresh agents built from ``config`` and ``seed``.
+        processes: Env worker processes (default: when N > 1) or in process.
 
     Returns:
         Agent id -> trained :class:`A3C` agent, ready to act or save.
 
     Raises:
-        WorkerError: If a worker raised (with its traceback) or died.
-        KeyboardInterrupt: On Ctrl-C/SIGTERM; every worker is stopped first.
+        WorkerError: If an environment raised (:class:`~agents.vector.VectorEnvError`,
+            with the worker's traceback) or its worker died.
+        KeyboardInterrupt: On Ctrl-C/SIGTERM; threads and env workers are stopped first.
     """
     config = config if config is not None else A3CConfig()
-    agent_ids = list(agent_ids)
-    if num_workers < 1 or total_steps < 1:
-        raise ValueError(f"need num_workers >= 1 and total_steps >= 1, got {num_workers}, {total_steps}")
+    if total_steps < 1:
+        raise ValueError(f"need total_steps >= 1, got {total_steps}")
     agents = agents_for(A3C, observation_space, action_space, agent_ids, config, seed, agents)
-    shared_models = {aid: agent.model.share_memory() for aid, agent in agents.items()}
-    optimizers = {aid: agent.optimizer.share_memory() for aid, agent in agents.items()}
-
-    # torch.optim imports torch._dynamo on first use (~2 s); with a fork server
-    # it is imported once there instead of once per worker.
-    context = get_context(start_method, preload=[__name__, "torch._dynamo"])
-    global_steps = context.Value("q", 0)
-    worker_args = [
-        (env_fn, agent_ids, config, shared_models, optimizers, global_steps, total_steps, worker_seed(seed, i))
-        for i in range(num_workers)
-    ]
-    start = time.monotonic()
-    recent_returns: deque[float] = deque(maxlen=100)
-    with WorkerPool(_a3c_worker, worker_args, context=context) as pool:
-        logger.info("A3C: %d workers (pids %s), %d steps", num_workers, pool.pids, total_steps)
-        # Workers stop themselves once the shared step counter reaches total_steps;
-        # reports still in the queue after they exit are read before leaving.
-        while True:
-            report = pool.get(timeout=0.5)
-            if report is None:
-                if pool.all_exited():
-                    break
-                continue
-            _, episodes, metrics = report
-            for aid in metrics:  # the parent's agents count the shared updates
-                agents[aid].num_updates += 1
-            for episode in episodes:
-                recent_returns.extend(episode.returns.values())
-            if episodes:
-                logger.debug("A3C: %d steps, mean return (last 100) %.1f", global_steps.value, np.mean(recent_returns))
-            progress = TrainProgress(
-                int(global_steps.value), episodes, agents, pool.pids, time.monotonic() - start, metrics
-            )
-            if callback is not None and callback(progress):
-                logger.info("A3C: callback stopped training at %d steps", progress.env_steps)
-                break
-        pool.check()
-    logger.info("A3C: done, %d env steps in %.1f s", global_steps.value, time.monotonic() - start)
-    return agents
+    run = ThreadRun(agents, config.n_steps, config.reward_scale, total_steps, seed, _segment_learner(config))
+    return run_threads(run, vector_env(env_fn, num_envs, start_method, processes), callback, "a3c-learner")

@@ -212,6 +212,10 @@ class MultiColourBar:
                 self.agents.remove(a)
         return out
 
+    def close(self) -> None:
+        """Nothing to release (a vector env closes every env it built)."""
+        self.agents = []
+
 
 class ScriptedParallelEnv:
     """A ParallelEnv whose observations encode where they come from; no simulator.

@@ -2,15 +2,19 @@
 
 Two ways to run the same algorithm:
 
-* **Asynchronous** (:func:`train_impala`), the real thing: actor processes,
-  each with its own environment and a possibly stale copy of the policy
-  (pulled from shared memory every ``actor_sync_every`` unrolls), send
-  trajectories (obs, actions, rewards, dones, behaviour log-probs) through a
-  queue to ONE learner in the parent. The learner batches ``batch_size``
-  unrolls per agent, corrects the off-policy gap with V-trace
-  (:func:`agents.returns.vtrace`), takes an Adam step and publishes the new
-  weights. One learner network per agent id (the driving benchmark trains N
-  cars, each with its own network, all IMPALA).
+* **Actor-learner** (:func:`train_impala`), the real thing: the learner
+  (this process) drives ONE vector env of N environments (``agents/vector.py``,
+  the code path every algorithm steps its environments through). It acts for
+  each agent in all the envs of a group with one forward pass, keeps the
+  behaviour log-probs ``log mu(a|x)``, cuts per-(env, agent) unrolls of
+  ``unroll_length``, batches ``batch_size`` unrolls per agent and corrects the
+  off-policy gap with V-trace (:func:`agents.returns.vtrace`). With worker
+  processes the envs form two groups (double buffering): one steps while the
+  learner acts and learns for the other. Either way the actions of a step are
+  chosen before the learner learns from the previous one, so an unroll's first
+  actions come from weights some updates older than the learner's
+  (``charts/policy_lag``); V-trace corrects that gap. One learner network per agent id (the driving benchmark trains N cars,
+  each with its own network, all IMPALA).
 * **In-process** (:class:`IMPALA` through the :class:`~agents.base.Agent`
   interface): the same learner fed with the agent's own transitions. This is
   how a trained policy acts in the test protocol and how the smoke tests
@@ -27,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
@@ -36,23 +39,17 @@ import numpy as np
 import torch
 from torch import nn
 
+from agents.async_env import EpisodeTracker, Unrolls, act_for, check_agents, record, vector_env
 from agents.base import Agent, AgentConfig, check_range
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import vtrace
 from agents.workers import (
-    EnvRunner,
     Rollout,
     RolloutBuilder,
     TrainProgress,
-    WorkerLink,
-    WorkerPool,
     agents_for,
-    categorical_policy,
-    get_context,
     linear_learning_rate,
-    make_parallel_env,
-    private_copy,
-    worker_seed,
+    rates,
 )
 
 __all__ = ["IMPALA", "IMPALAConfig", "impala_loss", "train_impala"]
@@ -89,10 +86,6 @@ class IMPALAConfig(AgentConfig):
     """Adam epsilon."""
     anneal_lr: bool = True
     """Decay the learning rate linearly to 0 over ``total_steps`` (asynchronous training only)."""
-    actor_sync_every: int = 1
-    """Actors pull the learner's latest weights every this many unrolls."""
-    queue_size: int = 32
-    """Bound on trajectories waiting for the learner; full = actors wait (bounds staleness)."""
     hidden: tuple[int, ...] = (64, 64)
     """Hidden sizes of the MLP encoder (image observations use the Nature CNN)."""
 
@@ -115,6 +108,14 @@ class IMPALAConfig(AgentConfig):
         },
     }
 
+    # Fields of the actor-process design (before IMPALA ran on the vector env); checkpoints
+    # and config.yaml files written then still carry them: they are dropped on load.
+    RETIRED: ClassVar = ("actor_sync_every", "queue_size")
+
+    @classmethod
+    def from_dict(cls, values) -> IMPALAConfig:
+        return super().from_dict({k: v for k, v in values.items() if k not in cls.RETIRED})
+
     def __post_init__(self):
         super().__post_init__()
         check_range("learning_rate", self.learning_rate, 0.0, low_inclusive=False)
@@ -127,8 +128,6 @@ class IMPALAConfig(AgentConfig):
         check_range("c_bar", self.c_bar, 0.0, low_inclusive=False)
         check_range("max_grad_norm", self.max_grad_norm, 0.0, low_inclusive=False)
         check_range("adam_eps", self.adam_eps, 0.0, low_inclusive=False)
-        check_range("actor_sync_every", self.actor_sync_every, 1)
-        check_range("queue_size", self.queue_size, 1)
         if not self.hidden or any(int(h) < 1 for h in self.hidden):
             raise ValueError(f"hidden={self.hidden!r} must be a non-empty tuple of positive sizes")
 
@@ -270,133 +269,133 @@ class IMPALA(Agent):
         self.num_updates = int(state.get("num_updates", 0))
 
 
-# ----------------------------------------------------------------------------- asynchronous training
-
-
-def _impala_actor(
-    link: WorkerLink,
-    env_fn: Callable[[], Any],
-    agent_ids: list[str],
-    config: IMPALAConfig,
-    published: dict[str, nn.Module],
-    policy_version,
-    seed: int,
-) -> None:
-    """One actor: its own env and policy copy; ships trajectories to the learner."""
-    torch.manual_seed(seed)
-    env = make_parallel_env(env_fn)
-    try:
-        runner = EnvRunner(env, agent_ids, seed=seed, worker=link.index, reward_scale=config.reward_scale)
-        local_models = {aid: private_copy(published[aid]) for aid in agent_ids}
-        generator = torch.Generator().manual_seed(seed)
-        policies = {aid: categorical_policy(local_models[aid], generator) for aid in agent_ids}
-        local_version, unrolls = -1, 0
-        while not link.should_stop():
-            if unrolls % config.actor_sync_every == 0 and policy_version.value != local_version:
-                # The lock keeps us from reading weights the learner is half-way through writing.
-                with policy_version.get_lock():
-                    for aid in agent_ids:
-                        local_models[aid].load_state_dict(published[aid].state_dict())
-                    local_version = policy_version.value
-            rollouts, episodes, env_steps = runner.collect(policies, config.unroll_length)
-            unrolls += 1
-            if not link.send((rollouts, episodes, env_steps, local_version)):
-                break
-    finally:
-        if hasattr(env, "close"):
-            env.close()
-
-
-def _publish(agents: dict[str, IMPALA], published: dict[str, nn.Module], policy_version) -> None:
-    """Copy the learner weights to the actors' shared copies, atomically for readers."""
-    with policy_version.get_lock():
-        for aid, agent in agents.items():
-            published[aid].load_state_dict(agent.model.state_dict())
-        policy_version.value += 1
+# ----------------------------------------------------------------------------- actor-learner training
 
 
 def train_impala(
-    env_fn: Callable[[], Any],
+    env_fn: Callable[[], Any] | Sequence[Callable[[], Any]],
     observation_space: gymnasium.Space,
     action_space: gymnasium.Space,
     agent_ids: Sequence[str] = ("agent_0",),
     config: IMPALAConfig | None = None,
     total_steps: int = 100_000,
-    num_actors: int = 2,
+    num_envs: int | None = None,
     seed: int = 0,
     callback: Callable[[TrainProgress], bool | None] | None = None,
     start_method: str = "spawn",
     agents: dict[str, IMPALA] | None = None,
+    processes: bool | None = None,
 ) -> dict[str, IMPALA]:
-    """Train one IMPALA agent per agent id: actor processes, one learner here.
+    """Train one IMPALA agent per agent id: the learner here acts in N environments of one vector env.
+
+    Each vector step, every agent samples its actions in all the envs of a group
+    with one forward pass and keeps ``log mu(a|x)``; the transitions of each
+    (env, agent) are cut into unrolls of ``unroll_length``; ``batch_size`` unrolls
+    of an agent make one V-trace update. With worker processes the envs form two
+    groups: one steps while the learner acts and learns for the other, so
+    actions lag the weights (reported as ``charts/policy_lag``, in updates);
+    V-trace corrects that lag.
 
     Args:
-        env_fn: Picklable zero-argument factory; each actor calls it once to
-            build its own env (a ParallelEnv, or a Gymnasium env for one agent).
+        env_fn: Picklable zero-argument factory (a ParallelEnv, or a Gymnasium env
+            for one agent), or one factory per environment.
         observation_space: Space of one agent's observation.
         action_space: Space of one agent's action (Discrete).
         agent_ids: The learning agents in the env; each gets its own network.
         config: Hyperparameters (default preset if None).
-        total_steps: Env steps to take, all actors counted.
-        num_actors: Number of actor processes.
-        seed: Seeds network init (agent k: ``seed + k``) and the actors' envs.
-        callback: Called after each received trajectory set with a
-            :class:`TrainProgress`; return True to stop early
-            (as in :func:`agents.loop.run_loop`).
-        start_method: ``"spawn"`` or ``"forkserver"``.
+        total_steps: Env steps to take, all environments counted.
+        num_envs: Environments (default: 2, or one per factory in ``env_fn``).
+        seed: Seeds network init (agent k: ``seed + k``) and the resets (env i,
+            episode k: ``seed + i + k * N``). Same seed and N: same run.
+        callback: Called after each group of envs stepped and was learnt from,
+            with a :class:`TrainProgress`; return True to stop early.
+        start_method: ``"spawn"`` or ``"forkserver"`` for the env worker processes.
         agents: Agents to continue training (e.g. loaded from checkpoints to resume);
             default: fresh agents built from ``config`` and ``seed``.
+        processes: Env worker processes (default: when N > 1) or in process.
 
     Returns:
         Agent id -> trained :class:`IMPALA` agent, ready to act or save.
 
     Raises:
-        WorkerError: If an actor raised (with its traceback) or died.
-        KeyboardInterrupt: On Ctrl-C/SIGTERM; every actor is stopped first.
+        WorkerError: If an environment raised (:class:`~agents.vector.VectorEnvError`,
+            with the worker's traceback) or its worker died.
+        KeyboardInterrupt: On Ctrl-C/SIGTERM; every env worker is stopped first.
     """
     config = config if config is not None else IMPALAConfig()
     agent_ids = list(agent_ids)
-    if num_actors < 1 or total_steps < 1:
-        raise ValueError(f"need num_actors >= 1 and total_steps >= 1, got {num_actors}, {total_steps}")
+    if total_steps < 1:
+        raise ValueError(f"need total_steps >= 1, got {total_steps}")
     agents = agents_for(IMPALA, observation_space, action_space, agent_ids, config, seed, agents)
-    # The actors read these copies, never the learner's own weights mid-update.
-    published = {aid: private_copy(agent.model).share_memory() for aid, agent in agents.items()}
-
-    context = get_context(start_method, preload=[__name__])
-    policy_version = context.Value("q", 0)
-    actor_args = [
-        (env_fn, agent_ids, config, published, policy_version, worker_seed(seed, i))
-        for i in range(num_actors)
-    ]
+    models = {aid: agent.model for aid, agent in agents.items()}
+    generators = {aid: agent.generator for aid, agent in agents.items()}
     start = time.monotonic()
-    env_steps, lags = 0, deque(maxlen=100)
-    pending: dict[str, list[Rollout]] = {aid: [] for aid in agent_ids}
-    with WorkerPool(_impala_actor, actor_args, context=context, queue_size=config.queue_size) as pool:
-        logger.info("IMPALA: %d actors (pids %s), %d steps", num_actors, pool.pids, total_steps)
-        while env_steps < total_steps:
-            message = pool.get(timeout=0.5)
-            if message is None:
+    venv = vector_env(env_fn, num_envs, start_method, processes)
+    try:
+        check_agents(venv, agent_ids)
+        n = venv.num_envs
+        logger.info("IMPALA: %d environments (pids %s), %d steps", n, venv.pids, total_steps)
+        groups = [np.asarray(g) for g in venv.groups]
+        unrolls, tracker = Unrolls(), EpisodeTracker(venv.possible_agents, n)
+        pending: dict[str, list[Rollout]] = {aid: [] for aid in agent_ids}
+        lags: dict[str, list[int]] = {aid: [] for aid in agent_ids}
+
+        def act_and_send(group: np.ndarray, state) -> tuple:
+            acted, actions = act_for({a: models[a] for a in venv.possible_agents}, generators, group,
+                                     state.obs, state.alive, n)
+            venv.step_async(actions, group)
+            return acted, {aid: agents[aid].num_updates for aid in agent_ids}
+
+        loop_start = time.perf_counter()
+        state = venv.reset(seed=seed)
+        in_flight: dict[int, tuple] = {}
+        sent = env_steps = agent_steps = 0
+        for gi, group in enumerate(groups):
+            if sent < total_steps:
+                in_flight[gi] = act_and_send(group, state)
+                sent += group.size
+        stopping, gi = False, 0
+        while in_flight:
+            if gi not in in_flight:
+                gi = (gi + 1) % len(groups)
                 continue
-            rollouts, episodes, steps, actor_version = message
-            env_steps += steps
-            lags.append(policy_version.value - actor_version)
-            metrics: dict[str, dict[str, float]] = {}
-            for aid, rollout in rollouts.items():
-                pending[aid].append(rollout)
-                if len(pending[aid]) >= config.batch_size:
-                    if config.anneal_lr:
-                        linear_learning_rate(agents[aid].optimizer, config.learning_rate, env_steps, total_steps)
-                    metrics[aid] = agents[aid].learn(pending[aid])
-                    metrics[aid]["charts/learning_rate"] = agents[aid].optimizer.param_groups[0]["lr"]
-                    # Weight publications the actors were behind, averaged over recent unrolls.
-                    metrics[aid]["charts/policy_lag"] = float(np.mean(lags))
-                    pending[aid] = []
-                    _publish({aid: agents[aid]}, {aid: published[aid]}, policy_version)
-            progress = TrainProgress(env_steps, episodes, agents, pool.pids, time.monotonic() - start, metrics)
-            if callback is not None and callback(progress):
+            group, (acted, versions) = groups[gi], in_flight.pop(gi)
+            state = venv.step_wait(group)
+            env_steps += group.size
+            agent_steps += record(unrolls, acted, state, config.reward_scale, versions)
+            episodes = tracker.record(state, group)
+            if not stopping and sent < total_steps:  # act before learning: the lag V-trace corrects
+                in_flight[gi] = act_and_send(group, state)
+                sent += group.size
+            metrics = _learn_ready(agents, unrolls, pending, lags, config, env_steps, total_steps)
+            progress = TrainProgress(env_steps, episodes, agents, venv.pids, time.monotonic() - start, metrics,
+                                     rates(env_steps, agent_steps, loop_start))
+            if callback is not None and callback(progress) and not stopping:
                 logger.info("IMPALA: callback stopped training at %d steps", env_steps)
-                break
-    for agent in agents.values():  # in-process learning after this starts from the configured lr
-        linear_learning_rate(agent.optimizer, config.learning_rate, 0, total_steps)
+                stopping = True
+            gi = (gi + 1) % len(groups)
+    finally:
+        venv.close()
+        for agent in agents.values():  # in-process learning after this starts from the configured lr
+            linear_learning_rate(agent.optimizer, config.learning_rate, 0, total_steps)
     logger.info("IMPALA: done, %d env steps in %.1f s", env_steps, time.monotonic() - start)
     return agents
+
+
+def _learn_ready(agents: dict[str, IMPALA], unrolls: Unrolls, pending: dict[str, list[Rollout]],
+                 lags: dict[str, list[int]], config: IMPALAConfig, env_steps: int,
+                 total_steps: int) -> dict[str, dict[str, float]]:
+    """Move full unrolls to their agent's batch; one learner step per agent whose batch is full."""
+    metrics: dict[str, dict[str, float]] = {}
+    for aid, _env, rollout, version in unrolls.take_ready(config.unroll_length):
+        pending[aid].append(rollout)
+        lags[aid].append(agents[aid].num_updates - version)  # updates since the unroll's first action
+        if len(pending[aid]) < config.batch_size:
+            continue
+        if config.anneal_lr:
+            linear_learning_rate(agents[aid].optimizer, config.learning_rate, env_steps, total_steps)
+        metrics[aid] = agents[aid].learn(pending[aid])
+        metrics[aid]["charts/learning_rate"] = agents[aid].optimizer.param_groups[0]["lr"]
+        metrics[aid]["charts/policy_lag"] = float(np.mean(lags[aid]))
+        pending[aid], lags[aid] = [], []
+    return metrics

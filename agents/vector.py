@@ -24,6 +24,10 @@ and infos are pickled. The arrays in a :class:`VecStep` are views of that
 memory, valid until the next ``step``/``step_async``/``reset``: copy what you keep.
 ``step_async(actions)`` + ``step_wait()`` (what ``step`` does) let the caller
 learn while the workers step (:func:`agents.loop.run_vector_loop` does).
+Both take ``envs=[...]`` to step a subset; threads that step DISJOINT sets of
+envs may call them concurrently (A3C's learner threads, ``agents/a3c.py``, each
+own one env index): each env has its own pipe and its own rows of the shared
+arrays, and the in-process version keeps one pending step per env set.
 
 Seeding: ``reset(seed)`` gives env ``i`` its episodes ``k = 0, 1, ...`` the seeds
 ``seed + i + k * N``, so one environment resets with ``seed, seed + 1, ...``
@@ -241,6 +245,8 @@ class InProcessVectorEnv(_VectorBase):
         ]
         self.pids: list[int] = []
         self.groups = [np.arange(self.num_envs)]
+        self._pending: dict[tuple[int, ...], list[dict[str, Any]]] = {}
+        self._lock = threading.Lock()
 
     def reset(self, seed: int | None = None) -> VecStep:
         return self._assemble_reset([self._call(i, slot.reset, seed) for i, slot in enumerate(self.slots)])
@@ -249,13 +255,24 @@ class InProcessVectorEnv(_VectorBase):
     """Env indices stepped as one group by run_vector_loop: in process, all at once."""
 
     def step_async(self, actions: Mapping[str, np.ndarray], envs=None) -> None:
-        self._pending = (self._split_actions(actions), self._envs(envs))
+        sent = self._envs(envs)
+        per_env = self._split_actions(actions)
+        with self._lock:  # A3C's learner threads each step their own env index
+            self._pending[tuple(sent)] = [per_env[i] for i in sent]
 
     def step_wait(self, envs=None) -> VecStep:
-        (per_env, sent), self._pending = self._pending, None
-        if envs is not None and self._envs(envs) != sent:
-            raise RuntimeError(f"step_wait({list(envs)}) after step_async for envs {sent}")
-        return self._assemble([self._call(i, self.slots[i].step, per_env[i]) for i in sent], sent)
+        with self._lock:
+            if envs is None and len(self._pending) == 1:
+                key = next(iter(self._pending))
+            else:
+                key = tuple(self._envs(envs))
+            if key not in self._pending:
+                raise RuntimeError(f"step_wait({None if envs is None else list(envs)}) without a step_async "
+                                   f"for those envs (pending: {[list(k) for k in self._pending]})")
+            actions = self._pending.pop(key)
+        sent = list(key)
+        return self._assemble([self._call(i, self.slots[i].step, a) for i, a in zip(sent, actions, strict=True)],
+                              sent)
 
     def step(self, actions: Mapping[str, np.ndarray]) -> VecStep:
         self.step_async(actions)

@@ -1,30 +1,22 @@
-"""Worker processes for the asynchronous trainers (A3C, IMPALA).
+"""Process and rollout helpers: what the vector env and the asynchronous trainers share.
 
-The driving simulator allows one simulation per process, so asynchronous
-training means processes, each owning its environment. This module holds the
-machinery both asynchronous algorithms share, and nothing algorithm-specific:
+Every environment of a training run steps in ONE place: the vector env of
+``agents/vector.py`` (worker processes, or in process for one env). This module
+holds what it and the asynchronous trainers (A3C, IMPALA, ``agents/async_env.py``)
+share, nothing algorithm-specific:
 
-* :class:`WorkerPool`: starts N worker processes (``spawn`` or ``forkserver``),
-  hands each a :class:`WorkerLink` (stop event + result queue), re-raises a
-  worker's exception in the parent as :class:`WorkerError` carrying the
-  worker's traceback text, and guarantees cleanup: on a normal end, on an
-  exception, and on ``KeyboardInterrupt``/SIGINT/SIGTERM in the parent every
-  worker is joined, or terminated, or killed. No orphan processes.
+* :func:`get_context` (``spawn`` or ``forkserver``, never ``fork``),
+  :func:`_die_with_owner` (a worker dies with its owner, even on SIGKILL),
+  :class:`WorkerError` (a worker's failure with its traceback text) and
+  :func:`live_pids` (which of some pids still run: the no-orphan checks).
 * :class:`Rollout` / :class:`RolloutBuilder`: one agent's consecutive
-  transitions, the unit A3C learns from and IMPALA ships to its learner.
-* :class:`EnvRunner`: steps a PettingZoo-ParallelEnv-like environment with one
-  policy per agent id and cuts its stream into per-agent rollouts;
-  :func:`make_parallel_env` builds the env inside a worker (a Gymnasium env is
-  wrapped as a one-agent ParallelEnv); :func:`categorical_policy` samples from
-  an actor-critic's logits.
-* :class:`TrainProgress`: what an asynchronous trainer hands its callback.
+  transitions, the unit A3C learns from and IMPALA's learner batches.
+* :class:`EpisodeReport` and :class:`TrainProgress`: what an asynchronous
+  trainer hands its callback; :func:`agents_for`, :func:`make_parallel_env`,
+  :func:`linear_learning_rate`, :func:`private_copy`, :func:`worker_seed`.
 
-Shutdown order (why it is safe): the parent sets the stop event, drains the
-queues while it joins (a child blocked on a full pipe could never exit
-otherwise), then ``terminate()`` (SIGTERM) the stragglers, then ``kill()``
-(SIGKILL). Workers ignore SIGINT, so a Ctrl-C in a terminal (delivered to the
-whole process group) is handled once, by the parent. A worker also dies when
-the parent dies without cleaning up (SIGKILL): see :func:`_die_with_owner`.
+Workers ignore SIGINT, so a Ctrl-C in a terminal (delivered to the whole
+process group) is handled once, by the owner, which then closes them.
 """
 
 from __future__ import annotations
@@ -32,11 +24,9 @@ from __future__ import annotations
 import copy
 import logging
 import os
-import queue
 import signal
 import threading
 import time
-import traceback
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -48,21 +38,19 @@ import torch.multiprocessing as mp
 from agents.errors import CosimError
 
 __all__ = [
-    "EnvRunner",
+    "EPISODE_INFO",
     "EpisodeReport",
-    "agents_for",
     "Rollout",
     "RolloutBuilder",
     "TrainProgress",
     "WorkerError",
-    "WorkerLink",
-    "WorkerPool",
-    "categorical_policy",
+    "agents_for",
     "get_context",
-    "live_pids",
     "linear_learning_rate",
+    "live_pids",
     "make_parallel_env",
     "private_copy",
+    "rates",
     "worker_seed",
 ]
 
@@ -147,43 +135,8 @@ def worker_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
 
 
-@dataclass
-class WorkerLink:
-    """What a worker receives to talk to its parent (picklable).
-
-    Attributes:
-        index: Worker index, 0..N-1.
-        stop_event: Set by the parent when every worker must stop.
-        results: Queue of messages for the parent.
-        owner_pid: Pid of the process that owns the pool (the trainer).
-    """
-
-    index: int
-    stop_event: Any
-    results: Any
-    owner_pid: int
-
-    def should_stop(self) -> bool:
-        """True when the owner asked every worker to stop."""
-        return self.stop_event.is_set()
-
-    def send(self, message: Any) -> bool:
-        """Put ``message`` on the result queue, waiting while it is full.
-
-        Returns:
-            False if the worker was told to stop before the message fit.
-        """
-        while not self.should_stop():
-            try:
-                self.results.put(message, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-
 def _die_with_owner(owner_pid: int, poll_s: float = 0.5) -> None:
-    """Make sure this worker dies when the pool's owner dies, even by SIGKILL.
+    """Make sure this worker dies when its owner dies, even by SIGKILL.
 
     Nothing in the owner runs on SIGKILL, and a worker stuck in a simulator
     never looks at the stop event. Two guards: Linux's ``PR_SET_PDEATHSIG``
@@ -206,182 +159,6 @@ def _die_with_owner(owner_pid: int, poll_s: float = 0.5) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
     threading.Thread(target=watch, name="owner-watchdog", daemon=True).start()
-
-
-def _worker_entry(target: Callable, link: WorkerLink, args: tuple, errors) -> None:
-    """Body of every worker process: set up, run ``target``, report any exception."""
-    # One intra-op thread per worker: N workers with N threads each oversubscribe the CPU.
-    torch.set_num_threads(1)
-    # The parent owns Ctrl-C; it tells us to stop through the event.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _die_with_owner(link.owner_pid)
-    try:
-        target(link, *args)
-    except BaseException as exc:  # KeyboardInterrupt, SystemExit too: all must reach the parent
-        errors.put((link.index, f"{type(exc).__name__}: {exc}", traceback.format_exc()))
-        raise SystemExit(1) from None
-
-
-class WorkerPool:
-    """N worker processes running ``target(link, *args)``, as a context manager.
-
-    Example::
-
-        ctx = get_context("spawn")
-        counter = ctx.Value("q", 0)
-        with WorkerPool(run_worker, [(env_fn, counter)] * 2, context=ctx) as pool:
-            while not done:
-                message = pool.get(timeout=1.0)  # raises WorkerError if a worker failed
-
-    Args:
-        target: A picklable top-level function ``target(link: WorkerLink, *args)``.
-        worker_args: One tuple of extra arguments per worker; its length is N.
-        context: A multiprocessing context from :func:`get_context`; shared
-            objects passed in ``worker_args`` must come from the same context.
-        join_timeout: Seconds to wait for workers to stop before terminating them.
-        queue_size: Bound of the result queue (0 = unbounded); a bound gives
-            back-pressure to producers that outpace the parent.
-        handle_sigterm: Turn SIGTERM in the parent into ``KeyboardInterrupt``
-            while the pool is open, so ``kill <pid>`` also cleans up (main
-            thread only; elsewhere the existing handler is left alone).
-    """
-
-    def __init__(
-        self,
-        target: Callable,
-        worker_args: Sequence[tuple],
-        *,
-        context=None,
-        join_timeout: float = 5.0,
-        queue_size: int = 0,
-        handle_sigterm: bool = True,
-    ):
-        if not worker_args:
-            raise ValueError("WorkerPool needs at least one worker (worker_args is empty)")
-        if join_timeout <= 0:
-            raise ValueError(f"join_timeout must be > 0 seconds, got {join_timeout}")
-        self.context = context if context is not None else get_context("spawn")
-        self.target = target
-        self.worker_args = [tuple(args) for args in worker_args]
-        self.join_timeout = join_timeout
-        self.handle_sigterm = handle_sigterm
-        self.stop_event = self.context.Event()
-        self.results = self.context.Queue(maxsize=queue_size)
-        self.errors = self.context.Queue()
-        self.processes: list = []
-        self._previous_sigterm = None
-
-    @property
-    def pids(self) -> list[int]:
-        """Pids of the started workers (empty before start)."""
-        return [process.pid for process in self.processes]
-
-    def __enter__(self) -> WorkerPool:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        self.close()
-
-    def start(self) -> None:
-        """Start every worker (daemon processes: they die with an exiting parent)."""
-        if self.processes:
-            raise RuntimeError("WorkerPool.start() called twice")
-        self._install_sigterm_handler()
-        try:
-            for index, args in enumerate(self.worker_args):
-                link = WorkerLink(index, self.stop_event, self.results, os.getpid())
-                process = self.context.Process(
-                    target=_worker_entry,
-                    args=(self.target, link, args, self.errors),
-                    name=f"cosim-worker-{index}",
-                    daemon=True,
-                )
-                process.start()
-                self.processes.append(process)
-        except BaseException:
-            self.close()
-            raise
-        logger.debug("started %d workers: pids %s", len(self.processes), self.pids)
-
-    def get(self, timeout: float = 1.0) -> Any | None:
-        """Next message from any worker, or None after ``timeout`` seconds.
-
-        Raises:
-            WorkerError: If a worker raised (with its traceback) or died with a
-                non-zero exit code.
-        """
-        self.check()
-        try:
-            return self.results.get(timeout=timeout)
-        except queue.Empty:
-            self.check()
-            return None
-
-    def check(self) -> None:
-        """Raise :class:`WorkerError` if any worker has failed."""
-        try:
-            index, message, worker_traceback = self.errors.get_nowait()
-        except queue.Empty:
-            pass
-        else:
-            raise WorkerError(index, message, worker_traceback)
-        for index, process in enumerate(self.processes):
-            if process.exitcode not in (None, 0):
-                # The error report may still be in flight through the pipe.
-                try:
-                    index, message, worker_traceback = self.errors.get(timeout=1.0)
-                except queue.Empty:
-                    raise WorkerError(index, f"exited with code {process.exitcode}") from None
-                raise WorkerError(index, message, worker_traceback)
-
-    def all_exited(self) -> bool:
-        """True when every worker process has ended."""
-        return all(process.exitcode is not None for process in self.processes)
-
-    def close(self) -> None:
-        """Stop, join, terminate, then kill every worker; idempotent."""
-        try:
-            self.stop_event.set()
-            deadline = time.monotonic() + self.join_timeout
-            while time.monotonic() < deadline and not self.all_exited():
-                self._drain()
-                for process in self.processes:
-                    process.join(timeout=0.05)
-            for process in self.processes:
-                if process.is_alive():
-                    logger.warning("worker pid %d did not stop in time; terminating", process.pid)
-                    process.terminate()
-                    process.join(timeout=1.0)
-                if process.is_alive():
-                    process.kill()
-                    process.join(timeout=1.0)
-            self._drain()
-        finally:
-            self._restore_sigterm_handler()
-
-    def _drain(self) -> None:
-        # Emptying the queues unblocks workers whose feeder thread waits on a full pipe.
-        for q in (self.results, self.errors):
-            try:
-                while True:
-                    q.get_nowait()
-            except (queue.Empty, OSError, ValueError):
-                pass
-
-    def _install_sigterm_handler(self) -> None:
-        if not self.handle_sigterm or threading.current_thread() is not threading.main_thread():
-            return
-
-        def _raise_interrupt(signum, frame):
-            raise KeyboardInterrupt(f"received signal {signum}")
-
-        self._previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
-
-    def _restore_sigterm_handler(self) -> None:
-        if self._previous_sigterm is not None:
-            signal.signal(signal.SIGTERM, self._previous_sigterm)
-            self._previous_sigterm = None
 
 
 # --------------------------------------------------------------------------- rollouts
@@ -524,9 +301,6 @@ class RolloutBuilder:
         return rollout
 
 
-# --------------------------------------------------------------------------- env runner
-
-
 # The info key of cosim's per-episode summary (cosim.env): not "episode", which
 # Gymnasium's RecordEpisodeStatistics, gym.make_vec and SB3's Monitor write themselves.
 EPISODE_INFO = "cosim_episode"
@@ -534,92 +308,14 @@ EPISODE_INFO = "cosim_episode"
 
 @dataclass
 class EpisodeReport:
-    """Per-agent return and length of one finished episode in one worker."""
+    """Per-agent return and length of one finished episode in one environment."""
 
     worker: int
+    """Index of the environment (in the vector env) the episode ran in."""
     returns: dict[str, float] = field(default_factory=dict)
     lengths: dict[str, int] = field(default_factory=dict)
     extras: dict[str, dict] = field(default_factory=dict)
     """Per agent, the env's own episode summary (``info[EPISODE_INFO]``) when it gives one."""
-
-
-# A policy maps one observation to (action, log mu(action | obs)).
-Policy = Callable[[np.ndarray], tuple[int, float]]
-
-
-class EnvRunner:
-    """Steps a ParallelEnv-like environment and cuts per-agent rollouts.
-
-    The environment follows the PettingZoo ParallelEnv contract: ``reset(seed)
-    -> (obs, infos)``, ``step(actions) -> (obs, rewards, terminations,
-    truncations, infos)``, and ``agents`` shrinks as agents finish. An episode
-    ends when ``agents`` is empty; the runner then resets (seeded only the
-    first time, so episodes differ).
-
-    Args:
-        env: The environment (built inside the worker).
-        agent_ids: The learning agents; every agent the env reports must be one.
-        seed: Seed of the first reset.
-        worker: Worker index, copied into episode reports.
-        reward_scale: Rewards are multiplied by this in the rollouts (the agents'
-            ``reward_scale``); episode reports keep the environment's own returns.
-    """
-
-    def __init__(self, env, agent_ids: Sequence[str], seed: int, worker: int = 0, reward_scale: float = 1.0):
-        self.env = env
-        self.reward_scale = float(reward_scale)
-        self.agent_ids = list(agent_ids)
-        self.worker = worker
-        self.obs, _ = env.reset(seed=seed)
-        self._check_agents(self.obs)
-        self._returns = dict.fromkeys(self.obs, 0.0)
-        self._lengths = dict.fromkeys(self.obs, 0)
-        self._extras: dict[str, dict] = {}
-
-    def _check_agents(self, obs: Mapping) -> None:
-        unknown = set(obs) - set(self.agent_ids)
-        if unknown:
-            raise ValueError(
-                f"environment reports agents {sorted(unknown)} that have no model; "
-                f"pass every learning agent in agent_ids (got {self.agent_ids})"
-            )
-
-    def collect(self, policies: Mapping[str, Policy], num_steps: int) -> tuple[dict[str, Rollout], list[EpisodeReport], int]:
-        """Step the env ``num_steps`` times with one policy per agent.
-
-        Returns:
-            ``(rollouts, episodes, env_steps)``: one :class:`Rollout` per agent
-            that acted, the episodes that finished, and the env steps taken.
-        """
-        builders = {aid: RolloutBuilder(aid) for aid in self.agent_ids}
-        episodes: list[EpisodeReport] = []
-        for _ in range(num_steps):
-            actions, log_probs = {}, {}
-            for aid in self.env.agents:
-                actions[aid], log_probs[aid] = policies[aid](self.obs[aid])
-            next_obs, rewards, terminations, truncations, infos = self.env.step(actions)
-            for aid, info in infos.items():
-                if isinstance(info, Mapping) and EPISODE_INFO in info:
-                    self._extras[aid] = info[EPISODE_INFO]
-            for aid in actions:
-                builders[aid].add(
-                    self.obs[aid], actions[aid], rewards[aid] * self.reward_scale, next_obs[aid],
-                    terminations[aid], truncations[aid], log_probs[aid],
-                )
-                self._returns[aid] += float(rewards[aid])
-                self._lengths[aid] += 1
-            self.obs = next_obs
-            if not self.env.agents:
-                episodes.append(
-                    EpisodeReport(self.worker, self._returns, self._lengths, self._extras)
-                )
-                self._extras = {}
-                self.obs, _ = self.env.reset()
-                self._check_agents(self.obs)
-                self._returns = dict.fromkeys(self.obs, 0.0)
-                self._lengths = dict.fromkeys(self.obs, 0)
-        rollouts = {aid: builder.build() for aid, builder in builders.items() if len(builder)}
-        return rollouts, episodes, num_steps
 
 
 def agents_for(cls, observation_space, action_space, agent_ids: Sequence[str], config, seed: int,
@@ -665,11 +361,17 @@ def make_parallel_env(env_fn: Callable[[], Any]):
     )
 
 
+def rates(env_steps: int, agent_steps: int, since: float) -> dict[str, float]:
+    """Steady rates for :attr:`TrainProgress.timing`: steps per second since ``since`` (perf_counter)."""
+    elapsed = max(time.perf_counter() - since, 1e-9)
+    return {"time/env_steps_per_s": env_steps / elapsed, "time/agent_steps_per_s": agent_steps / elapsed}
+
+
 def linear_learning_rate(optimizer: torch.optim.Optimizer, base_lr: float, steps_done: int, total_steps: int) -> float:
     """Set ``optimizer``'s learning rate to ``base_lr`` decayed linearly to 0 at ``total_steps``.
 
-    Only the calling process's optimizer object changes (param-group values
-    are not shared memory), so each asynchronous worker sets its own.
+    Used by IMPALA's learner; A3C's learner threads pass their learning rate to
+    :meth:`agents.a3c.SharedAdam.apply_gradients` instead (param groups are shared).
 
     Returns:
         The learning rate now in use.
@@ -683,8 +385,9 @@ def linear_learning_rate(optimizer: torch.optim.Optimizer, base_lr: float, steps
 def private_copy(module: torch.nn.Module) -> torch.nn.Module:
     """A copy of ``module`` with its own (not shared-memory) parameter storage.
 
-    A worker acts with such a copy and refreshes it from the shared module with
-    ``load_state_dict``, so the shared weights never change under its forward pass.
+    An A3C learner thread acts with such a copy and refreshes it from the shared
+    module with ``load_state_dict``, so the shared weights never change under its
+    forward pass.
     """
     local = copy.deepcopy(module)
     for param in local.parameters():
@@ -692,29 +395,15 @@ def private_copy(module: torch.nn.Module) -> torch.nn.Module:
     return local
 
 
-def categorical_policy(model: torch.nn.Module, generator: torch.Generator) -> Policy:
-    """A :data:`Policy` sampling from ``model(obs) -> (logits, value)`` on the CPU."""
-    from agents.networks import obs_to_tensor
-
-    @torch.no_grad()
-    def policy(obs: np.ndarray) -> tuple[int, float]:
-        logits, _ = model(obs_to_tensor(np.asarray(obs)[None], "cpu"))
-        log_probs = torch.log_softmax(logits[0], dim=-1)
-        action = int(torch.multinomial(log_probs.exp(), 1, generator=generator))
-        return action, float(log_probs[action])
-
-    return policy
-
-
 @dataclass
 class TrainProgress:
     """What an asynchronous trainer passes to its callback after each report.
 
     Attributes:
-        env_steps: Environment steps taken so far, all workers counted.
+        env_steps: Environment steps taken so far, all environments counted.
         episodes: Episodes that finished since the previous callback.
         agents: The agents being trained (their weights are live).
-        worker_pids: Pids of the worker processes.
+        worker_pids: Pids of the vector env's worker processes (none in process).
         elapsed: Seconds since training started.
         metrics: Agent id -> namespaced learning metrics of the updates this
             report covers (empty for agents that did not learn), as in
@@ -727,3 +416,6 @@ class TrainProgress:
     worker_pids: list[int]
     elapsed: float
     metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+    timing: dict[str, float] = field(default_factory=dict)
+    """``time/env_steps_per_s`` and ``time/agent_steps_per_s`` since the first reset
+    (process and simulator start-up excluded), as in :meth:`agents.loop.LoopStats.summary`."""

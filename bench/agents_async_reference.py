@@ -1,14 +1,15 @@
 """Reference benchmark of the asynchronous trainers: A3C and IMPALA on CartPole-v1.
 
 Target: mean return >= 475 over 20 evaluation episodes within 300k env steps
-(all workers/actors counted), with real worker processes.
+(all environments counted), with real env worker processes.
 
 Protocol (the figures in docs/agents_async.md come from this script):
 
-* Train with ``train_a3c`` / ``train_impala`` (``--workers`` processes, one
-  torch thread each; the parent also runs one thread).
+* Train with ``train_a3c`` / ``train_impala`` on one vector env of ``--workers``
+  environments (worker processes when more than one; A3C: one learner thread per
+  environment; IMPALA: one learner acting in all of them), one torch thread.
 * Every ``--eval-every`` env steps the parent snapshots the live weights (A3C
-  workers keep training meanwhile; the snapshot's step count is the one
+  threads keep training meanwhile; the snapshot's step count is the one
   reported) and plays ``--eval-episodes`` greedy episodes on a separate
   CartPole (seeds 10_000+). An evaluation stops early once the target has
   become unreachable (the remaining episodes could not lift the mean to it),
@@ -105,11 +106,11 @@ def run(algo: str, seed: int, args) -> dict:
     if algo == "a3c":
         config = A3CConfig.preset(args.preset)
         trained = train_a3c(env_fn, *spaces, config=config, total_steps=args.total_steps,
-                            num_workers=args.workers, seed=seed, callback=callback)
+                            num_envs=args.workers, seed=seed, callback=callback)
     else:
         config = IMPALAConfig.preset(args.preset)
         trained = train_impala(env_fn, *spaces, config=config, total_steps=args.total_steps,
-                               num_actors=args.workers, seed=seed, callback=callback)
+                               num_envs=args.workers, seed=seed, callback=callback)
     wall = time.monotonic() - start
     solved = state["solved"]
     final_agent = solved["agent"] if solved and not args.full_budget else snapshot(trained["agent_0"])
@@ -152,7 +153,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algos", nargs="+", default=["a3c", "impala"], choices=["a3c", "impala"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--workers", type=int, default=2, help="worker (A3C) / actor (IMPALA) processes")
+    parser.add_argument("--workers", type=int, default=2, help="environments (env worker processes; A3C: one learner thread each)")
     parser.add_argument("--total-steps", type=int, default=300_000)
     parser.add_argument("--eval-every", type=int, default=10_000)
     parser.add_argument("--eval-episodes", type=int, default=20)
@@ -163,7 +164,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("bench/results/agents_async.json"))
     args = parser.parse_args()
 
-    # One thread in the parent too: it shares the cores with the workers.
+    # One torch thread: the trainer shares the cores with the env workers.
     torch.set_num_threads(1)
     records = [run(algo, seed, args) for algo in args.algos for seed in args.seeds]
     machine = {

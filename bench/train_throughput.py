@@ -14,8 +14,9 @@ simulator start-up excluded); "wall" is steps over the whole train() call,
 start-up included. AC-frames are agent transitions (one camera frame each).
 Every row uses the same torch thread count (--torch-threads, default 1): on a
 busy 2-core machine two OpenMP threads made one CNN forward 20x slower.
-A3C and IMPALA have no --envs (one environment per worker process, 2 workers
-in the quick preset): only their wall rate is given, the same in both blocks.
+A3C and IMPALA step the same vector env (`--envs N`: A3C one learner thread per
+environment, IMPALA one learner acting in all of them); their steady rate is
+the trainer's own clock from the first reset (agents/workers.py TrainProgress.timing).
 
     python bench/train_throughput.py [--steps 1500] [--envs 1 2] [--algos ppo dqn td3 a3c impala]
 """
@@ -31,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.train import ASYNC_ALGOS, make_config, make_env, train
+from eval.train import make_config, make_env, train
 
 AGENTS = 3
 
@@ -60,7 +61,7 @@ def raw_env_rate(n: int, steps: int, seed: int = 3) -> dict[str, float]:
 
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=AGENTS, steps=steps, seed=3,
-                      envs=1 if algo in ASYNC_ALGOS else n, device="cpu", torch_threads=threads)
+                      envs=n, device="cpu", torch_threads=threads)
     if "learning_starts" in cfg.agent_config:
         cfg.agent_config["learning_starts"] = 200
     t0 = time.monotonic()
@@ -88,9 +89,6 @@ def main() -> None:
             raw[n] = raw_env_rate(n, args.steps)
             print(f"raw env, {n} env(s): {raw[n]}", flush=True)
             for algo in args.algos:
-                if algo in ASYNC_ALGOS and n != args.envs[0]:
-                    rows[(algo, n)] = rows[(algo, args.envs[0])]
-                    continue
                 rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads)
                 print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
     print(f"\n{args.steps} env steps per row, env_1, {AGENTS} ACs, quick preset, CPU, "
@@ -103,11 +101,8 @@ def main() -> None:
         print(f"| raw env (random actions) | {n} | {r['steps_s']:.1f} | {r['frames_s']:.1f} | | 1.00 |")
         for algo in args.algos:
             t = rows[(algo, n)]
-            if algo in ASYNC_ALGOS:
-                print(f"| {algo} (2 workers) | - | | | {t['wall_s']:.1f} | {t['wall_s'] / r['steps_s']:.2f} (wall) |")
-            else:
-                print(f"| {algo} | {n} | {t['steps_s']:.1f} | {t['frames_s']:.1f} | {t['wall_s']:.1f} "
-                      f"| {t['steps_s'] / r['steps_s']:.2f} |")
+            print(f"| {algo} | {n} | {t['steps_s']:.1f} | {t['frames_s']:.1f} | {t['wall_s']:.1f} "
+                  f"| {t['steps_s'] / r['steps_s']:.2f} |")
     if len(args.envs) > 1 and "ppo" in args.algos:
         lo, hi = args.envs[0], args.envs[-1]
         print(f"\nPPO --envs {hi} / --envs {lo} (steady): {rows[('ppo', hi)]['steps_s'] / rows[('ppo', lo)]['steps_s']:.2f}x")

@@ -15,7 +15,8 @@ episodes) to Tune at every checkpoint, and the checkpoint is the run folder itse
 so a restored trial continues with ``train(resume=...)``. ``--no-ray`` trains the
 same cells one after another in this process: same configs, same seeds, one torch
 thread per trial in both cases, so PPO, DQN, DDPG and TD3 give the same weights
-either way (A3C and IMPALA run asynchronous workers and are not bit-reproducible).
+either way (A3C's learner threads apply their updates in no fixed order: with more
+than one environment it is not bit-reproducible).
 A finished cell is never trained again: ``--resume`` continues an interrupted
 benchmark from each unfinished trial's last checkpoint.
 """
@@ -34,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import CosimError
-from eval.train import ALGORITHMS, ASYNC_ALGOS, TrainConfig, make_config, train
+from eval.train import ALGORITHMS, TrainConfig, make_config, train
 from eval.validity import POLICIES
 
 log = logging.getLogger(__name__)
@@ -105,8 +106,8 @@ def cell_name(cfg: TrainConfig | dict) -> str:
 
 
 def trial_resources(cfg: TrainConfig, max_cpus: int | None = None, gpus: float = 0.0) -> dict:
-    """CPUs a trial keeps busy: its env workers (or A3C/IMPALA workers plus the learner)."""
-    cpus = 1 + cfg.workers if cfg.algo in ASYNC_ALGOS else cfg.envs
+    """CPUs a trial keeps busy: its env workers (every algorithm steps ``cfg.envs`` environments)."""
+    cpus = cfg.envs
     if max_cpus:
         cpus = min(cpus, max_cpus)
     return {"cpu": cpus, "gpu": gpus}
@@ -305,12 +306,15 @@ def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
 def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                  progress: Callable[[str], None] | None = None) -> list[Path]:
     """Scenario 1 and 2 in every environment with that environment's trained policies
-    (every seed's, pooled), the references of the preset, and the `cosim test` report."""
+    (every seed's, pooled, episodes numbered apart), on held-out episode seeds (from
+    eval.validity.HELD_OUT_SEED; training uses small ones), the references of the
+    preset, and the `cosim test` report."""
     import pandas as pd
 
     from eval import selection
     from eval.protocol import ProtocolPlan, policy_factory, reference_rows, run_protocol
     from eval.report import provenance, write_paper_report
+    from eval.validity import HELD_OUT_SEED
 
     out = Path(out)
     settings = TEST_SETTINGS[plan.preset]
@@ -328,14 +332,17 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                 first.setdefault(algo, chosen.path)
                 rows.append(f"| {env} | {algo} | {seed} | `{chosen.path.relative_to(out)}` |")
             test_plan = ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
-                                     seed=0, agents=len(algos))
+                                     seed=HELD_OUT_SEED, agents=len(algos))
             records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
-            frames.append(records.assign(train_seed=seed))
+            # seeds are pooled: number their episodes apart, or the metrics would merge
+            # seed 0's episode 0 with seed 1's episode 0
+            frames.append(records.assign(train_seed=seed,
+                                         episode=records["episode"] + seed * settings.episodes))
             if progress:
                 progress(f"{env} seed {seed}")
     records = pd.concat(frames, ignore_index=True)
     whole = ProtocolPlan(envs=tuple(plan.envs), episodes=settings.episodes, steps=settings.steps,
-                         seed=0, agents=len(algos))
+                         seed=HELD_OUT_SEED, agents=len(algos))
     refs = reference_rows(whole, list(settings.references)) if settings.references else None
     prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
                       command=list(command))

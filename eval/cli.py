@@ -118,8 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
                    help="continue an interrupted run from its last checkpoint")
     t.add_argument("--envs", type=int, default=None,
-                   help="environments stepped together, one process each when > 1 (ppo dqn ddpg td3; "
-                        "default: the preset's)")
+                   help="environments stepped together, one process each when > 1, every algorithm "
+                        "(default: the preset's envs; a3c/impala: its workers)")
     t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
                    help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
                         "preset's, 1 = the paper's single frame); tests of the run stack K too")

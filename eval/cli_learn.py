@@ -14,7 +14,7 @@ def cmd_train(args) -> int:
     import os
     import subprocess
 
-    from eval.train import ALGORITHMS, ASYNC_ALGOS, TrainError, make_config, parse_set, train
+    from eval.train import ALGORITHMS, TrainError, make_config, parse_set, train
 
     if args.pbt is not None or (args.resume is not None and (args.resume / "pbt.json").exists()):
         return _train_pbt(args)
@@ -28,7 +28,7 @@ def cmd_train(args) -> int:
         configs = [
             make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
-                        hyper=hyper, envs=None if a in ASYNC_ALGOS and args.algo == "all" else args.envs,
+                        hyper=hyper, envs=args.envs,
                         device=args.device, torch_threads=args.torch_threads, frame_stack=args.frame_stack)
             for a in algos
         ]
@@ -66,7 +66,7 @@ def cmd_train(args) -> int:
         while pending or running:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
-                envs = [] if algo in ASYNC_ALGOS or args.envs is None else ["--envs", str(args.envs)]
+                envs = [] if args.envs is None else ["--envs", str(args.envs)]
                 running[algo] = subprocess.Popen(base + envs + ["--algo", algo])
             for algo, proc in list(running.items()):
                 try:

@@ -45,10 +45,12 @@ class TrainConfig:
     horizon: int = 300
     checkpoint_every: int = 2_000
     workers: int = 2
+    """The preset's default ``envs`` for A3C and IMPALA (recorded; ``envs`` is what runs)."""
     image_size: int = 84
     agent_config: dict[str, Any] = field(default_factory=dict)
     envs: int = 1
-    """Environments stepped together, each in its own process when > 1 (PPO, DQN, DDPG, TD3)."""
+    """Environments stepped together (one vector env, agents/vector.py), each in its own
+    process when > 1; every algorithm (A3C: one learner thread per environment)."""
     device: str = "auto"
     """Torch device of the learners: auto (cuda when available), cpu or cuda."""
     torch_threads: int = 0
@@ -108,17 +110,13 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     total = p.steps[algo] if steps is None else int(steps)
     if total < 1:
         raise TrainError(f"--steps must be >= 1, got {total}")
-    if envs is None:
-        envs = p.envs if algo not in ASYNC_ALGOS else 1
+    if envs is None:  # A3C and IMPALA: the preset's workers, one environment (and A3C thread) each
+        envs = p.envs if algo not in ASYNC_ALGOS else p.workers
     frame_stack = p.frame_stack if frame_stack is None else int(frame_stack)
     if frame_stack < 1:
         raise TrainError(f"--frame-stack must be >= 1 (1: a single camera frame), got {frame_stack}")
     if int(envs) < 1 or int(torch_threads) < 0:
         raise TrainError(f"--envs must be >= 1 and --torch-threads >= 0, got {envs} and {torch_threads}")
-    if int(envs) > 1 and algo in ASYNC_ALGOS:
-        sync = [a for a in ALGORITHMS if a not in ASYNC_ALGOS]
-        raise TrainError(f"--envs applies to {', '.join(sync[:-1])} and {sync[-1]}; {algo} runs one environment per "
-                         "worker process (the preset's workers)")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
     config_cls = registry.get_agent_class(algo).config_class

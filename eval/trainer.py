@@ -5,9 +5,10 @@ Algorithms that train in the sync loop (agents/registry.py) step ``--envs N``
 environments through :func:`agents.loop.run_vector_loop`: one in this process, or
 N worker processes (``agents/vector.py``), each AC acting in all of them in one
 forward pass; each environment's episodes become CSV rows. The async ones (A3C,
-IMPALA) run worker/actor processes, each with its own environment (libsumo allows
-one simulation per process). The run folder, resuming and the lock are
-eval/runfolder.py; the CSV, TensorBoard and checkpoints eval/runlog.py.
+IMPALA) step the same vector env of ``--envs N`` environments (libsumo allows one
+simulation per process): A3C with one learner thread per environment, IMPALA's
+learner acting in all of them (agents/async_env.py). The run folder, resuming and the
+lock are eval/runfolder.py; the CSV, TensorBoard and checkpoints eval/runlog.py.
 """
 
 from __future__ import annotations
@@ -125,17 +126,13 @@ def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_
 def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
     """PPO, DQN, DDPG, TD3: ``cfg.envs`` environments (worker processes when > 1), one
     batched forward pass per AC per step (agents.loop.run_vector_loop, docs/agents.md)."""
-    import torch
 
     from agents.base import resolve_device
     from agents.loop import run_vector_loop
     from agents.vector import make_vector_env
 
     n = cfg.envs
-    # N env workers keep N cores busy; more torch threads than the cores left only contend
-    threads = cfg.torch_threads or (max(1, (os.cpu_count() or 1) - n) if n > 1 else 0)
-    if threads:
-        torch.set_num_threads(threads)
+    _set_torch_threads(cfg)
     try:
         device = resolve_device(cfg.device)
     except ValueError as exc:
@@ -172,7 +169,21 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
         env.close()
 
 
+def _set_torch_threads(cfg: TrainConfig) -> None:
+    """``cfg.torch_threads``, or: N env workers keep N cores busy and more torch threads than the
+    cores left only contend; A3C's N learner threads are its parallelism (1 torch thread)."""
+    import torch
+
+    n = cfg.envs
+    spare = max(1, (os.cpu_count() or 1) - n) if n > 1 else 0
+    threads = cfg.torch_threads or (1 if cfg.algo == "a3c" else spare)
+    if threads:
+        torch.set_num_threads(threads)
+
+
 def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    """A3C, IMPALA on one vector env of ``cfg.envs`` environments (worker processes when > 1):
+    A3C runs one learner thread per environment, IMPALA's learner acts in all of them."""
     from agents.registry import get_agent_class
 
     if cfg.algo == "a3c":
@@ -203,24 +214,24 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
             for aid in p.agents:
                 runlog.metrics(aid, scalars, now)
         bar.update(max(now - last["step"], 0))
-        last["step"] = now
+        last["step"], last["timing"] = now, p.timing
         if now - last["ckpt"] >= cfg.checkpoint_every or now >= cfg.steps:
-            runlog.checkpoint(p.agents, now)
+            runlog.checkpoint(p.agents, now, p.timing)
             last["ckpt"] = now
         _report(bar, runlog, cfg, now, quiet, last_log)
         return now >= cfg.steps
 
-    kwargs = {"num_workers": cfg.workers} if cfg.algo == "a3c" else {"num_actors": cfg.workers}
-    if initial is not None:
-        kwargs["agents"] = initial
-    try:
+    _set_torch_threads(cfg)
+    kwargs = {} if initial is None else {"agents": initial}
+    fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(cfg.envs)]
+    try:  # env i of N: seed + i, as in _train_sync
         trained = trainer(
-            functools.partial(make_env, cfg.to_dict()), obs_space, act_space,
+            fns, obs_space, act_space,
             agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=config,
             total_steps=cfg.steps - start_step, seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
             callback=callback, **kwargs,
         )
-        runlog.checkpoint(trained, max(last["step"], runlog.env_steps))
+        runlog.checkpoint(trained, max(last["step"], runlog.env_steps), last.get("timing"))
     finally:
         bar.close()
 

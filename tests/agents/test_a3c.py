@@ -2,14 +2,17 @@
 
 The learning benchmark (CartPole >= 475) lives in bench/agents_async_reference.py;
 these tests run in seconds: the loss moves the policy the right way, both modes
-run end to end and change the weights, checkpoints round-trip, and no worker
-process outlives a failure or an interrupt.
+run end to end and change the weights, checkpoints round-trip, the learner
+threads (one per environment of the vector env) each learn from their own
+environment and update the shared model asynchronously, and no env process or
+thread outlives a failure or an interrupt.
 """
 
 from __future__ import annotations
 
 import functools
 import multiprocessing
+import threading
 
 import gymnasium
 import numpy as np
@@ -18,11 +21,11 @@ import torch
 
 import agents
 from agents.a3c import A3C, A3CConfig, SharedAdam, a3c_loss, train_a3c
-from agents.envs import MultiColourBar, SingleAgentParallel
+from agents.envs import MultiColourBar, ScriptedParallelEnv, SingleAgentParallel
 from agents.loop import run_loop
 from agents.workers import RolloutBuilder, WorkerError, live_pids
 
-from .conftest import CARTPOLE, CARTPOLE_SPACES, Explodes, model_weights
+from .conftest import CARTPOLE, CARTPOLE_SPACES, model_weights
 
 # ----------------------------------------------------------------------------- config and loss
 
@@ -78,11 +81,22 @@ def test_value_loss_uses_n_step_returns():
     assert metrics["losses/value_loss"] == pytest.approx(expected, rel=1e-5)
 
 
-def test_shared_adam_state_is_shared_memory():
-    agent = A3C.from_spaces(*CARTPOLE_SPACES)
-    optimizer = agent.optimizer.share_memory()
-    assert isinstance(optimizer, SharedAdam)
-    assert all(v.is_shared() for state in optimizer.state.values() for v in state.values())
+def test_shared_adam_apply_gradients_is_an_adam_step():
+    # Gradients computed elsewhere (a thread's local copy) step the shared weights exactly as Adam does.
+    shared = A3C.from_spaces(*CARTPOLE_SPACES, seed=0)
+    reference = A3C.from_spaces(*CARTPOLE_SPACES, seed=0)
+    assert isinstance(shared.optimizer, SharedAdam)
+    rng = np.random.default_rng(0)
+    for lr in (1e-2, 3e-3, 1e-3):
+        grads = [torch.as_tensor(rng.normal(size=p.shape), dtype=p.dtype) for p in shared.model.parameters()]
+        shared.optimizer.apply_gradients(grads, lr)
+        for p, g in zip(reference.model.parameters(), grads, strict=True):
+            p.grad = g.clone()
+        reference.optimizer.param_groups[0]["lr"] = lr
+        reference.optimizer.step()
+        torch.testing.assert_close(model_weights(shared), model_weights(reference), rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="gradients for"):
+        shared.optimizer.apply_gradients(grads[:-1], 1e-3)
 
 
 # ----------------------------------------------------------------------------- in-process
@@ -111,31 +125,91 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
     assert loaded.num_updates == agent.num_updates == 20
 
 
-# ----------------------------------------------------------------------------- asynchronous
+# ----------------------------------------------------------------------------- asynchronous (threads on the vector env)
+
+SCRIPTED_SPACES = (gymnasium.spaces.Box(-np.inf, np.inf, (5,), np.float32), gymnasium.spaces.Discrete(3))
 
 
-def test_async_training_updates_the_shared_model(tmp_path):
+def test_async_training_on_two_env_processes_updates_the_shared_model(tmp_path):
     reports = []
     trained = train_a3c(
-        CARTPOLE, *CARTPOLE_SPACES, config=A3CConfig(n_steps=10), total_steps=3000, num_workers=2,
+        CARTPOLE, *CARTPOLE_SPACES, config=A3CConfig(n_steps=10), total_steps=3000, num_envs=2,
         seed=0, callback=reports.append, start_method="forkserver",
     )
     agent = trained["agent_0"]
     untrained = A3C.from_spaces(*CARTPOLE_SPACES, A3CConfig(n_steps=10), seed=0)
     assert isinstance(agent, A3C)
     assert not torch.equal(model_weights(agent), model_weights(untrained))
-    assert 3000 <= reports[-1].env_steps <= 3000 + 2 * 10  # both workers counted, none overshoots a rollout
-    assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both workers played
-    assert live_pids(reports[-1].worker_pids) == []
-    assert agent.num_updates == sum(1 for _ in reports)  # one shared step per worker rollout
+    assert reports[-1].env_steps == 3000  # segments are claimed before they run: no overshoot here
+    assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both environments played
+    assert len(reports[-1].worker_pids) == 2 and live_pids(reports[-1].worker_pids) == []
+    assert agent.num_updates == len(reports) == 3000 // 10  # one shared step per segment
     learning_rates = [r.metrics["agent_0"]["charts/learning_rate"] for r in reports]
     assert learning_rates[0] > learning_rates[-1] and learning_rates[-1] < 0.02 * agent.config.learning_rate
-    agent.save(tmp_path / "async.ckpt")  # shared-memory weights save like any others
+    agent.save(tmp_path / "async.ckpt")
     loaded = agents.load(tmp_path / "async.ckpt")
     observations = np.random.default_rng(1).normal(size=(20, 4)).astype(np.float32)
     assert [loaded.act(o, deterministic=True) for o in observations] == [
         agent.act(o, deterministic=True) for o in observations
     ]
+
+
+def test_threads_apply_their_updates_asynchronously(monkeypatch):
+    # Each thread computes its gradients on its own env's segments with weights it read
+    # before the segment; updates of the other thread land in between (staleness > 0).
+    import agents.a3c as a3c_module
+
+    segments = []
+    compute = a3c_module.compute_gradients
+
+    def recording(model, rollout, config):
+        segments.append((threading.current_thread().name, rollout))
+        return compute(model, rollout, config)
+
+    monkeypatch.setattr(a3c_module, "compute_gradients", recording)
+    reports = []
+    envs = [functools.partial(ScriptedParallelEnv, i, num_agents=1, lengths=(6,)) for i in range(3)]
+    train_a3c(envs, *SCRIPTED_SPACES, config=A3CConfig(n_steps=4), total_steps=600, seed=2,
+              callback=reports.append, processes=False)
+    by_thread: dict[str, set] = {}
+    for name, rollout in segments:
+        assert len(set(rollout.obs[:, 0].tolist())) == 1, "a segment mixes environments"
+        by_thread.setdefault(name, set()).add(int(rollout.obs[0, 0]))
+    assert by_thread == {f"a3c-learner-{k}": {k} for k in range(3)}  # thread k owns env k
+    staleness = [r.metrics["agent_0"]["charts/staleness"] for r in reports]
+    assert len(staleness) == 600 // 4 and max(staleness) > 0
+
+
+def test_segments_follow_each_env_across_auto_resets(monkeypatch):
+    import agents.a3c as a3c_module
+
+    segments = []
+    compute = a3c_module.compute_gradients
+    monkeypatch.setattr(a3c_module, "compute_gradients",
+                        lambda model, rollout, config: (segments.append(rollout), compute(model, rollout, config))[1])
+    envs = [functools.partial(ScriptedParallelEnv, i) for i in range(2)]
+    ids = ["agent_0", "agent_1", "agent_2"]
+    train_a3c(envs, *SCRIPTED_SPACES, ids, A3CConfig(n_steps=5), total_steps=200, seed=7, processes=False)
+    assert {(r.agent_id, int(r.obs[0, 0])) for r in segments} == {(a, e) for a in ids for e in range(2)}
+    for rollout in segments:
+        k = ids.index(rollout.agent_id)
+        final = dict(zip(rollout.final_index.tolist(), rollout.final_obs, strict=True))
+        assert len(rollout) - 1 in final
+        for t in range(len(rollout)):
+            nxt = final[t] if t in final else rollout.obs[t + 1]
+            assert tuple(nxt[:4]) == (rollout.obs[t, 0], k, rollout.obs[t, 2] + 1, rollout.obs[t, 3])
+            ends = nxt[2] == (3, 5, 4)[k] + nxt[3] % 3
+            assert bool(rollout.dones[t]) == ends and (not ends or t in final)
+
+
+def test_one_environment_is_reproducible():
+    def run(seed: int) -> torch.Tensor:
+        trained = train_a3c(CARTPOLE, *CARTPOLE_SPACES, config=A3CConfig(n_steps=5), total_steps=200,
+                            num_envs=1, seed=seed)
+        return model_weights(trained["agent_0"])
+
+    first = run(0)
+    assert torch.equal(first, run(0)) and not torch.equal(first, run(1))
 
 
 def test_async_multi_agent_trains_one_network_per_agent():
@@ -144,7 +218,7 @@ def test_async_multi_agent_trains_one_network_per_agent():
     ids = ["agent_0", "agent_1"]
     trained = train_a3c(
         env_fn, observation_space, gymnasium.spaces.Discrete(3), ids, A3CConfig(n_steps=8),
-        total_steps=400, num_workers=2, seed=0, start_method="forkserver",
+        total_steps=400, num_envs=2, seed=0, processes=False,
     )
     assert set(trained) == set(ids)
     for k, aid in enumerate(ids):
@@ -153,23 +227,23 @@ def test_async_multi_agent_trains_one_network_per_agent():
     assert not torch.equal(model_weights(trained["agent_0"]), model_weights(trained["agent_1"]))
 
 
-def test_a_raising_worker_surfaces_its_traceback_and_leaves_no_process():
+def test_a_raising_env_surfaces_its_traceback_and_leaves_no_process():
     pids = []
 
     def record(progress):
         pids[:] = progress.worker_pids
 
-    with pytest.raises(WorkerError, match="simulated simulator crash") as info:
-        train_a3c(
-            functools.partial(Explodes, 200), *CARTPOLE_SPACES, total_steps=10**6, num_workers=2,
-            callback=record, start_method="forkserver",
-        )
-    assert "in step" in info.value.worker_traceback  # the frame inside the worker
+    failing = [functools.partial(ScriptedParallelEnv, i, num_agents=1, lengths=(50,), fail_at=30) for i in range(2)]
+    with pytest.raises(WorkerError, match="scripted failure in env") as info:
+        train_a3c(failing, *SCRIPTED_SPACES, config=A3CConfig(n_steps=5), total_steps=10**6, callback=record,
+                  start_method="forkserver")
+    assert "in step" in info.value.worker_traceback  # the frame inside the env worker
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
+    assert not [t for t in threading.enumerate() if t.name.startswith("a3c-learner")]
 
 
-def test_keyboard_interrupt_in_the_callback_leaves_no_process():
+def test_keyboard_interrupt_in_the_callback_leaves_no_process_or_thread():
     pids = []
 
     def interrupt(progress):
@@ -178,9 +252,11 @@ def test_keyboard_interrupt_in_the_callback_leaves_no_process():
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        train_a3c(CARTPOLE, *CARTPOLE_SPACES, total_steps=10**6, num_workers=2, callback=interrupt, start_method="forkserver")
+        train_a3c(CARTPOLE, *CARTPOLE_SPACES, total_steps=10**6, num_envs=2, callback=interrupt,
+                  start_method="forkserver")
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
+    assert not [t for t in threading.enumerate() if t.name.startswith("a3c-learner")]
 
 
 def test_reward_scale_applies_to_a3c_and_impala_rollouts():

@@ -1,19 +1,22 @@
-"""Tests of the worker-process machinery shared by A3C and IMPALA (agents/workers.py).
+"""Tests of what the vector env and the asynchronous trainers share (agents/workers.py,
+agents/async_env.py), and of signals sent to an A3C/IMPALA training process.
 
-Rollouts and the env runner are checked against hand-worked cases on fake
-envs; the pool is checked for what matters in production: a worker's
-exception reaches the parent with its traceback, and no worker survives a
-normal end, an exception or an interrupt.
+Rollouts are checked against hand-worked cases; batched acting, recording and
+episode tracking on a scripted vector env whose observations encode env, agent
+and step; concurrent stepping of disjoint envs from threads (A3C's learner
+threads) against the env each thread owns; and no env worker survives a signal
+to the trainer.
 """
 
 from __future__ import annotations
 
+import functools
 import json
-import multiprocessing
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -21,13 +24,13 @@ import numpy as np
 import pytest
 import torch
 
-from agents.envs import MultiColourBar
+from agents.async_env import EpisodeTracker, Unrolls, act_for, record, vector_env
+from agents.envs import ScriptedParallelEnv
+from agents.networks import ActorCritic
+from agents.vector import InProcessVectorEnv, VectorEnv
 from agents.workers import (
-    EnvRunner,
     Rollout,
     RolloutBuilder,
-    WorkerError,
-    WorkerPool,
     get_context,
     linear_learning_rate,
     live_pids,
@@ -35,29 +38,6 @@ from agents.workers import (
 )
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-# ----------------------------------------------------------------------------- worker targets
-# Top-level functions: spawn pickles them by name.
-
-
-def _report_then_wait(link, payload):
-    link.send((link.index, os.getpid(), payload))
-    while not link.should_stop():
-        time.sleep(0.01)
-
-
-def _raise_value_error(link):
-    raise ValueError("boom from a worker")
-
-
-def _ignore_stop(link):
-    link.send((link.index, os.getpid()))
-    while True:  # a stuck worker: never looks at the stop event
-        time.sleep(0.05)
-
-
-def _die_by_signal(link):
-    os.kill(os.getpid(), signal.SIGKILL)
 
 
 # ----------------------------------------------------------------------------- rollouts
@@ -114,31 +94,6 @@ def test_rollout_builder_refuses_an_empty_build():
         RolloutBuilder("a").build()
 
 
-def test_env_runner_cuts_per_agent_rollouts_as_agents_leave():
-    # agent_0 lives 3 steps per episode, agent_1 lives 4: the episode lasts 4 env steps.
-    env = MultiColourBar([False, False], size=9, episode_length=3)
-    runner = EnvRunner(env, ["agent_0", "agent_1"], seed=0)
-    rollouts, episodes, env_steps = runner.collect(
-        {aid: (lambda obs: (1, -1.1)) for aid in env.possible_agents}, num_steps=10
-    )
-    assert env_steps == 10
-    # Steps 1-4, 5-8 are full episodes, 9-10 a partial one; agent_0 skips steps 4 and 8.
-    assert len(rollouts["agent_0"]) == 8 and len(rollouts["agent_1"]) == 10
-    assert len(episodes) == 2
-    assert [ep.lengths for ep in episodes] == [{"agent_0": 3, "agent_1": 4}] * 2
-    agent_1 = rollouts["agent_1"]
-    np.testing.assert_array_equal(np.flatnonzero(agent_1.truncateds), [3, 7])
-    np.testing.assert_array_equal(agent_1.final_index, [3, 7, 9])
-    first_return = episodes[0].returns["agent_1"]
-    assert first_return == pytest.approx(agent_1.rewards[:4].sum())
-
-
-def test_env_runner_rejects_agents_without_a_model():
-    env = MultiColourBar([False, False], size=9)
-    with pytest.raises(ValueError, match="agent_1"):
-        EnvRunner(env, ["agent_0"], seed=0)
-
-
 def test_worker_seeds_differ_and_repeat():
     assert worker_seed(0, 0) != worker_seed(0, 1)
     assert worker_seed(3, 1) == worker_seed(3, 1)
@@ -157,85 +112,120 @@ def test_get_context_refuses_fork():
         get_context("fork")
 
 
-# ----------------------------------------------------------------------------- pool
+# ----------------------------------------------------------------------------- async_env on a scripted vector env
 
-# forkserver: workers fork from a server that imported torch once, so each pool
-# starts in ~0.05 s; the spawn path is exercised by the trainers' tests.
-FORKSERVER = get_context("forkserver")
+LENGTHS = (3, 5, 4)
 
 
-def _assert_no_workers_left(pids):
-    assert live_pids(pids) == []
-    assert multiprocessing.active_children() == []
+def _scripted(n: int, **kwargs):
+    return [functools.partial(ScriptedParallelEnv, i, **{"lengths": LENGTHS, **kwargs}) for i in range(n)]
 
 
-def test_pool_delivers_messages_and_cleans_up():
-    with WorkerPool(_report_then_wait, [("x",), ("y",)], context=FORKSERVER) as pool:
-        messages = []
-        while len(messages) < 2:
-            message = pool.get(timeout=30)
-            assert message is not None, "no message from the workers within 30 s"
-            messages.append(message)
-        pids = pool.pids
-        assert sorted(live_pids(pids)) == sorted(pids)
-    assert sorted((index, pid, payload) for index, pid, payload in messages) == [
-        (0, pids[0], "x"),
-        (1, pids[1], "y"),
-    ]
-    _assert_no_workers_left(pids)
+def _models(venv):
+    space, actions = venv.observation_space("agent_0"), venv.action_space("agent_0")
+    return {a: ActorCritic(space, int(actions.n), (16,)) for a in venv.possible_agents}
 
 
-def test_worker_exception_is_raised_in_parent_with_its_traceback():
-    with pytest.raises(WorkerError) as info:
-        with WorkerPool(_raise_value_error, [()], context=FORKSERVER) as pool:
-            pids = pool.pids
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline:
-                pool.get(timeout=0.2)
-    error = info.value
-    assert error.worker_index == 0
-    assert "ValueError: boom from a worker" in str(error)
-    assert "_raise_value_error" in error.worker_traceback  # the worker's frame, not the parent's
-    _assert_no_workers_left(pids)
+def test_act_record_and_track_follow_each_env_and_agent_across_auto_resets():
+    seed, n, scale = 3, 2, 0.5
+    with InProcessVectorEnv(_scripted(n)) as venv:
+        models = _models(venv)
+        generators = {a: torch.Generator().manual_seed(k) for k, a in enumerate(models)}
+        unrolls, tracker = Unrolls(), EpisodeTracker(venv.possible_agents, n)
+        state, envs, episodes = venv.reset(seed=seed), np.arange(n), []
+        for _ in range(30):
+            acted, actions = act_for(models, generators, envs, state.obs, state.alive, n)
+            for a, (rows, obs, chosen, log_probs) in acted.items():
+                assert (rows == envs[state.alive[a]]).all() and (actions[a][rows] == chosen).all()
+                with torch.no_grad():
+                    logits, _ = models[a](torch.as_tensor(obs))
+                expected = torch.log_softmax(logits, -1).numpy()[np.arange(len(rows)), chosen]
+                np.testing.assert_allclose(log_probs, expected, rtol=1e-5)  # the acting policy's
+            state = venv.step(actions)
+            record(unrolls, acted, state, scale)
+            episodes += tracker.record(state, envs)
+        rollouts = unrolls.take_all()
+    assert sorted((a, e) for a, e, _, _ in rollouts) == [(a, e) for a in venv.possible_agents for e in range(n)]
+    for aid, env, rollout, _ in rollouts:
+        k = int(aid[-1])
+        final = dict(zip(rollout.final_index.tolist(), rollout.final_obs, strict=True))
+        episode = 0
+        for t in range(len(rollout)):
+            obs = rollout.obs[t]
+            nxt = final[t] if t in final else rollout.obs[t + 1]
+            assert (obs[0], obs[1], obs[3]) == (env, k, seed + env + episode * n)
+            assert (nxt[0], nxt[1], nxt[2], nxt[3], nxt[4]) == (env, k, obs[2] + 1, obs[3], rollout.actions[t])
+            assert rollout.rewards[t] == pytest.approx(scale * (nxt[2] + 100 * env + 10 * k))
+            ends = nxt[2] == LENGTHS[k] + obs[3] % 3
+            assert bool(rollout.dones[t]) == ends and bool(rollout.terminateds[t]) == (ends and k % 2 == 0)
+            if ends:
+                assert t in final and nxt[2] > 0  # the TRUE final observation, not the reset one
+                episode += 1
+    for report in episodes:  # raw returns, the env's own summary, per env
+        i = report.worker
+        for aid, length in report.lengths.items():
+            k = int(aid[-1])
+            assert report.extras[aid] == {"t": length}
+            assert report.returns[aid] == pytest.approx(sum(t + 100 * i + 10 * k for t in range(1, length + 1)))
+    assert {r.worker for r in episodes} == {0, 1}
 
 
-def test_worker_killed_by_a_signal_is_reported():
-    with pytest.raises(WorkerError, match="exited with code"):
-        with WorkerPool(_die_by_signal, [()], context=FORKSERVER) as pool:
-            pids = pool.pids
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline:
-                pool.get(timeout=0.2)
-    _assert_no_workers_left(pids)
+def test_unrolls_cut_at_the_length_and_remember_the_first_version():
+    unrolls = Unrolls()
+    obs = np.zeros(5, np.float32)
+    for t in range(5):
+        unrolls.add("a", 0, obs + t, 1, 1.0, obs + t + 1, False, False, -0.1, version=t)
+    (ready,) = unrolls.take_ready(3)
+    assert ready[:2] == ("a", 0) and len(ready[2]) == 5 and ready[3] == 0
+    unrolls.add("a", 0, obs, 1, 1.0, obs, False, False, -0.1, version=9)
+    assert unrolls.take_ready(3) == [] and unrolls.take_all()[0][3] == 9
 
 
-def test_interrupt_terminates_even_a_stuck_worker():
-    with pytest.raises(KeyboardInterrupt):
-        with WorkerPool(_ignore_stop, [(), ()], context=FORKSERVER, join_timeout=0.5) as pool:
-            pids = pool.pids
-            for _ in range(2):
-                assert pool.get(timeout=30) is not None
-            raise KeyboardInterrupt  # what Ctrl-C does in the parent
-    _assert_no_workers_left(pids)
+def test_vector_env_wraps_a_gymnasium_factory_and_checks_counts():
+    import gymnasium
+
+    with vector_env(functools.partial(gymnasium.make, "CartPole-v1"), 1) as venv:
+        assert isinstance(venv, InProcessVectorEnv) and venv.possible_agents == ["agent_0"]
+    with pytest.raises(ValueError, match="num_envs=3 but 2 env factories"):
+        vector_env(_scripted(2), 3)
 
 
-def test_sigterm_to_the_parent_interrupts_and_cleans_up():
-    with pytest.raises(KeyboardInterrupt, match="signal 15"):
-        with WorkerPool(_report_then_wait, [("x",), ("y",)], context=FORKSERVER) as pool:
-            pids = pool.pids
-            for _ in range(2):
-                assert pool.get(timeout=30) is not None
-            os.kill(os.getpid(), signal.SIGTERM)  # what `kill <parent pid>` does
-            time.sleep(5)  # the handler interrupts this
-    _assert_no_workers_left(pids)
+@pytest.mark.parametrize("kind", ["in-process", "processes"])
+def test_threads_step_disjoint_envs_concurrently(kind):
+    # A3C's learner threads: thread k steps only env k, each with its own step_async/step_wait.
+    n, steps = 3, 40
+    cls = InProcessVectorEnv if kind == "in-process" else functools.partial(VectorEnv, start_method="forkserver")
+    errors = []
+    with cls(_scripted(n, num_agents=1, lengths=(1000,))) as venv:
+        state = venv.reset(seed=0)
+
+        def own(k: int) -> None:
+            try:
+                for t in range(1, steps + 1):
+                    venv.step_async({"agent_0": np.full(n, k % 3)}, [k])
+                    out = venv.step_wait([k])
+                    assert out.stepped.tolist() == [i == k for i in range(n)]
+                    assert out.next_obs["agent_0"][k].tolist() == [k, 0, t, k, k % 3]
+                    assert out.rewards["agent_0"][k] == t + 100 * k
+            except BaseException as exc:  # noqa: BLE001 - reported below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=own, args=(k,)) for k in range(n)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=60)
+        assert state.obs["agent_0"][:, 0].tolist() == list(range(n))
+    assert errors == []
 
 
-def test_pool_restores_the_sigterm_handler():
-    before = signal.getsignal(signal.SIGTERM)
-    with WorkerPool(_report_then_wait, [("x",)], context=FORKSERVER) as pool:
-        assert signal.getsignal(signal.SIGTERM) is not before
-        pool.get(timeout=30)
-    assert signal.getsignal(signal.SIGTERM) is before
+def test_in_process_step_wait_without_step_async_is_refused():
+    with InProcessVectorEnv(_scripted(2)) as venv:
+        venv.reset(seed=0)
+        venv.step_async({a: np.ones(2, np.int64) for a in venv.possible_agents}, [0])
+        with pytest.raises(RuntimeError, match=r"step_wait\(\[1\]\) without a step_async"):
+            venv.step_wait([1])
+        assert venv.step_wait([0]).stepped.tolist() == [True, False]
 
 
 # ----------------------------------------------------------------------------- signals to a trainer
@@ -292,58 +282,3 @@ def test_signal_to_the_training_process_leaves_no_worker(tmp_path, module, train
     else:
         assert "KeyboardInterrupt" in stderr  # the trainer went through its cleanup path
     assert live_pids(pids) == []
-
-
-_STUCK_POOL_SCRIPT = """
-import json, sys, time
-sys.path.insert(0, sys.argv[2])
-from agents.workers import WorkerPool, get_context
-from test_workers import _ignore_stop
-with WorkerPool(_ignore_stop, [()], context=get_context("forkserver")) as pool:
-    pool.get(timeout=60)
-    with open(sys.argv[1], "w") as f:
-        json.dump(pool.pids, f)
-    time.sleep(600)
-"""
-
-
-def test_a_stuck_worker_dies_with_a_sigkilled_parent(tmp_path):
-    # No cleanup code runs on SIGKILL and the worker never checks the stop event:
-    # only the kernel's parent-death signal can stop it.
-    pid_file = tmp_path / "pids.json"
-    python_path = os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))
-    log = (tmp_path / "stderr.txt").open("w")  # the orphaned resource tracker warns there
-    child = subprocess.Popen(
-        [sys.executable, "-c", _STUCK_POOL_SCRIPT, str(pid_file), str(Path(__file__).parent)],
-        env={**os.environ, "PYTHONPATH": python_path}, stderr=log,
-    )
-    try:
-        deadline = time.monotonic() + 60
-        while not pid_file.exists() and time.monotonic() < deadline and child.poll() is None:
-            time.sleep(0.1)
-        assert pid_file.exists(), f"the pool never started: {(tmp_path / 'stderr.txt').read_text()}"
-        pids = json.loads(pid_file.read_text())
-        assert live_pids(pids) == pids
-        child.kill()
-        child.wait(timeout=30)
-    finally:
-        if child.poll() is None:
-            child.kill()
-            child.wait()
-        log.close()
-    deadline = time.monotonic() + 10
-    while live_pids(pids) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert live_pids(pids) == []
-
-
-def test_env_runner_scales_rollout_rewards_but_reports_raw_returns():
-    env = MultiColourBar([False, False], size=9, episode_length=3)
-    runner = EnvRunner(env, ["agent_0", "agent_1"], seed=0, reward_scale=0.1)
-    raw = EnvRunner(MultiColourBar([False, False], size=9, episode_length=3), ["agent_0", "agent_1"], seed=0)
-    policies = {aid: (lambda obs: (1, -1.1)) for aid in env.possible_agents}
-    rollouts, episodes, _ = runner.collect(policies, num_steps=4)
-    raw_rollouts, raw_episodes, _ = raw.collect(policies, num_steps=4)
-    np.testing.assert_allclose(rollouts["agent_1"].rewards, 0.1 * raw_rollouts["agent_1"].rewards, rtol=1e-6)
-    assert np.abs(raw_rollouts["agent_1"].rewards).sum() > 0
-    assert episodes[0].returns == raw_episodes[0].returns

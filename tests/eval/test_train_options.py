@@ -14,9 +14,18 @@ def test_envs_device_and_threads_are_part_of_the_config():
     assert make_config("dqn", "env_1", "smoke").envs == 1  # the default: one env, in process
 
 
+def test_a3c_and_impala_take_envs_and_default_to_the_presets_workers():
+    from eval.presets import load_presets
+
+    for algo in ("a3c", "impala"):
+        assert make_config(algo, "env_1", "smoke", envs=3).envs == 3
+        for preset in ("smoke", "quick"):
+            assert make_config(algo, "env_1", preset).envs == load_presets()[preset].workers
+
+
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"algo": "ppo", "envs": 0}, "--envs"),
-    ({"algo": "a3c", "envs": 2}, "one environment per worker"),
+    ({"algo": "a3c", "envs": 0}, "--envs"),
     ({"algo": "td3", "device": "tpu"}, "--device"),
     ({"algo": "ppo", "torch_threads": -1}, "--torch-threads"),
     ({"algo": "dqn", "frame_stack": 0}, "--frame-stack must be >= 1"),
