@@ -11,7 +11,9 @@ x0.8/x1.2 or a neighbouring value of :data:`MUTATIONS`, sometimes resampled). A
 trial restored from a checkpoint gets its new hyperparameters written into the
 run's config.yaml and into every agent checkpoint (config and optimizer learning
 rates) before ``train(resume=...)`` reloads them; a donor's replay buffer is not
-copied (it is not checkpointed, eval/train.py).
+copied (it is not checkpointed, eval/train.py). ``--resume`` restores Tune's
+experiment; the scheduler's state, which Ray does not save, is rebuilt from the
+restored trials (:class:`eval.pbt_scheduler.ResumablePBT`).
 
 The PBT folder ``<env>__<algo>__<seed>__pbt<P>-<stamp>/`` is the best trial's run
 folder (what `cosim test` loads) plus::
@@ -235,13 +237,16 @@ def run_pbt(cfg: TrainConfig | None, population: int = 4, interval: int | None =
 
 def _fit(cfg, population, interval, space, folder, resume, concurrent):
     from ray import tune
-    from ray.tune.schedulers import PopulationBasedTraining
     from ray.tune.search import BasicVariantGenerator
+
+    from eval.pbt_scheduler import ResumablePBT
 
     path = folder / "pbt" / "tune" / "pbt"
     random.seed(cfg.seed)  # PBT's explore draws from `random` in this process
     np.random.seed(cfg.seed)
-    scheduler = PopulationBasedTraining(
+    # Tuner.restore brings back this scheduler as it was at the start (Ray saves no
+    # scheduler state): ResumablePBT rebuilds it from the restored trials (eval/pbt_scheduler.py)
+    scheduler = ResumablePBT(
         time_attr="env_steps", metric="mean_return", mode="max", perturbation_interval=interval,
         hyperparam_mutations=space, quantile_fraction=0.25, resample_probability=0.25, synch=True)
     if resume and tune.Tuner.can_restore(str(path)):
@@ -317,9 +322,16 @@ def write_lineage(folder: Path):
 
 
 def _histories(folder: Path) -> dict[str, list[dict]]:
+    """Each trial's reports by step; a step reported twice (trained again after a resume,
+    from the checkpoint before it) counts with its last report."""
     out = {}
     for path in sorted((folder / "pbt" / "history").glob("*.jsonl")):
-        out[path.stem] = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        by_step = {}
+        for line in path.read_text().splitlines():
+            if line.strip():
+                point = json.loads(line)
+                by_step[point["env_steps"]] = point
+        out[path.stem] = [by_step[k] for k in sorted(by_step)]
     return out
 
 

@@ -104,9 +104,9 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
         except (ConnectionError, RuntimeError) as exc:
             first = (str(exc).strip().splitlines() or [type(exc).__name__])[-1][:200]
             raise RayError(
-                f"could not join the Ray cluster at {address} ({first}); with token "
-                "authentication (Ray's default) RAY_AUTH_TOKEN or ~/.ray/auth_token here must "
-                "hold the head's token"
+                f"could not join the Ray cluster at {address} ({first}); if the head uses token "
+                "authentication, set RAY_AUTH_MODE=token here and give its token in RAY_AUTH_TOKEN "
+                "or ~/.ray/auth_token (for an explicit address Ray 2.60 sends the token only in that mode)"
             ) from None
     else:
         ray.init(num_cpus=num_cpus or os.cpu_count() or 1, _node_ip_address="127.0.0.1", **kwargs)
