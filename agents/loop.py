@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -208,6 +209,7 @@ def run_vector_loop(
     seed: int | None = 0,
     learn: bool = True,
     deterministic: bool = False,
+    learner_threads: int = 1,
 ) -> LoopStats:
     """Step the N environments of ``venv`` until ``total_steps`` env steps, all agents acting and learning.
 
@@ -224,6 +226,12 @@ def run_vector_loop(
         seed: Reset seed (env ``i``, episode ``k`` gets ``seed + i + k * N``).
         learn: If False, agents only act: evaluation.
         deterministic: Passed to ``act_batch``.
+        learner_threads: Run the agents' ``update()`` calls on up to this many
+            threads at once. Every AC has its own networks, optimiser and
+            generators, so the updates are independent and the result is the
+            same bit for bit (torch releases the GIL inside its ops; each thread
+            uses the process's torch thread count). While PPO updates, its
+            environments wait, so a second core is otherwise idle.
 
     Returns:
         The :class:`LoopStats` of the run; ``env_steps`` counts env steps over all
@@ -239,15 +247,19 @@ def run_vector_loop(
     stats = LoopStats()
     clock = time.perf_counter
     ids = list(venv.possible_agents)
-    returns = {a: np.zeros(n) for a in ids}
-    lengths = {a: np.zeros(n, np.int64) for a in ids}
+
+    pool = ThreadPoolExecutor(learner_threads, "cosim-learner") if learn and learner_threads > 1 else None
 
     def learn_from(acted, result) -> dict[str, dict[str, float]]:
         step_metrics: dict[str, dict[str, float]] = {}
         for a, (envs, obs, actions) in acted.items():
             next_obs, rewards, terminated, truncated = result[a]
             agents[a].observe_batch(obs, actions, rewards, next_obs, terminated, truncated, envs)
-            metrics = agents[a].update()
+        if pool is not None and len(acted) > 1:
+            updates = list(pool.map(lambda a: agents[a].update(), acted))
+        else:
+            updates = [agents[a].update() for a in acted]
+        for a, metrics in zip(acted, updates, strict=True):
             if metrics:
                 step_metrics[a] = metrics
                 stats.last_metrics[a] = metrics
@@ -275,6 +287,20 @@ def run_vector_loop(
         stats.env_time_s += clock() - start
         return acted
 
+    try:
+        return _vector_steps(venv, total_steps, callback, seed, learn, stats, act_and_send, learn_from)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+
+
+def _vector_steps(venv, total_steps, callback, seed, learn, stats, act_and_send, learn_from) -> LoopStats:
+    """The stepping schedule of :func:`run_vector_loop` (its closures do the acting and learning)."""
+    clock = time.perf_counter
+    n = venv.num_envs
+    ids = list(venv.possible_agents)
+    returns = {a: np.zeros(n) for a in ids}
+    lengths = {a: np.zeros(n, np.int64) for a in ids}
     start = clock()
     state = venv.reset(seed=seed)
     stats.env_time_s += clock() - start

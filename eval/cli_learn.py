@@ -29,7 +29,8 @@ def cmd_train(args) -> int:
             make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
                         hyper=hyper, envs=args.envs,
-                        device=args.device, torch_threads=args.torch_threads, frame_stack=args.frame_stack)
+                        device=args.device, torch_threads=args.torch_threads, frame_stack=args.frame_stack,
+                        learner_threads=args.learner_threads)
             for a in algos
         ]
     except TrainError as exc:

@@ -56,6 +56,10 @@ class TrainConfig:
     torch_threads: int = 0
     """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers
     (cpu_count - envs, at least 1) when envs > 1, else torch's default."""
+    learner_threads: int = 0
+    """Threads running the ACs' updates at once (agents.loop.run_vector_loop; each AC has its
+    own networks, so the result is the same for any value); 0: one per AC up to the CPUs
+    when the trainer runs one torch thread, else 1."""
     frame_stack: int = 1
     """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
     1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)
@@ -73,7 +77,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 steps: int | None = None, seed: int = 0, action_type: str | None = None,
                 image_size: int = 84, agent_preset: str | None = None,
                 hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
-                torch_threads: int = 0, frame_stack: int | None = None) -> TrainConfig:
+                torch_threads: int = 0, frame_stack: int | None = None,
+                learner_threads: int = 0) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
@@ -115,8 +120,9 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     frame_stack = p.frame_stack if frame_stack is None else int(frame_stack)
     if frame_stack < 1:
         raise TrainError(f"--frame-stack must be >= 1 (1: a single camera frame), got {frame_stack}")
-    if int(envs) < 1 or int(torch_threads) < 0:
-        raise TrainError(f"--envs must be >= 1 and --torch-threads >= 0, got {envs} and {torch_threads}")
+    if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
+        raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
+                         f"{envs}, {torch_threads} and {learner_threads}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
     config_cls = registry.get_agent_class(algo).config_class
@@ -130,7 +136,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
         image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
-        torch_threads=int(torch_threads), frame_stack=frame_stack,
+        torch_threads=int(torch_threads), frame_stack=frame_stack, learner_threads=int(learner_threads),
     )
 
 

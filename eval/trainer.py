@@ -163,7 +163,7 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
         # episodes after a resume get fresh seeds: seed + 100003 * (episodes so far)
         first_seed = cfg.seed + 100_003 * sum(runlog.episodes.values())
         run_vector_loop(agent_map, env, total_steps=cfg.steps - start_step, callback=callback,
-                        seed=first_seed)
+                        seed=first_seed, learner_threads=_learner_threads(cfg))
     finally:
         bar.close()
         env.close()
@@ -179,6 +179,17 @@ def _set_torch_threads(cfg: TrainConfig) -> None:
     threads = cfg.torch_threads or (1 if cfg.algo == "a3c" else spare)
     if threads:
         torch.set_num_threads(threads)
+
+
+def _learner_threads(cfg: TrainConfig) -> int:
+    """``cfg.learner_threads``, or one per AC up to the CPUs (OMP_NUM_THREADS when set, as
+    Ray does per trial) when torch runs one thread."""
+    import torch
+
+    if cfg.learner_threads:
+        return cfg.learner_threads
+    cpus = int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1  # Ray sets it per trial
+    return min(cfg.agents, cpus) if torch.get_num_threads() == 1 else 1
 
 
 def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:

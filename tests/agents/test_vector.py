@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -130,7 +131,7 @@ def test_worker_processes_match_the_in_process_env_step_for_step():
     assert live_pids(pids) == []
 
 
-def _ppo_run(n, seed, processes=False):
+def _ppo_run(n, seed, processes=False, learner_threads=1):
     fns = env_fns(n)
     venv = VectorEnv(fns) if processes else InProcessVectorEnv(fns)
     with venv:
@@ -138,7 +139,8 @@ def _ppo_run(n, seed, processes=False):
         config = agents.PPOConfig(rollout_steps=10, batch_size=5, epochs=2, hidden=(8,))
         learners = {a: agents.PPO(space, gym.spaces.Discrete(3), config, seed=seed + k)
                     for k, a in enumerate(venv.possible_agents)}
-        stats = run_vector_loop(learners, venv, total_steps=30 * n, seed=seed)
+        stats = run_vector_loop(learners, venv, total_steps=30 * n, seed=seed,
+                                learner_threads=learner_threads)
     weights = {a: torch.cat([p.detach().flatten() for p in ag.net.parameters()]) for a, ag in learners.items()}
     return stats, weights, learners
 
@@ -152,6 +154,15 @@ def test_same_seed_and_n_give_identical_runs_and_ppo_learns_per_env_columns():
     assert all(ag.iterations >= 1 for ag in learners.values())
     _, w3, _ = _ppo_run(3, seed=2)
     assert any(not torch.equal(w1[a], w3[a]) for a in w1)
+
+
+def test_updates_on_several_threads_give_the_same_weights_bit_for_bit():
+    s1, w1, _ = _ppo_run(2, seed=5)
+    s3, w3, learners = _ppo_run(2, seed=5, learner_threads=3)
+    assert s1.episode_returns == s3.episode_returns and s1.updates == s3.updates > 0
+    for a in w1:
+        torch.testing.assert_close(w1[a], w3[a], rtol=0, atol=0)
+    assert not [t for t in threading.enumerate() if t.name.startswith("cosim-learner")]
 
 
 def test_worker_processes_with_double_buffering_are_reproducible():

@@ -240,11 +240,17 @@ def test_benchmark_with_ray_and_without_gives_the_same_checkpoints(tmp_path, ray
 @needs_ray
 @pytest.mark.slow
 def test_benchmark_writes_the_report_in_one_command(tmp_path, ray_tmp):
-    done = cosim([*BENCH, "--out", str(tmp_path / "b")], ray_tmp)
+    done = cosim([*BENCH, "--seeds", "2", "--out", str(tmp_path / "b")], ray_tmp)
     assert done.returncode == 0, done.stderr[-3000:]
     report = tmp_path / "b" / "report"
     for name in ("index.html", "rq1.md", "provenance.json"):
         assert (report / name).exists(), name
+    import pandas as pd
+
+    # the two seeds' test episodes stay apart (one smoke episode each, one AC per algorithm)
+    per = pd.read_csv(report / "episodes.csv")
+    counts = per[per.scenario == 1].groupby("algorithm").size()
+    assert counts.to_dict() == {"dqn": 2, "ppo": 2, "td3": 2}, counts
     rq1 = (report / "rq1.md").read_text()
     assert all(algo.upper() in rq1.upper() for algo in ("ppo", "dqn", "td3"))
     assert "Benchmark grid" in (report / "index.md").read_text()
