@@ -126,10 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",
-                   help="torch threads in the trainer (0: the CPUs the env workers leave, or torch's default)")
+                   help="torch threads in the trainer (0: the CPUs the env workers leave, shared among the learner threads)")
     t.add_argument("--learner-threads", type=int, default=0, metavar="K",
-                   help="ACs updating at once on K threads (0: one per AC up to the CPUs with one "
-                        "torch thread, else 1); the result is the same for any K")
+                   help="ACs updating at once on K threads (0: one per AC up to the CPUs); "
+                        "the result is the same for any K")
     t.add_argument("--pbt", type=_int_in(2), default=None, metavar="P",
                    help="Population Based Training on Ray Tune with P trials (eval/pbt.py)")
     t.add_argument("--pbt-interval", type=_int_in(1), default=None, metavar="STEPS",

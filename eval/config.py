@@ -54,12 +54,12 @@ class TrainConfig:
     device: str = "auto"
     """Torch device of the learners: auto (cuda when available), cpu or cuda."""
     torch_threads: int = 0
-    """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers
-    (cpu_count - envs, at least 1) when envs > 1, else torch's default."""
+    """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers (all
+    with one env) divided among the learner threads, at least 1 (A3C: 1)."""
     learner_threads: int = 0
     """Threads running the ACs' updates at once (agents.loop.run_vector_loop; each AC has its
     own networks, so the result is the same for any value); 0: one per AC up to the CPUs
-    when the trainer runs one torch thread, else 1."""
+    (OMP_NUM_THREADS when set, as Ray sets it per trial)."""
     frame_stack: int = 1
     """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
     1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)

@@ -169,27 +169,27 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
         env.close()
 
 
-def _set_torch_threads(cfg: TrainConfig) -> None:
-    """``cfg.torch_threads``, or: N env workers keep N cores busy and more torch threads than the
-    cores left only contend; A3C's N learner threads are its parallelism (1 torch thread)."""
-    import torch
-
-    n = cfg.envs
-    spare = max(1, (os.cpu_count() or 1) - n) if n > 1 else 0
-    threads = cfg.torch_threads or (1 if cfg.algo == "a3c" else spare)
-    if threads:
-        torch.set_num_threads(threads)
+def _cpus() -> int:
+    """CPUs this run may use: OMP_NUM_THREADS when set (Ray sets it per trial), else all."""
+    return int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1
 
 
 def _learner_threads(cfg: TrainConfig) -> int:
-    """``cfg.learner_threads``, or one per AC up to the CPUs (OMP_NUM_THREADS when set, as
-    Ray does per trial) when torch runs one thread."""
+    """``cfg.learner_threads``, or one per AC up to the CPUs (the ACs' updates are independent)."""
+    return cfg.learner_threads or min(cfg.agents, _cpus())
+
+
+def _set_torch_threads(cfg: TrainConfig) -> None:
+    """``cfg.torch_threads``, or the CPUs the env workers leave (all when the env runs in this
+    process) shared among the learner threads, at least 1; A3C's learner threads are its
+    parallelism (1 torch thread). Two OpenMP threads per update on a busy 2-core machine
+    made a forward pass ~20x slower (README, Training throughput): parallel ACs, not
+    parallel ops, use the cores here."""
     import torch
 
-    if cfg.learner_threads:
-        return cfg.learner_threads
-    cpus = int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1  # Ray sets it per trial
-    return min(cfg.agents, cpus) if torch.get_num_threads() == 1 else 1
+    spare = max(1, _cpus() - cfg.envs) if cfg.envs > 1 else _cpus()
+    threads = cfg.torch_threads or (1 if cfg.algo == "a3c" else max(1, spare // _learner_threads(cfg)))
+    torch.set_num_threads(threads)
 
 
 def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
