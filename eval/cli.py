@@ -142,6 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
     e.add_argument("--agents", type=int, default=6,
                    help="ACs in Scenario 1, one per algorithm in the order ppo a3c impala dqn ddpg td3")
+    e.add_argument("--algos", nargs="+", default=None, choices=list(ALGORITHMS), metavar="ALGO",
+                   help="the algorithms tested, one AC each (instead of the first --agents of that order)")
     e.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
     e.add_argument("--scenario", choices=["1", "2", "both"], default="both")
     e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")

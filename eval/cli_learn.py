@@ -128,6 +128,8 @@ def cmd_test(args) -> int:
         run_protocol,
     )
 
+    if args.algos:  # paper order, one AC each
+        args.agents = len(set(args.algos))
     if not 1 <= args.agents <= 6:
         print("cosim test: error: --agents must be 1..6 (one AC per algorithm)", file=sys.stderr)
         return 2
@@ -144,7 +146,7 @@ def cmd_test(args) -> int:
     scenarios = (1, 2) if args.scenario == "both" else (int(args.scenario),)
     plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes,
                     steps=args.steps, seed=args.seed, agents=args.agents)
-    algos = list(ALGO_ORDER[: args.agents])
+    algos = [a for a in ALGO_ORDER if a in args.algos] if args.algos else list(ALGO_ORDER[: args.agents])
     try:
         from eval.robustness import parse_sweeps
 

@@ -121,3 +121,12 @@ def test_cli_test_adds_the_reference_rows_to_the_report(tmp_path, capsys):
     assert main(["test", "--policy", "autopilot", "--references", "backwards", "--quiet",
                  "--out", str(tmp_path)]) == 2
     assert "always-forward" in capsys.readouterr().err
+
+
+def test_algos_picks_the_algorithms_tested_in_paper_order(tmp_path):
+    code = main(["test", "--policy", "autopilot", "--algos", "td3", "ppo", "--envs", "env_1",
+                 "--scenario", "1", "--episodes", "1", "--steps", "5", "--no-replays",
+                 "--references", "none", "--out", str(tmp_path), "--quiet"])
+    assert code == 0
+    (long,) = tmp_path.glob("*/rq1_long.csv")
+    assert list(dict.fromkeys(pd.read_csv(long)["algorithm"])) == ["ppo", "td3"]
