@@ -269,11 +269,11 @@ def cmd_replay(args) -> int:
 
 def _test_command(args) -> list[str]:
     """The `cosim test` command line the parsed options stand for (for the report)."""
-    cmd = ["test", "--agents", str(args.agents), "--envs", *args.envs, "--scenario", args.scenario,
+    who = ["--algos", *args.algos] if args.algos else ["--agents", str(args.agents)]
+    cmd = ["test", *who, "--envs", *args.envs, "--scenario", args.scenario,
            "--episodes", str(args.episodes), "--steps", str(args.steps), "--seed", str(args.seed),
            "--policy", args.policy]
-    if args.policy == "trained":
-        cmd += ["--runs", str(args.runs)]
+    cmd += ["--runs", str(args.runs)] if args.policy == "trained" else []
     for item in args.checkpoint:
         cmd += ["--checkpoint", item]
     cmd += ["--no-replays"] if args.no_replays else []

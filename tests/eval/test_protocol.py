@@ -1,5 +1,7 @@
 """The test protocol: Scenario 1 and 2 on the real simulator, the report, checkpoint lookup."""
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -130,3 +132,5 @@ def test_algos_picks_the_algorithms_tested_in_paper_order(tmp_path):
     assert code == 0
     (long,) = tmp_path.glob("*/rq1_long.csv")
     assert list(dict.fromkeys(pd.read_csv(long)["algorithm"])) == ["ppo", "td3"]
+    prov = json.loads((long.parent / "provenance.json").read_text())
+    assert prov["command"].split()[:5] == ["cosim", "test", "--algos", "td3", "ppo"]
