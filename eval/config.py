@@ -83,8 +83,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
     (``cosim train --set actor_learning_rate=1e-4``). ``envs`` and ``frame_stack``
-    default to the preset's (``envs`` only for the sync algorithms; A3C and IMPALA
-    always run one environment per worker).
+    default to the preset's (for A3C and IMPALA ``envs`` defaults to the preset's
+    ``workers``: A3C runs one learner thread per environment, IMPALA acts in all).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
