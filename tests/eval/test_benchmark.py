@@ -160,6 +160,10 @@ def _checkpoints(tune_dir: Path) -> dict[tuple[str, int], Path]:
     return out
 
 
+def _return_at(checkpoint: Path) -> float:
+    return json.loads((checkpoint / "pbt_trial.json").read_text())["mean_return"]
+
+
 @needs_ray
 def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperparameters(tmp_path, ray_tmp):
     import pandas as pd
@@ -180,7 +184,7 @@ def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperpar
     assert len(exploits) >= 1, "no exploit happened"
     assert set(lineage["parameter"]) == {"learning_rate", "ent_coef", "clip_coef", "gae_lambda"}
     ckpts = _checkpoints(folder / "pbt" / "tune" / "pbt")
-    checked = 0
+    checked = distinct = 0
     for e in exploits.itertuples():
         rows = lineage[(lineage.env_steps == e.env_steps) & (lineage.trial == e.trial)]
         assert rows["perturbed"].any(), f"exploit of {e.trial} at {e.env_steps}: nothing perturbed"
@@ -189,8 +193,12 @@ def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperpar
         donor = weights_digest(donor_ckpt / "checkpoints/ac_0/latest.pt")
         assert e.donor_weights_sha256 == donor and e.resumed_weights_sha256 == donor
         own = ckpts.get((e.trial, e.env_steps))
-        if own is not None:
+        if own is not None and _return_at(own) != _return_at(donor_ckpt):
+            # a different score means a different past; equal weights would mean the clone
+            # kept its own. (Equal scores happen: a trial that cloned this donor before and
+            # whose AC made no PPO update since holds the donor's weights; nothing to tell.)
             assert weights_digest(own / "checkpoints/ac_0/latest.pt") != donor
+            distinct += 1
         after = ckpts.get((e.trial, e.env_steps + PBT_INTERVAL))
         if after is None:  # cloned at the final step
             continue
@@ -208,6 +216,7 @@ def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperpar
         assert lr == pytest.approx(new["learning_rate"])
         checked += 1
     assert checked >= 1, "no exploit before the final step to follow"
+    assert distinct >= 1, "no exploit of a trial whose own weights differed from the donor's"
     # the best trial is a normal run folder that `cosim test` loads
     chosen = selection.choose(folder)
     assert chosen is not None and load_for_slot(chosen.path, "ppo") is not None
