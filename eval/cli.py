@@ -149,6 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
     e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
     e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--fixed-slots", action="store_true",
+                   help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
+                        "turns at the spawn slots, one step per episode)")
     e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
                    help="trained checkpoints from --runs, or a reference driver")
     e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")

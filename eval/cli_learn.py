@@ -145,7 +145,7 @@ def cmd_test(args) -> int:
         return 2
     scenarios = (1, 2) if args.scenario == "both" else (int(args.scenario),)
     plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes,
-                    steps=args.steps, seed=args.seed, agents=args.agents)
+                    steps=args.steps, seed=args.seed, agents=args.agents, rotate=not args.fixed_slots)
     algos = [a for a in ALGO_ORDER if a in args.algos] if args.algos else list(ALGO_ORDER[: args.agents])
     try:
         from eval.robustness import parse_sweeps

@@ -5,6 +5,13 @@ each environment among background cars (and pedestrians in env_2/env_3);
 discrete and continuous agents share one environment.
 Scenario 2 (single-agent): each AC alone, no other vehicles, no pedestrians.
 
+In Scenario 1 the algorithms take turns at the spawn points: in episode ``e`` the
+algorithm at position ``i`` of the order drives slot ``ac_{(i + e) mod N}``
+(:func:`slot_order`), so no algorithm is tied to one spawn (in env_1 ``ac_0`` starts
+25 m behind ``ac_4`` in the same lane, every other slot has a free lane ahead).
+With a multiple of N episodes every algorithm starts from every spawn equally often.
+``ProtocolPlan(rotate=False)`` keeps algorithm ``i`` in ``ac_i``.
+
 Collisions do not end an episode in testing (the metrics count steps in
 collision). Every step of every AC is recorded (:mod:`eval.records`); metrics,
 tables and plots are computed from those records.
@@ -46,6 +53,15 @@ class ProtocolPlan:
     steps: int = 500
     seed: int = 0
     agents: int = 6
+    rotate: bool = True
+
+
+def slot_order(algos: Sequence[str], episode: int, rotate: bool = True) -> list[str]:
+    """The algorithm of each Scenario 1 slot (``ac_0``, ``ac_1``, ...) in ``episode``:
+    algorithm ``i`` drives slot ``(i + episode) mod N`` (module docstring)."""
+    algos = list(algos)
+    r = episode % len(algos) if rotate and algos else 0
+    return algos[len(algos) - r:] + algos[: len(algos) - r]
 
 
 def find_checkpoints(runs: Path, algos: Sequence[str]) -> dict[str, Path]:
@@ -147,16 +163,23 @@ def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence
     seeds = [plan.seed + e for e in range(plan.episodes)]
     for env_name in plan.envs:
         if 1 in plan.scenarios:
-            types = ["continuous" if a in CONTINUOUS else "discrete" for a in algos]
-            env = CosimParallelEnv(env_name, num_agents=len(algos), action_types=types,
-                                   terminate_on_collision=False, horizon=plan.steps)
-            try:
-                agent_algo = dict(zip(env.possible_agents, algos, strict=True))
-                policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
-                rec = run_episodes(env, policies, seeds, algorithms=agent_algo)
-            finally:
-                env.close()
-            frames.append(rec.assign(env=env_name, scenario=1))
+            # one environment per slot order (the action types follow the algorithms)
+            by_order: dict[tuple[str, ...], list[int]] = {}
+            for e in range(plan.episodes):
+                by_order.setdefault(tuple(slot_order(algos, e, plan.rotate)), []).append(e)
+            for order, episodes in by_order.items():
+                types = ["continuous" if a in CONTINUOUS else "discrete" for a in order]
+                env = CosimParallelEnv(env_name, num_agents=len(order), action_types=types,
+                                       terminate_on_collision=False, horizon=plan.steps)
+                try:
+                    agent_algo = dict(zip(env.possible_agents, order, strict=True))
+                    policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
+                    rec = run_episodes(env, policies, [seeds[e] for e in episodes],
+                                       algorithms=agent_algo)
+                finally:
+                    env.close()
+                rec["episode"] = rec["episode"].map(dict(enumerate(episodes)))
+                frames.append(rec.assign(env=env_name, scenario=1))
             if progress:
                 progress(f"{env_name} scenario 1")
         if 2 in plan.scenarios:
@@ -336,4 +359,4 @@ def _save(fig, title: str, path: Path) -> Path:
 
 
 __all__ = ["METRICS", "ProtocolPlan", "drive", "find_checkpoints", "frame_stack_of", "metrics_table", "policy_factory",
-           "rq1_table", "run_protocol", "write_report"]
+           "rq1_table", "run_protocol", "slot_order", "write_report"]

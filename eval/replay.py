@@ -24,9 +24,13 @@ import json
 from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+
+if TYPE_CHECKING:
+    from eval.protocol import ProtocolPlan
 
 BEFORE = 30   # steps (3 s at dt 0.1)
 AFTER = 10    # steps (1 s)
@@ -74,9 +78,10 @@ def _make_env(env_name: str, scenario: int, algos: Sequence[str], steps: int):
                             background=False, pedestrians=False)
 
 
-def capture(plan, make_policy: Callable, algos: Sequence[str], records: pd.DataFrame, out: Path,
+def capture(plan: ProtocolPlan, make_policy: Callable, algos: Sequence[str], records: pd.DataFrame, out: Path,
             labels: dict | None = None, progress: Callable[[str], None] | None = None) -> list[dict]:
     """Clips and SUMO states of every first collision (module docstring); one dict each."""
+    from eval.protocol import slot_order
     from eval.report import env_title
     from eval.rollout import _act
 
@@ -91,7 +96,8 @@ def capture(plan, make_policy: Callable, algos: Sequence[str], records: pd.DataF
     for (scenario, env_name, _episode), group in targets.groupby(["scenario", "env", "episode"], sort=True):
         runs = [group] if scenario == 1 else [group[group["algorithm"] == a] for a in group["algorithm"]]
         for sub in runs:
-            env_algos = algos if scenario == 1 else [sub["algorithm"].iloc[0]]
+            env_algos = (slot_order(algos, int(_episode), plan.rotate) if scenario == 1
+                         else [sub["algorithm"].iloc[0]])
             env = _make_env(env_name, int(scenario), env_algos, plan.steps)
             try:
                 agent_algo = dict(zip(env.possible_agents, env_algos, strict=True))

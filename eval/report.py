@@ -259,7 +259,9 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
         "command": " ".join(["cosim", *command]) if command is not None else " ".join(sys.argv),
         "plan": {"envs": list(plan.envs), "scenarios": list(plan.scenarios),
                  "episodes": plan.episodes, "steps": plan.steps, "agents": plan.agents,
-                 "seed": plan.seed, "episode_seeds": [plan.seed + e for e in range(plan.episodes)]},
+                 "seed": plan.seed, "episode_seeds": [plan.seed + e for e in range(plan.episodes)],
+                 "scenario_1_slots": ("rotated: algorithm i drives ac_{(i + episode) mod N}"
+                                      if plan.rotate else "fixed: algorithm i drives ac_i")},
         "ci": f"95% percentile bootstrap of the mean over episodes, {BOOTSTRAP} resamples, seed {CI_SEED}",
     }
 

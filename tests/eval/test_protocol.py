@@ -16,6 +16,7 @@ from eval.protocol import (
     policy_factory,
     rq1_table,
     run_protocol,
+    slot_order,
     write_report,
 )
 
@@ -88,6 +89,32 @@ def test_a_checkpoint_trained_on_two_frames_is_tested_on_two(tmp_path):
     get_agent_class("ppo").from_spaces(spaces.Box(0, 255, (84, 84, 4), np.uint8), spaces.Discrete(9)).save(bad)
     with pytest.raises(ProtocolError, match=r"shape \(84, 84, 4\).*K of them stacked"):
         load_for_slot(bad, "ppo")
+
+
+def test_scenario_1_rotates_the_algorithms_over_the_spawn_slots():
+    algos = ["ppo", "a3c", "ddpg"]
+    assert slot_order(algos, 0) == algos
+    assert slot_order(algos, 1) == ["ddpg", "ppo", "a3c"]  # algorithm i drives ac_{(i + 1) mod 3}
+    assert slot_order(algos, 4) == slot_order(algos, 1)
+    assert slot_order(algos, 1, rotate=False) == algos
+    # over N episodes every algorithm starts once from every slot
+    assert all(sorted(slot_order(algos, e)[k] for e in range(3)) == sorted(algos) for k in range(3))
+
+    plan = ProtocolPlan(envs=("env_1",), scenarios=(1,), episodes=3, steps=4, agents=3)
+    records = run_protocol(plan, policy_factory("autopilot"), algos)
+    for e in range(3):
+        ep = records[records.episode == e]
+        assert ep.seed.unique().tolist() == [plan.seed + e]
+        assert dict(ep.groupby("agent").algorithm.first()) == dict(
+            zip(["ac_0", "ac_1", "ac_2"], slot_order(algos, e), strict=True))
+        # the spawn of a slot stays put; the algorithm at it changes
+        first = ep[ep.step == 1].set_index("agent")
+        assert first.loc["ac_0", "algorithm"] == slot_order(algos, e)[0]
+    starts = records[records.step == 1].groupby("agent").spawn_x.nunique()
+    assert (starts == 1).all()
+    fixed = run_protocol(ProtocolPlan(envs=("env_1",), scenarios=(1,), episodes=2, steps=2,
+                                      agents=3, rotate=False), policy_factory("autopilot"), algos)
+    assert (fixed[fixed.agent == "ac_0"].algorithm == "ppo").all()
 
 
 def test_cli_test_without_runs_says_how_to_get_them(tmp_path, capsys):
