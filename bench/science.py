@@ -110,7 +110,8 @@ def study_plan(args, plan: BenchmarkPlan) -> dict:
     return {"benchmark": plan.to_dict(), "test": {
         "episodes": episodes, "steps": steps, "scenarios": sorted(args.scenarios),
         "episode_seeds": [HELD_OUT_SEED + e for e in range(episodes)],
-        "collisions_end_episode": False}}
+        "collisions_end_episode": False,
+        "scenario_1_slots": "rotated (eval.protocol.slot_order)"}}
 
 
 def check_plan(out: Path, study: dict) -> None:
