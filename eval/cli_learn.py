@@ -158,7 +158,7 @@ def cmd_test(args) -> int:
         if args.policy == "trained":
             ckpts = {**find_checkpoints(args.runs, [a for a in algos if a not in given]), **given}
             ckpts = {a: ckpts[a] for a in algos}
-        factory = policy_factory(args.policy, ckpts)
+        factory = policy_factory(args.policy, ckpts, fixed=given)
     except ProtocolError as exc:
         print(f"cosim test: error: {exc}", file=sys.stderr)
         return 2

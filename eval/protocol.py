@@ -20,7 +20,7 @@ tables and plots are computed from those records.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -141,11 +141,37 @@ def drive(agent):
     return StackedPolicy(agent, k) if k > 1 else agent
 
 
-def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None) -> PolicyFactory:
-    """How each AC gets its policy: trained checkpoints, the autopilot, or random."""
+def slot_checkpoint(path: Path, slot: str) -> Path:
+    """The checkpoint that drives ``slot`` for an algorithm represented by ``path``: the
+    AC of the same run trained in that slot when there is one (its route: the camera
+    carries no route command, so an AC knows only the turns it was trained on), else
+    ``path`` itself (eval/selection.py's choice)."""
+    path = Path(path)
+    if path.parent.parent.name != "checkpoints":
+        return path
+    own = selection.checkpoint_of(path.parent.parent.parent, slot)
+    return own if own is not None else path
+
+
+def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
+                   fixed: Collection[str] = ()) -> PolicyFactory:
+    """How each AC gets its policy: trained checkpoints, the autopilot, or random.
+
+    Trained: slot ``ac_k`` of algorithm ``a`` is driven by :func:`slot_checkpoint`
+    (the run's own ``ac_k`` where it trained one), except for the algorithms in
+    ``fixed`` (given with ``--checkpoint``), whose checkpoint drives every slot."""
     if kind == "trained":
-        loaded = {algo: load_for_slot(path, algo) for algo, path in (checkpoints or {}).items()}
-        return lambda env, agent, algo: drive(loaded[algo])  # one frame history per AC
+        checkpoints = dict(checkpoints or {})
+        # the given ones load now: a bad file fails before any episode runs
+        loaded: dict[Path, object] = {p: load_for_slot(p, a) for a, p in checkpoints.items()}
+
+        def make(env, agent, algo):
+            path = checkpoints[algo] if algo in fixed else slot_checkpoint(checkpoints[algo], agent)
+            if path not in loaded:
+                loaded[path] = load_for_slot(path, algo)
+            return drive(loaded[path])  # one frame history per AC
+
+        return make
     if kind == "autopilot":
         return lambda env, agent, algo: AutopilotPolicy(env, agent)
     if kind == "random":
@@ -359,4 +385,4 @@ def _save(fig, title: str, path: Path) -> Path:
 
 
 __all__ = ["METRICS", "ProtocolPlan", "drive", "find_checkpoints", "frame_stack_of", "metrics_table", "policy_factory",
-           "rq1_table", "run_protocol", "slot_order", "write_report"]
+           "rq1_table", "run_protocol", "slot_checkpoint", "slot_order", "write_report"]

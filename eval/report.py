@@ -261,7 +261,9 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
                  "episodes": plan.episodes, "steps": plan.steps, "agents": plan.agents,
                  "seed": plan.seed, "episode_seeds": [plan.seed + e for e in range(plan.episodes)],
                  "scenario_1_slots": ("rotated: algorithm i drives ac_{(i + episode) mod N}"
-                                      if plan.rotate else "fixed: algorithm i drives ac_i")},
+                                      if plan.rotate else "fixed: algorithm i drives ac_i"),
+                 "slot_checkpoints": "a run's AC trained in a slot drives that slot; other slots "
+                                     "the checkpoint listed (eval.protocol.slot_checkpoint)"},
         "ci": f"95% percentile bootstrap of the mean over episodes, {BOOTSTRAP} resamples, seed {CI_SEED}",
     }
 

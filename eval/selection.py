@@ -1,6 +1,9 @@
 """Which AC of a training run represents its algorithm in the test (issue 13).
 
-A run trains N ACs of one algorithm; the test drives one per algorithm. The rule:
+A run trains N ACs of one algorithm; the test drives one per algorithm and slot. A
+slot the run trained an AC in is driven by that AC (eval/protocol.py, slot_checkpoint:
+the camera has no route command, an AC knows only its own route); every other slot, and
+the report's "checkpoint tested" line, use the AC chosen by this rule:
 
 1. Each AC's ``best.pt`` is saved when the mean return of its last 20 training
    episodes reaches a new high (eval/train.py, RunLog.checkpoint); ``state.json``
@@ -38,7 +41,8 @@ class Selection:
     scores: dict = field(default_factory=dict)
 
 
-def _checkpoint(run: Path, ac: str) -> Path | None:
+def checkpoint_of(run: Path, ac: str) -> Path | None:
+    """``ac``'s checkpoint in ``run``: best.pt, else latest.pt, else None."""
     for name in ("best.pt", "latest.pt"):
         p = run / "checkpoints" / ac / name
         if p.exists():
@@ -57,7 +61,7 @@ def choose(run: Path) -> Selection | None:
     """The AC representing the run (module rule); None when the run has no checkpoint."""
     run = Path(run)
     acs = sorted((p.name for p in (run / "checkpoints").glob("ac_*") if p.is_dir()), key=_index)
-    acs = [a for a in acs if _checkpoint(run, a) is not None]
+    acs = [a for a in acs if checkpoint_of(run, a) is not None]
     if not acs:
         return None
     scores: dict[str, float] = {}
@@ -80,7 +84,7 @@ def choose(run: Path) -> Selection | None:
         ac = max(scores, key=lambda a: (scores[a], -_index(a)))
     else:
         ac, basis = acs[0], "ac_0 default" if acs[0] == "ac_0" else "first AC"
-    return Selection(_checkpoint(run, ac), ac, basis, {k: round(v, 4) for k, v in scores.items()})
+    return Selection(checkpoint_of(run, ac), ac, basis, {k: round(v, 4) for k, v in scores.items()})
 
 
 def describe(path: Path) -> Selection:

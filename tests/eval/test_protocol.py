@@ -58,6 +58,38 @@ def test_trained_checkpoints_are_found_and_act(tmp_path):
         find_checkpoints(tmp_path, ["ppo", "dqn"])
 
 
+def test_each_slot_is_driven_by_the_ac_trained_on_its_route(tmp_path):
+    """The camera carries no route command: slot ac_k gets the run's own ac_k (trained on
+    that spawn and goal); a slot the run never trained gets the selected AC; a
+    checkpoint given with --checkpoint (``fixed``) drives every slot."""
+    import json
+
+    import torch
+
+    from eval import selection
+
+    run = tmp_path / "env_3__dqn__0__20260101-000000"
+    obs, act = spaces.Box(0, 255, (84, 84, 3), np.uint8), spaces.Discrete(9)
+    for i in range(3):
+        (run / "checkpoints" / f"ac_{i}").mkdir(parents=True)
+        get_agent_class("dqn").from_spaces(obs, act, seed=i).save(run / "checkpoints" / f"ac_{i}" / "best.pt")
+    (run / "state.json").write_text(json.dumps({"best": {"ac_0": 1.0, "ac_1": 9.0, "ac_2": 5.0}}))
+    chosen = selection.choose(run).path
+    assert chosen.parent.name == "ac_1"
+
+    def same(agent, ac):
+        saved = torch.load(run / "checkpoints" / ac / "best.pt", weights_only=True)["state"]["networks"]
+        mine = {n: net.state_dict() for n, net in agent.networks.items()}
+        return all(torch.equal(mine[n][k], saved[n][k]) for n in saved for k in saved[n])
+
+    make = policy_factory("trained", {"dqn": chosen})
+    assert same(make(None, "ac_0", "dqn"), "ac_0") and not same(make(None, "ac_0", "dqn"), "ac_1")
+    assert same(make(None, "ac_2", "dqn"), "ac_2")
+    assert same(make(None, "ac_5", "dqn"), "ac_1")  # no ac_5 trained: the selected AC
+    given = policy_factory("trained", {"dqn": chosen}, fixed={"dqn"})
+    assert same(given(None, "ac_0", "dqn"), "ac_1") and same(given(None, "ac_2", "dqn"), "ac_1")
+
+
 def test_a_checkpoint_trained_on_two_frames_is_tested_on_two(tmp_path):
     """frame_stack 2 is recorded in the run's config; `cosim test`'s policies read it from
     the checkpoint (84x84x6) and stack that AC's frames, beside a one-frame AC."""
