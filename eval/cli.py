@@ -152,6 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--fixed-slots", action="store_true",
                    help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
                         "turns at the spawn slots, one step per episode)")
+    e.add_argument("--greedy", action="store_true",
+                   help="PPO, A3C and IMPALA take their policy's mode (default: they sample it; "
+                        "DQN, DDPG and TD3 always act greedily)")
     e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
                    help="trained checkpoints from --runs, or a reference driver")
     e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")

@@ -144,8 +144,8 @@ def cmd_test(args) -> int:
               f"or a comma list of {', '.join(POLICIES)}", file=sys.stderr)
         return 2
     scenarios = (1, 2) if args.scenario == "both" else (int(args.scenario),)
-    plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes,
-                    steps=args.steps, seed=args.seed, agents=args.agents, rotate=not args.fixed_slots)
+    plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes, steps=args.steps,
+                        seed=args.seed, agents=args.agents, rotate=not args.fixed_slots, greedy=args.greedy)
     algos = [a for a in ALGO_ORDER if a in args.algos] if args.algos else list(ALGO_ORDER[: args.agents])
     try:
         from eval.robustness import parse_sweeps
@@ -158,7 +158,7 @@ def cmd_test(args) -> int:
         if args.policy == "trained":
             ckpts = {**find_checkpoints(args.runs, [a for a in algos if a not in given]), **given}
             ckpts = {a: ckpts[a] for a in algos}
-        factory = policy_factory(args.policy, ckpts, fixed=given)
+        factory = policy_factory(args.policy, ckpts, fixed=given, greedy=args.greedy)
     except ProtocolError as exc:
         print(f"cosim test: error: {exc}", file=sys.stderr)
         return 2
@@ -276,7 +276,7 @@ def _test_command(args) -> list[str]:
     cmd += ["--runs", str(args.runs)] if args.policy == "trained" else []
     for item in args.checkpoint:
         cmd += ["--checkpoint", item]
-    cmd += ["--no-replays"] if args.no_replays else []
+    cmd += ["--no-replays"] * args.no_replays + ["--greedy"] * args.greedy + ["--fixed-slots"] * args.fixed_slots
     if args.cross_play:
         cmd += ["--cross-play", "--cross-play-group", str(args.cross_play_group)]
     for item in args.sweep:

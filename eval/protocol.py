@@ -32,13 +32,19 @@ from cosim.errors import CosimError
 from eval import selection
 from eval.metrics import METRICS, episode_metrics, speed_curve, success_rates, summarize
 from eval.records import save
-from eval.rollout import AutopilotPolicy, RandomPolicy, StackedPolicy, run_episodes
+from eval.rollout import AutopilotPolicy, RandomPolicy, SampledPolicy, StackedPolicy, run_episodes
 
 log = logging.getLogger(__name__)
 
 ALGO_ORDER = tuple(registry.ALGORITHMS)  # the catalogue's order (agents/registry.py)
 CONTINUOUS = registry.CONTINUOUS
 ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
+SAMPLED = ("ppo", "a3c", "impala")
+"""Algorithms whose learned policy is a distribution: the test samples it (their training
+maximised the return of the sampled policy; its mode is a different policy, and IMPALA's
+crawled at 8 km/h in env_1 where its samples drove to the goal at 51 km/h, README
+"Testing trained cars"). DQN, DDPG and TD3 learn a deterministic policy and act greedily
+(no epsilon, no action noise). ``cosim test --greedy`` takes every policy's mode."""
 
 
 class ProtocolError(CosimError, ValueError):
@@ -54,6 +60,7 @@ class ProtocolPlan:
     seed: int = 0
     agents: int = 6
     rotate: bool = True
+    greedy: bool = False  # True: every policy's mode, also for SAMPLED algorithms
 
 
 def slot_order(algos: Sequence[str], episode: int, rotate: bool = True) -> list[str]:
@@ -134,11 +141,14 @@ def frame_stack_of(agent) -> int:
     return int(agent.observation_space.shape[-1]) // 3
 
 
-def drive(agent):
-    """The policy of one AC from a loaded checkpoint: the agent itself for one frame, else
-    a :class:`~eval.rollout.StackedPolicy` with that AC's own frame history."""
+def drive(agent, sample_seed: int | None = None):
+    """The policy of one AC from a loaded checkpoint: the agent itself (or, with
+    ``sample_seed``, a :class:`~eval.rollout.SampledPolicy` drawing its actions) for
+    one frame, wrapped in a :class:`~eval.rollout.StackedPolicy` with that AC's own
+    frame history when it was trained on K frames."""
     k = frame_stack_of(agent)
-    return StackedPolicy(agent, k) if k > 1 else agent
+    policy = agent if sample_seed is None else SampledPolicy(agent, sample_seed)
+    return StackedPolicy(policy, k) if k > 1 else policy
 
 
 def slot_checkpoint(path: Path, slot: str) -> Path:
@@ -154,12 +164,14 @@ def slot_checkpoint(path: Path, slot: str) -> Path:
 
 
 def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
-                   fixed: Collection[str] = ()) -> PolicyFactory:
+                   fixed: Collection[str] = (), greedy: bool = False) -> PolicyFactory:
     """How each AC gets its policy: trained checkpoints, the autopilot, or random.
 
     Trained: slot ``ac_k`` of algorithm ``a`` is driven by :func:`slot_checkpoint`
     (the run's own ``ac_k`` where it trained one), except for the algorithms in
-    ``fixed`` (given with ``--checkpoint``), whose checkpoint drives every slot."""
+    ``fixed`` (given with ``--checkpoint``), whose checkpoint drives every slot. The
+    :data:`SAMPLED` algorithms draw their actions from their policy (seeded per slot
+    and episode) unless ``greedy``; the others act greedily."""
     if kind == "trained":
         checkpoints = dict(checkpoints or {})
         # the given ones load now: a bad file fails before any episode runs
@@ -169,7 +181,8 @@ def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
             path = checkpoints[algo] if algo in fixed else slot_checkpoint(checkpoints[algo], agent)
             if path not in loaded:
                 loaded[path] = load_for_slot(path, algo)
-            return drive(loaded[path])  # one frame history per AC
+            seed = int(agent.rsplit("_", 1)[1]) if algo in SAMPLED and not greedy else None
+            return drive(loaded[path], seed)  # one frame history (and draw stream) per AC
 
         return make
     if kind == "autopilot":
@@ -384,5 +397,5 @@ def _save(fig, title: str, path: Path) -> Path:
     return path
 
 
-__all__ = ["METRICS", "ProtocolPlan", "drive", "find_checkpoints", "frame_stack_of", "metrics_table", "policy_factory",
+__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "metrics_table", "policy_factory",
            "rq1_table", "run_protocol", "slot_checkpoint", "slot_order", "write_report"]

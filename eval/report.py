@@ -263,7 +263,10 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
                  "scenario_1_slots": ("rotated: algorithm i drives ac_{(i + episode) mod N}"
                                       if plan.rotate else "fixed: algorithm i drives ac_i"),
                  "slot_checkpoints": "a run's AC trained in a slot drives that slot; other slots "
-                                     "the checkpoint listed (eval.protocol.slot_checkpoint)"},
+                                     "the checkpoint listed (eval.protocol.slot_checkpoint)",
+                 "actions": ("every policy's mode (--greedy)" if plan.greedy else
+                             "ppo, a3c, impala sample their policy; dqn, ddpg, td3 greedy "
+                             "(eval.protocol.SAMPLED)")},
         "ci": f"95% percentile bootstrap of the mean over episodes, {BOOTSTRAP} resamples, seed {CI_SEED}",
     }
 

@@ -80,6 +80,35 @@ class StackedPolicy:
         return _act(self.policy, self.history.push(obs))
 
 
+class SampledPolicy:
+    """A stochastic-policy agent (PPO, A3C, IMPALA) tested by sampling its action
+    distribution, the policy its training optimised, instead of taking the mode.
+
+    Draws come from this wrapper's own torch generator, seeded with ``seed`` and the
+    episode count at every ``reset()``: the same test gives the same draws, and two
+    slots driven by one checkpoint do not share a stream.
+    """
+
+    def __init__(self, agent, seed: int):
+        import torch
+
+        self.agent, self.seed, self.episodes = agent, int(seed), 0
+        self.algo = getattr(agent, "algo", None)
+        self.generator = torch.Generator(device=getattr(agent, "device", "cpu"))
+        self.generator.manual_seed(self.seed)
+
+    def reset(self) -> None:
+        self.generator.manual_seed(self.seed * 100_003 + self.episodes)
+        self.episodes += 1
+
+    def act(self, obs, deterministic: bool = True):
+        own, self.agent.generator = self.agent.generator, self.generator
+        try:
+            return self.agent.act(obs, deterministic=False)
+        finally:
+            self.agent.generator = own
+
+
 def _act(policy, obs):
     if hasattr(policy, "act"):
         return policy.act(obs, deterministic=True)

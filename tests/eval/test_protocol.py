@@ -90,6 +90,42 @@ def test_each_slot_is_driven_by_the_ac_trained_on_its_route(tmp_path):
     assert same(given(None, "ac_0", "dqn"), "ac_1") and same(given(None, "ac_2", "dqn"), "ac_1")
 
 
+def test_stochastic_policies_are_tested_by_sampling_them_reproducibly(tmp_path):
+    """PPO/A3C/IMPALA sample their policy in the test (seeded per slot and episode); DQN,
+    DDPG, TD3 and --greedy take the mode."""
+    import torch
+
+    from eval.rollout import SampledPolicy
+
+    obs_space = spaces.Box(0, 255, (84, 84, 3), np.uint8)
+    paths = {}
+    for algo in ("ppo", "dqn"):
+        run = tmp_path / f"env_1__{algo}__0__20260101-000000" / "checkpoints" / "ac_0"
+        run.mkdir(parents=True)
+        get_agent_class(algo).from_spaces(obs_space, spaces.Discrete(9)).save(run / "best.pt")
+        paths[algo] = run / "best.pt"
+    frames = np.random.default_rng(0).integers(0, 256, (40, 84, 84, 3), dtype=np.uint8)
+
+    def actions(policy):
+        policy.reset() if hasattr(policy, "reset") else None
+        return [policy.act(f, deterministic=True) for f in frames]
+
+    make = policy_factory("trained", paths)
+    ppo = make(None, "ac_0", "ppo")
+    assert isinstance(ppo, SampledPolicy)
+    mode = [ppo.agent.act(f, deterministic=True) for f in frames]
+    own = ppo.agent.generator.get_state()
+    first = actions(ppo)
+    assert torch.equal(ppo.agent.generator.get_state(), own)  # the agent's own stream is untouched
+    assert first != mode  # an untrained policy is near uniform: samples are not its mode
+    assert actions(make(None, "ac_0", "ppo")) == first  # same slot, same first episode: same draws
+    assert actions(make(None, "ac_1", "ppo")) != first  # another slot draws its own stream
+    assert actions(ppo) != first  # the next episode draws anew
+    assert actions(policy_factory("trained", paths, greedy=True)(None, "ac_0", "ppo")) == mode
+    dqn = make(None, "ac_0", "dqn")
+    assert not isinstance(dqn, SampledPolicy) and dqn.algo == "dqn"
+
+
 def test_a_checkpoint_trained_on_two_frames_is_tested_on_two(tmp_path):
     """frame_stack 2 is recorded in the run's config; `cosim test`'s policies read it from
     the checkpoint (84x84x6) and stack that AC's frames, beside a one-frame AC."""

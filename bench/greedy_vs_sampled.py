@@ -1,0 +1,67 @@
+"""Greedy (the mode) versus sampled actions for the stochastic-policy algorithms.
+
+    python bench/greedy_vs_sampled.py --runs runs/science_env1/bench/runs --env env_1
+
+For every run of PPO, A3C and IMPALA under ``--runs`` trained in ``--env``: its ``ac_0``
+(Scenario 2 drives ac_0's spawn and goal) alone on held-out episode seeds, once taking
+the policy's mode and once sampling it (eval.rollout.SampledPolicy). The test protocol
+samples these algorithms (eval.protocol.SAMPLED); this is the measurement behind it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import pandas as pd  # noqa: E402
+
+from cosim.env import CosimParallelEnv  # noqa: E402
+from eval import selection  # noqa: E402
+from eval.protocol import SAMPLED, drive, load_for_slot  # noqa: E402
+from eval.report import per_episode  # noqa: E402
+from eval.rollout import run_episodes  # noqa: E402
+from eval.validity import HELD_OUT_SEED  # noqa: E402
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--runs", type=Path, required=True, help="folder of run folders")
+    p.add_argument("--env", default="env_1")
+    p.add_argument("--episodes", type=int, default=2)
+    p.add_argument("--steps", type=int, default=600)
+    args = p.parse_args(argv)
+    rows = []
+    for run in sorted(args.runs.glob(f"{args.env}__*__*__*")):
+        algo, seed = run.name.split("__")[1:3]
+        path = selection.checkpoint_of(run, "ac_0")
+        if algo not in SAMPLED or path is None:
+            continue
+        agent = load_for_slot(path, algo)
+        env = CosimParallelEnv(args.env, num_agents=1, action_types="discrete",
+                               terminate_on_collision=False, horizon=args.steps,
+                               background=False, pedestrians=False)
+        try:
+            for mode, policy in (("greedy", drive(agent)), ("sampled", drive(agent, 0))):
+                seeds = [HELD_OUT_SEED + e for e in range(args.episodes)]
+                rec = run_episodes(env, {"ac_0": policy}, seeds)
+                per = per_episode(rec.assign(env=args.env, scenario=2))
+                rows.append({"algorithm": algo, "train_seed": int(seed), "actions": mode,
+                             **per[["SPEED", "DISTANCE", "return", "goal"]].mean().round(2).to_dict()})
+                print(rows[-1], flush=True)
+        finally:
+            env.close()
+    if not rows:
+        print(f"no PPO/A3C/IMPALA run of {args.env} under {args.runs}", file=sys.stderr)
+        return 2
+    table = pd.DataFrame(rows)
+    print(table.to_string(index=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
