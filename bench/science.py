@@ -111,7 +111,10 @@ def study_plan(args, plan: BenchmarkPlan) -> dict:
         "episodes": episodes, "steps": steps, "scenarios": sorted(args.scenarios),
         "episode_seeds": [HELD_OUT_SEED + e for e in range(episodes)],
         "collisions_end_episode": False,
-        "scenario_1_slots": "rotated (eval.protocol.slot_order)"}}
+        "scenario_1_slots": "rotated (eval.protocol.slot_order); each slot driven by the run's "
+                            "AC trained in it where one exists (eval.protocol.slot_checkpoint)",
+        "actions": "ppo, a3c, impala sample their policy; dqn, ddpg, td3 greedy "
+                   "(eval.protocol.SAMPLED)"}}
 
 
 def check_plan(out: Path, study: dict) -> None:
