@@ -41,10 +41,11 @@ CONTINUOUS = registry.CONTINUOUS
 ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
 SAMPLED = ("ppo", "a3c", "impala")
 """Algorithms whose learned policy is a distribution: the test samples it (their training
-maximised the return of the sampled policy; its mode is a different policy, and IMPALA's
-crawled at 8 km/h in env_1 where its samples drove to the goal at 51 km/h, README
-"Testing trained cars"). DQN, DDPG and TD3 learn a deterministic policy and act greedily
-(no epsilon, no action noise). ``cosim test --greedy`` takes every policy's mode."""
+maximised the return of the sampled policy; its mode is a different policy: two IMPALA
+modes crawled at 8-14 km/h and reached no goal where their samples drove; README
+"Testing trained cars", bench/greedy_vs_sampled.py). DQN, DDPG and TD3 learn a
+deterministic policy and act greedily (no epsilon, no action noise). ``cosim test
+--greedy`` takes every policy's mode."""
 
 
 class ProtocolError(CosimError, ValueError):
