@@ -40,6 +40,7 @@ from cosim.errors import CosimError  # noqa: E402
 from eval import science  # noqa: E402
 from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, cell_name  # noqa: E402
 from eval.presets import load_presets  # noqa: E402
+from eval.protocol import ProtocolPlan, rules  # noqa: E402
 from eval.validity import HELD_OUT_SEED, POLICIES  # noqa: E402
 
 SMOKE = {"preset": "smoke", "envs": ["env_1"], "algos": ["ppo", "dqn"], "seeds": 2, "steps": 60,
@@ -110,11 +111,7 @@ def study_plan(args, plan: BenchmarkPlan) -> dict:
     return {"benchmark": plan.to_dict(), "test": {
         "episodes": episodes, "steps": steps, "scenarios": sorted(args.scenarios),
         "episode_seeds": [HELD_OUT_SEED + e for e in range(episodes)],
-        "collisions_end_episode": False,
-        "scenario_1_slots": "rotated (eval.protocol.slot_order); each slot driven by the run's "
-                            "AC trained in it where one exists (eval.protocol.slot_checkpoint)",
-        "actions": "ppo, a3c, impala sample their policy; dqn, ddpg, td3 greedy "
-                   "(eval.protocol.SAMPLED)"}}
+        "collisions_end_episode": False, **rules(ProtocolPlan())}}
 
 
 def check_plan(out: Path, study: dict) -> None:

@@ -64,6 +64,18 @@ class ProtocolPlan:
     greedy: bool = False  # True: every policy's mode, also for SAMPLED algorithms
 
 
+def rules(plan: ProtocolPlan) -> dict[str, str]:
+    """How the plan places ACs and picks actions, in words (report provenance, science plan)."""
+    return {
+        "scenario_1_slots": ("rotated: algorithm i drives ac_{(i + episode) mod N}" if plan.rotate
+                             else "fixed: algorithm i drives ac_i"),
+        "slot_checkpoints": "a run's AC trained in a slot drives that slot; other slots the "
+                            "checkpoint listed (eval.protocol.slot_checkpoint)",
+        "actions": ("every policy's mode (--greedy)" if plan.greedy else
+                    "ppo, a3c, impala sample their policy; dqn, ddpg, td3 greedy (eval.protocol.SAMPLED)"),
+    }
+
+
 def slot_order(algos: Sequence[str], episode: int, rotate: bool = True) -> list[str]:
     """The algorithm of each Scenario 1 slot (``ac_0``, ``ac_1``, ...) in ``episode``:
     algorithm ``i`` drives slot ``(i + episode) mod N`` (module docstring)."""
@@ -399,4 +411,4 @@ def _save(fig, title: str, path: Path) -> Path:
 
 
 __all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "metrics_table", "policy_factory",
-           "rq1_table", "run_protocol", "slot_checkpoint", "slot_order", "write_report"]
+           "rq1_table", "rules", "run_protocol", "slot_checkpoint", "slot_order", "write_report"]

@@ -233,6 +233,7 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
     from importlib import metadata
 
     from eval import selection
+    from eval.protocol import rules
 
     try:
         version = metadata.version("cosim")
@@ -260,13 +261,7 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
         "plan": {"envs": list(plan.envs), "scenarios": list(plan.scenarios),
                  "episodes": plan.episodes, "steps": plan.steps, "agents": plan.agents,
                  "seed": plan.seed, "episode_seeds": [plan.seed + e for e in range(plan.episodes)],
-                 "scenario_1_slots": ("rotated: algorithm i drives ac_{(i + episode) mod N}"
-                                      if plan.rotate else "fixed: algorithm i drives ac_i"),
-                 "slot_checkpoints": "a run's AC trained in a slot drives that slot; other slots "
-                                     "the checkpoint listed (eval.protocol.slot_checkpoint)",
-                 "actions": ("every policy's mode (--greedy)" if plan.greedy else
-                             "ppo, a3c, impala sample their policy; dqn, ddpg, td3 greedy "
-                             "(eval.protocol.SAMPLED)")},
+                 **rules(plan)},
         "ci": f"95% percentile bootstrap of the mean over episodes, {BOOTSTRAP} resamples, seed {CI_SEED}",
     }
 

@@ -183,6 +183,12 @@ def test_scenario_1_rotates_the_algorithms_over_the_spawn_slots():
     fixed = run_protocol(ProtocolPlan(envs=("env_1",), scenarios=(1,), episodes=2, steps=2,
                                       agents=3, rotate=False), policy_factory("autopilot"), algos)
     assert (fixed[fixed.agent == "ac_0"].algorithm == "ppo").all()
+    # the report and the science plan say which placement and actions a test used
+    from eval.protocol import rules
+
+    assert rules(plan)["scenario_1_slots"].startswith("rotated")
+    assert rules(ProtocolPlan(rotate=False, greedy=True)) == {**rules(plan), **{
+        "scenario_1_slots": "fixed: algorithm i drives ac_i", "actions": "every policy's mode (--greedy)"}}
 
 
 def test_cli_test_without_runs_says_how_to_get_them(tmp_path, capsys):
