@@ -18,10 +18,12 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+for path in (ROOT, ROOT / "bench"):  # run as a script from a checkout; bench/science.py
+    if str(path) not in sys.path:
+        sys.path.insert(0, str(path))
 
 import pandas as pd  # noqa: E402
+import science  # noqa: E402
 
 from eval import selection  # noqa: E402
 from eval.benchmark import BenchmarkPlan  # noqa: E402
@@ -47,8 +49,7 @@ def main(argv=None) -> int:
         runs = sorted(args.runs.glob(f"{env}__{args.algo}__{seed}__*"))
         if not runs:
             continue
-        ck = {a: selection.choose(args.science / "bench" / "runs" / f"{env}__{a}__{seed}__bench").path
-              for a in plan.algos}
+        ck = science.checkpoints(plan, args.science / "bench", env, seed)
         base = pd.read_parquet(args.science / "test" / f"{env}__seed{seed}.parquet")
         ck[args.algo] = selection.choose(runs[-1]).path
         cache = args.runs / f"test_{env}__seed{seed}.parquet"
