@@ -1,4 +1,4 @@
-"""Training throughput on env_1 with 3 ACs: env steps/s and AC-frames/s, 1 vs N environments.
+"""Training throughput on env_1 (--agents ACs, default 3): env steps/s and AC-frames/s, 1 vs N environments.
 
 For each --envs value, in the same run on the same cores:
 
@@ -19,6 +19,7 @@ environment, IMPALA one learner acting in all of them); their steady rate is
 the trainer's own clock from the first reset (agents/workers.py TrainProgress.timing).
 
     python bench/train_throughput.py [--steps 1500] [--envs 1 2] [--algos ppo dqn td3 a3c impala]
+    python bench/train_throughput.py --agents 6 --envs 1 --algos ppo a3c impala dqn ddpg td3   # the presets' ACs
 """
 
 from __future__ import annotations
@@ -34,14 +35,14 @@ import numpy as np
 
 from eval.train import make_config, make_env, train
 
-AGENTS = 3
+AGENTS = 3  # the default of --agents: the README's first tables were taken with 3 ACs
 
 
-def raw_env_rate(n: int, steps: int, seed: int = 3) -> dict[str, float]:
+def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dict[str, float]:
     """Random actions through the vector runner: env steps/s and AC-frames/s, start-up excluded."""
     from agents.vector import make_vector_env
 
-    cfg = make_config("ppo", "env_1", "quick", agents=AGENTS, steps=steps, seed=seed, envs=n)
+    cfg = make_config("ppo", "env_1", "quick", agents=agents, steps=steps, seed=seed, envs=n)
     venv = make_vector_env([functools.partial(make_env, cfg.to_dict(), seed + i) for i in range(n)])
     rng = np.random.default_rng(seed)
     try:
@@ -59,8 +60,9 @@ def raw_env_rate(n: int, steps: int, seed: int = 3) -> dict[str, float]:
     return {"steps_s": done / dt, "frames_s": frames / dt}
 
 
-def train_rate(algo: str, n: int, steps: int, out: str, threads: int) -> dict[str, float]:
-    cfg = make_config(algo, "env_1", "quick", agents=AGENTS, steps=steps, seed=3,
+def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
+               agents: int = AGENTS) -> dict[str, float]:
+    cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
                       envs=n, device="cpu", torch_threads=threads)
     if "learning_starts" in cfg.agent_config:
         cfg.agent_config["learning_starts"] = 200
@@ -78,6 +80,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--agents", type=int, default=AGENTS, help="ACs per environment")
     parser.add_argument("--algos", nargs="+", default=["ppo", "dqn", "td3", "a3c", "impala"])
     parser.add_argument("--torch-threads", type=int, default=1,
                         help="the trainer's torch threads for every row (0: cosim train's default)")
@@ -86,12 +89,12 @@ def main() -> None:
     rows: dict[tuple[str, int], dict] = {}
     with tempfile.TemporaryDirectory() as out:
         for n in args.envs:
-            raw[n] = raw_env_rate(n, args.steps)
+            raw[n] = raw_env_rate(n, args.steps, agents=args.agents)
             print(f"raw env, {n} env(s): {raw[n]}", flush=True)
             for algo in args.algos:
-                rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads)
+                rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents)
                 print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
-    print(f"\n{args.steps} env steps per row, env_1, {AGENTS} ACs, quick preset, CPU, "
+    print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset, CPU, "
           f"torch threads {args.torch_threads or 'default'}\n")
     print("| what | envs | env steps/s (steady) | AC-frames/s (steady) | env steps/s (wall) "
           "| training / raw env (steady) |")
