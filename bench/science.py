@@ -4,6 +4,8 @@ beside the reference rows, with confidence intervals over seeds.
 
     python bench/science.py                      # 6 algorithms x 5 environments x 3 seeds
     python bench/science.py --smoke --out /tmp/s # the CI version: env_1, PPO + DQN, 2 seeds
+    python bench/science.py --envs env_2 env_3 --seeds 1 --out s23   # a part of the grid
+    python bench/science.py --combine s1 s23 s45 --out all             # one table over the parts
 
 Stages, each resumable (rerun the same command after an interruption):
 
@@ -19,6 +21,11 @@ Stages, each resumable (rerun the same command after an interruption):
    ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``),
    ``summary.md`` (printed: the README's results section), ``report/`` (the `cosim test`
    report of the held-out records, seeds pooled) and ``science.json`` (plan, checkpoints).
+
+``--combine`` replaces stages 1-3: finished studies of different environments (run as
+separate processes, say one per core) are gathered into ``--out`` and stage 4 runs over
+all of them; each environment keeps its own number of training seeds, and the verdict
+asks for 3 (eval.science.MIN_SEEDS) whatever the intervals say.
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ from eval import science  # noqa: E402
 from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, cell_name  # noqa: E402
 from eval.presets import load_presets  # noqa: E402
 from eval.protocol import ProtocolPlan, rules  # noqa: E402
+from eval.report import env_title  # noqa: E402
 from eval.validity import HELD_OUT_SEED, POLICIES  # noqa: E402
 
 SMOKE = {"preset": "smoke", "envs": ["env_1"], "algos": ["ppo", "dqn"], "seeds": 2, "steps": 60,
@@ -77,9 +85,18 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--concurrent", type=int, default=None, help="Ray trials at once")
     p.add_argument("--ray-address", default=None, help="an existing Ray cluster")
     p.add_argument("--out", type=Path, default=Path("science"), help="study folder")
+    p.add_argument("--combine", nargs="+", type=Path, default=None, metavar="STUDY",
+                   help="instead of running a study: gather finished studies of different "
+                        "environments (same algorithms, preset and test) into --out and write "
+                        "the results over all of them")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     given = {k for k, v in vars(args).items() if v is not None}
+    study_options = given & {"preset", "envs", "algos", "seeds", "steps", "episodes",
+                             "test_steps", "scenarios", "concurrent", "ray_address"}
+    if args.combine and (study_options or args.smoke):
+        p.error("--combine takes the studies' own settings; drop --"
+                + ", --".join(sorted(k.replace("_", "-") for k in study_options) or ["smoke"]))
     if args.smoke:
         for k, v in SMOKE.items():
             if k not in given:
@@ -183,14 +200,15 @@ def _write(df: pd.DataFrame, path: Path) -> None:
     tmp.replace(path)
 
 
-def test(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame:
+def test(plan: BenchmarkPlan, study: dict, out: Path, say,
+         seeds_of: dict[str, int] | None = None) -> pd.DataFrame:
     """Held-out records of every (env, training seed), from the cache where present."""
     from eval.protocol import ProtocolPlan, policy_factory, run_protocol
 
     t = study["test"]
     frames = []
     for env in plan.envs:
-        for seed in range(plan.seeds):
+        for seed in range(seeds_of[env] if seeds_of else plan.seeds):
             path = out / "test" / f"{env}__seed{seed}.parquet"
             if not path.exists():
                 start = time.monotonic()
@@ -223,10 +241,84 @@ def references(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame
     return pd.concat(frames, ignore_index=True)
 
 
+# -- combining finished studies ---------------------------------------------------------------
+COMBINED_KEYS = ("preset", "algos", "steps")
+"""What the studies combined must share (with their whole test plan)."""
+
+
+def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, dict[str, int]]:
+    """Gather finished studies of *different* environments (same algorithms, preset, budget
+    and test) into ``out``: run folders linked, held-out records and references copied.
+    Returns the combined plan (seeds: the most any environment has), the study record and
+    the training seeds per environment. Lets environments train in separate processes (both
+    cores of a small machine, or several machines) and still give one table and one IQM."""
+    import shutil
+
+    studies = []
+    for src in sources:
+        src = src.resolve()
+        saved = src / "science.json"
+        if not saved.is_file():
+            raise ScienceError(f"--combine {src}: no science.json there; give the --out folder "
+                               "of a bench/science.py study")
+        studies.append((src, json.loads(saved.read_text())))
+    (src0, first), b0 = studies[0], studies[0][1]["benchmark"]
+    seeds_of: dict[str, int] = {}
+    for src, st in studies:
+        b = st["benchmark"]
+        if "combined" in st:
+            raise ScienceError(f"--combine {src}: already a combination; give its sources")
+        diff = [k for k in COMBINED_KEYS if b.get(k) != b0.get(k)]
+        if diff or st["test"] != first["test"]:
+            what = ", ".join(diff + (["test"] if st["test"] != first["test"] else []))
+            raise ScienceError(f"--combine: {src} differs from {src0} in {what}; combine only "
+                               "studies run with the same algorithms, preset, steps and test")
+        for env in b["envs"]:
+            if env in seeds_of:
+                raise ScienceError(f"--combine: {env} is in two of the studies; give each "
+                                   "environment once")
+            seeds_of[env] = int(b["seeds"])
+    envs = [e for e in science.ENVS if e in seeds_of] + sorted(set(seeds_of) - set(science.ENVS))
+    plan = BenchmarkPlan(preset=b0["preset"], envs=tuple(envs), algos=tuple(b0["algos"]),
+                         seeds=max(seeds_of.values()), steps=b0["steps"])
+    saved = out / "science.json"
+    if saved.exists() and "combined" not in json.loads(saved.read_text()):
+        raise ScienceError(f"{out} holds a study of its own; choose another --out for the "
+                           "combination")
+    for src, st in studies:
+        for env in st["benchmark"]["envs"]:
+            files = [src / "references" / f"{env}.csv"] + [
+                src / "test" / f"{env}__seed{k}.parquet" for k in range(seeds_of[env])]
+            missing = [f for f in files if not f.is_file()]
+            if missing:
+                raise ScienceError(f"--combine: {missing[0]} is missing; finish that study first "
+                                   "(rerun its own command)")
+            for f in files:
+                (out / f.parent.name).mkdir(parents=True, exist_ok=True)
+                shutil.copy2(f, out / f.parent.name / f.name)
+            for algo in plan.algos:
+                for k in range(seeds_of[env]):
+                    name = f"{env}__{algo}__{k}__bench"
+                    link = out / "bench" / "runs" / name
+                    link.parent.mkdir(parents=True, exist_ok=True)
+                    if link.is_symlink():
+                        link.unlink()
+                    if not link.exists():
+                        link.symlink_to(src / "bench" / "runs" / name, target_is_directory=True)
+    study = {"benchmark": {**plan.to_dict(), "seeds": seeds_of}, "test": first["test"],
+             "combined": [str(src) for src, _ in studies]}
+    saved.write_text(json.dumps(study, indent=2))
+    say(f"combined {len(studies)} studies: " + ", ".join(f"{e} ({k} seed(s))"
+                                                       for e, k in seeds_of.items()))
+    return plan, study, seeds_of
+
+
 # -- 4. results -------------------------------------------------------------------------------
 def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.DataFrame,
-            out: Path, command: str) -> str:
-    """Every results file; returns summary.md's text."""
+            out: Path, command: str, seeds_of: dict[str, int] | None = None) -> str:
+    """Every results file; returns summary.md's text. ``seeds_of``: training seeds per
+    environment where they differ (a --combine'd study), else ``plan.seeds`` each."""
+    seeds_of = seeds_of or {e: plan.seeds for e in plan.envs}
     from eval.protocol import ProtocolPlan
     from eval.report import per_episode, provenance, write_paper_report
 
@@ -239,7 +331,7 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     iqm = science.iqm_table(seeds, ref_table)
     bench = out / "bench"
     runs = {(a, e, s): bench / "runs" / f"{e}__{a}__{s}__bench"
-            for e in plan.envs for a in plan.algos for s in range(plan.seeds)}
+            for e in plan.envs for a in plan.algos for s in range(seeds_of[e])}
     curves = science.convergence_curves(runs)
 
     seeds.to_csv(out / "seeds.csv", index=False)
@@ -252,8 +344,11 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     t = study["test"]
     b = plan.to_dict()
     budget = f", {b['steps']} steps per trial" if b["steps"] else ""
-    how = (f"{len(plan.algos)} algorithm(s) x {len(plan.envs)} environment(s) x {plan.seeds} "
-           f"seed(s), preset `{b['preset']}`{budget}; "
+    counts = sorted(set(seeds_of.values()))
+    per_env = (f"{counts[0]} seed(s)" if len(counts) == 1 else "seeds per environment: " + ", ".join(
+        f"{env_title(e)} {seeds_of[e]}" for e in plan.envs))
+    how = (f"{len(plan.algos)} algorithm(s) x {len(plan.envs)} environment(s) x {per_env}, "
+           f"preset `{b['preset']}`{budget}; "
            f"tested on {t['episodes']} held-out episode(s) of {t['steps']} steps per (environment, "
            f"seed) (episode seeds {t['episode_seeds'][0]}.., collisions do not end an episode); "
            f"reference rows on the same episode seeds with {len(plan.algos)} ACs (Scenario 1 "
@@ -275,7 +370,8 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
         f"\nValidity verdict (issue 14, item 1): {passed} of {len(verdict)} (algorithm, "
         "environment) pairs have a mean return and goal rate above every degenerate reference "
         f"({', '.join(science.DEGENERATE)}) with the 95% CI's lower end above the reference's "
-        "value.\n", science.verdict_markdown(verdict),
+        f"value, over at least {science.MIN_SEEDS} training seeds ('not shown': above with "
+        "fewer seeds).\n", science.verdict_markdown(verdict),
         "\nIQM across environments (Scenario 1 return normalised per environment: uniform "
         "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "
         "95% stratified bootstrap CI resampling seeds within environments):\n",
@@ -295,12 +391,12 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     prov = provenance(policy="trained", plan=whole, algos=list(plan.algos), checkpoints=first,
                       command=command.split()[1:])
     write_paper_report(pooled, out / "report", prov=prov, extra_md=(
-        f"\n## Science study\n\n{plan.seeds} training seed(s) pooled: episode = seed x "
+        f"\n## Science study\n\nTraining seeds pooled ({per_env}): episode = seed x "
         f"{t['episodes']} + test episode. The checkpoints under provenance are "
         f"{plan.envs[0]}'s, seed 0; science.json lists every one.\n"))
     study["checkpoints"] = {f"{e}__seed{s}": {a: str(p.relative_to(out)) for a, p in
                                               checkpoints(plan, bench, e, s).items()}
-                            for e in plan.envs for s in range(plan.seeds)}
+                            for e in plan.envs for s in range(seeds_of[e])}
     (out / "science.json").write_text(json.dumps(study, indent=2))
     return text
 
@@ -310,17 +406,21 @@ def main(argv=None) -> int:
     say = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     start = time.monotonic()
     try:
-        plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos),
-                             seeds=args.seeds, steps=args.steps)
-        plan.cells()  # an unknown preset or environment fails here, before any work
         out = args.out.resolve()
-        study = study_plan(args, plan)
-        check_plan(out, study)
-        train(args, plan, out / "bench", say)
-        records = test(plan, study, out, say)
+        seeds_of = None
+        if args.combine:
+            plan, study, seeds_of = combine(args.combine, out, say)
+        else:
+            plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs),
+                                 algos=tuple(args.algos), seeds=args.seeds, steps=args.steps)
+            plan.cells()  # an unknown preset or environment fails here, before any work
+            study = study_plan(args, plan)
+            check_plan(out, study)
+            train(args, plan, out / "bench", say)
+        records = test(plan, study, out, say, seeds_of)
         refs = references(plan, study, out, say)
         command = "python bench/science.py " + " ".join(sys.argv[1:] if argv is None else argv)
-        text = results(plan, study, records, refs, out, command)
+        text = results(plan, study, records, refs, out, command, seeds_of)
     except CosimError as exc:
         print(f"science: error: {exc}", file=sys.stderr)
         return 2

@@ -90,6 +90,13 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
     # td3's goal CI starts at 0.1 = always-forward's: not excluded
     assert not v.loc["td3", "passed"] and v.loc["td3", "return_ok"] and not v.loc["td3", "goal_ok"]
     assert v.loc["td3", "why"].startswith("goal rate CI low 0.10 <= always-forward 0.10")
+    # above every reference, but with one seed: item 1 asks for three
+    one = science.verdict(science.seed_table(_seeds({"return": [500], "goal": [0.5]}, "a3c")),
+                          refs).set_index("algorithm")
+    assert one.loc["a3c", "return_ok"] and one.loc["a3c", "goal_ok"] and not one.loc["a3c", "seeds_ok"]
+    assert not one.loc["a3c", "passed"] and one.loc["a3c", "why"] == "1 seed(s), item 1 needs 3"
+    assert "| a3c | Straight | 1 |" in science.verdict_markdown(one.reset_index())
+    assert "not shown" in science.verdict_markdown(one.reset_index())
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
 
@@ -127,9 +134,15 @@ def _run(out: Path, *extra: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=400, cwd=ROOT)
 
 
-def test_smoke_study_writes_every_result_and_resumes(tmp_path):
-    out = tmp_path / "study"
-    done = _run(out)
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """One smoke study for the tests below (training it is most of their time)."""
+    out = tmp_path_factory.mktemp("science") / "study"
+    return out, _run(out)
+
+
+def test_smoke_study_writes_every_result_and_resumes(smoke):
+    out, done = smoke
     assert done.returncode == 0, done.stderr[-2000:]
     plan = json.loads((out / "science.json").read_text())
     seeds, algos, envs = plan["benchmark"]["seeds"], plan["benchmark"]["algos"], plan["benchmark"]["envs"]
@@ -157,7 +170,8 @@ def test_smoke_study_writes_every_result_and_resumes(tmp_path):
 
     for _, r in verdict.iterrows():  # pass iff both CI lower ends clear the best degenerate row
         expected = (clears(r["return_ci_low"], ref[(r["env"], "return")])
-                    and clears(r["goal_ci_low"], ref[(r["env"], "goal")]))
+                    and clears(r["goal_ci_low"], ref[(r["env"], "goal")])
+                    and r["n"] >= science.MIN_SEEDS)
         assert bool(r["passed"]) == expected
         assert r["n"] == seeds
 
@@ -186,3 +200,68 @@ def test_smoke_study_writes_every_result_and_resumes(tmp_path):
     assert other.returncode == 2
     assert other.stderr.strip().startswith("science: error: ") and len(other.stderr.strip().splitlines()) == 1
     assert "repeat those options" in other.stderr
+
+
+def _as_env(study: Path, dest: Path, env: str, seeds: int) -> None:
+    """A copy of the smoke study (env_1) relabelled as ``env`` with its first ``seeds``
+    training seeds: what a separate study of that environment would have left."""
+    plan = json.loads((study / "science.json").read_text())
+    plan["benchmark"].update(envs=[env], seeds=seeds)
+    (dest / "test").mkdir(parents=True)
+    (dest / "references").mkdir()
+    (dest / "science.json").write_text(json.dumps(plan))
+    refs = pd.read_csv(study / "references" / "env_1.csv")
+    refs.assign(env=env).to_csv(dest / "references" / f"{env}.csv", index=False)
+    for k in range(seeds):
+        rec = pd.read_parquet(study / "test" / f"env_1__seed{k}.parquet")
+        rec.assign(env=env).to_parquet(dest / "test" / f"{env}__seed{k}.parquet", index=False)
+        for algo in plan["benchmark"]["algos"]:
+            link = dest / "bench" / "runs" / f"{env}__{algo}__{k}__bench"
+            link.parent.mkdir(parents=True, exist_ok=True)
+            link.symlink_to(study / "bench" / "runs" / f"env_1__{algo}__{k}__bench")
+
+
+def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
+    """--combine: one table over studies run apart, each environment with its own seeds."""
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    _as_env(study, tmp_path / "s2", "env_2", seeds=1)
+    both = tmp_path / "both"
+    cmd = [sys.executable, str(SCRIPT), "--out", str(both), "--combine", str(study), str(tmp_path / "s2")]
+    comb = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert comb.returncode == 0, comb.stderr[-2000:]
+    assert "tested" not in comb.stderr and "references env" not in comb.stderr  # nothing rerun
+    one = pd.read_csv(study / "results.csv")
+    res = pd.read_csv(both / "results.csv")
+    key = ["kind", "name", "metric", "scenario"]
+    # env_1 is the first study's, to the digit; env_2 holds seed 0 of the same records only
+    a = one.sort_values(key).reset_index(drop=True)
+    b = res[res["env"] == "env_1"].sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(a[key + ["mean", "ci_low", "ci_high", "n"]],
+                                  b[key + ["mean", "ci_low", "ci_high", "n"]])
+    seed0 = pd.read_csv(study / "seeds.csv").query("train_seed == 0")
+    e2 = res[(res["env"] == "env_2") & (res["kind"] == "algorithm")].set_index(
+        ["scenario", "name", "metric"])
+    assert (e2.loc[e2.index.get_level_values("metric") == "return", "n"] == 1).all()
+    for _, r in seed0.iterrows():
+        assert e2.loc[(r["scenario"], r["algorithm"], "return"), "mean"] == pytest.approx(r["return"])
+    verdict = pd.read_csv(both / "verdict.csv")
+    assert set(verdict["env"]) == {"env_1", "env_2"}
+    one_seed = verdict[verdict["env"] == "env_2"]
+    assert (~one_seed["passed"]).all() and one_seed["why"].str.contains("1 seed").all()
+    iqm = pd.read_csv(both / "iqm.csv").set_index("name")
+    assert (iqm.loc[["ppo", "dqn"], "runs"] == 3).all()  # 2 env_1 seeds + 1 env_2 seed
+    curves = pd.read_csv(both / "convergence.csv")
+    assert curves.groupby("env")["seed"].nunique().to_dict() == {"env_1": 2, "env_2": 1}
+    summary = (both / "summary.md").read_text()
+    assert "seeds per environment: Straight 2, " in summary
+    assert json.loads((both / "science.json").read_text())["benchmark"]["seeds"] == {
+        "env_1": 2, "env_2": 1}
+
+    # an environment twice, a study's own folder as the output, or study options: refused
+    for extra, words in (([str(study), str(study)], "env_1 is in two"),
+                         ([str(tmp_path / "s2"), "--out", str(study)], "holds a study of its own"),
+                         ([str(study), "--seeds", "2"], "drop --seeds")):
+        bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x"),
+                              "--combine", *extra], capture_output=True, text=True, cwd=ROOT)
+        assert bad.returncode == 2 and words in bad.stderr, bad.stderr
