@@ -79,6 +79,8 @@ class BenchmarkPlan:
     """Seeds 0..seeds-1 per (algorithm, environment)."""
     steps: int | None = None
     """Environment steps per trial (default: the preset's, per algorithm)."""
+    agents: int | None = None
+    """ACs each trial trains (default: the preset's)."""
 
     def __post_init__(self):
         unknown = sorted(set(self.algos) - set(ALGORITHMS))
@@ -88,15 +90,20 @@ class BenchmarkPlan:
             raise BenchmarkError(f"--seeds must be >= 1, got {self.seeds}")
         if not self.envs:
             raise BenchmarkError("--envs: name at least one environment")
+        if self.agents is not None and self.agents < 1:
+            raise BenchmarkError(f"--agents must be >= 1, got {self.agents}")
 
     def cells(self) -> list[TrainConfig]:
         """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
-        return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, torch_threads=1)
+        return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, agents=self.agents,
+                            torch_threads=1)
                 for env in self.envs for algo in self.algos for seed in range(self.seeds)]
 
     def to_dict(self) -> dict[str, Any]:
-        return {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
+        plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
                 "seeds": self.seeds, "steps": self.steps}
+        # only when set: a plan saved before --agents existed still reads back as equal
+        return plan if self.agents is None else {**plan, "agents": self.agents}
 
 
 def cell_name(cfg: TrainConfig | dict) -> str:

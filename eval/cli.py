@@ -211,6 +211,8 @@ def _benchmark_parser(sub) -> None:
     b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")
     b.add_argument("--steps", type=_int_in(1), default=None,
                    help="environment steps per trial (default: the preset's)")
+    b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
+                   help="ACs each trial trains (default: the preset's, 6 for quick/standard/paper)")
     b.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
     b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",

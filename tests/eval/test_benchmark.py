@@ -102,6 +102,20 @@ def tensors(path: Path) -> dict:
 
 
 # -- without Ray ---------------------------------------------------------------------
+def test_plan_agents_reach_every_trial_and_old_plans_still_match():
+    from eval.benchmark import BenchmarkError, BenchmarkPlan
+
+    base = BenchmarkPlan(preset="quick", envs=("env_1", "env_3"), algos=("ppo", "td3"), seeds=2)
+    three = BenchmarkPlan(preset="quick", envs=("env_1", "env_3"), algos=("ppo", "td3"), seeds=2,
+                          agents=3)
+    assert {c.agents for c in base.cells()} == {6}  # the quick preset's count
+    assert {c.agents for c in three.cells()} == {3} and len(three.cells()) == 8
+    # a benchmark.json written before --agents existed has no such key: --resume still matches
+    assert "agents" not in base.to_dict() and three.to_dict() == {**base.to_dict(), "agents": 3}
+    with pytest.raises(BenchmarkError, match="--agents must be >= 1"):
+        BenchmarkPlan(agents=0)
+
+
 def test_commands_without_a_grid_never_import_ray():
     code = ("import sys, eval.cli, eval.benchmark, eval.pbt, eval.raysession; "
             "eval.cli.build_parser().parse_args(['benchmark', '--no-ray']); "
