@@ -327,7 +327,8 @@ def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCEN
                   references: pd.DataFrame | None = None,
                   reference_names: Sequence[str] = ("autopilot", "random")) -> str:
     """Algorithms (rows) x environments (columns) of one metric, 'mean [CI]'; reference rows
-    (Scenario 1 only) below."""
+    (Scenario 1 only) below, then the strongest degenerate reference of each environment
+    (the value an algorithm's CI must clear in the verdict, and its name)."""
     t = table[(table["metric"] == metric) & (table["scenario"] == scenario)]
     envs = sorted(t["env"].unique())
     cells = t.set_index(["name", "env"])["cell"]
@@ -336,6 +337,17 @@ def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCEN
         r = references[references["metric"] == metric].set_index(["name", "env"])["cell"]
         rows += [[f"*{n}*"] + [r.get((n, e), "") for e in envs] for n in reference_names
                  if any((n, e) in r.index for e in envs)]
+        means = references[(references["metric"] == metric)
+                           & references["name"].isin(DEGENERATE)].set_index(["env", "name"])["mean"]
+        best = []
+        for e in envs:
+            if e in means.index.get_level_values("env"):
+                name = means.loc[e].idxmax()
+                best.append(f"{means.loc[(e, name)]:.{DIGITS.get(metric, 3)}f} ({name})")
+            else:
+                best.append("")
+        if any(best):
+            rows.append(["*best degenerate*", *best])
     return _md(["algorithm", *[env_title(e) for e in envs]], rows)
 
 

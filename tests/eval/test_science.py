@@ -68,7 +68,8 @@ def _refs(env="env_1", values: dict | None = None) -> pd.DataFrame:
         ret, goal = values.get(p, (0.0, 0.0))
         for m, v in (("return", ret), ("goal", goal)):
             rows.append({"scenario": 1, "env": env, "kind": "reference", "name": p, "metric": m,
-                         "mean": v, "ci_low": v, "ci_high": v, "n": 3})
+                         "mean": v, "ci_low": v, "ci_high": v, "n": 3,
+                         "cell": science.fmt(m, v, v, v)})
     return pd.DataFrame(rows)
 
 
@@ -97,6 +98,10 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
     assert not one.loc["a3c", "passed"] and one.loc["a3c", "why"] == "1 seed(s), item 1 needs 3"
     assert "| a3c | Straight | 1 |" in science.verdict_markdown(one.reset_index())
     assert "not shown" in science.verdict_markdown(one.reset_index())
+    grid = science.grid_markdown(table, "return", 1, refs)
+    assert "| *autopilot* | 1000.0 [1000.0, 1000.0] |" in grid
+    assert "| *best degenerate* | 300.0 (always-forward) |" in grid
+    assert "| *best degenerate* | 0.10 (always-forward) |" in science.grid_markdown(table, "goal", 1, refs)
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
 
