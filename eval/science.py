@@ -83,9 +83,12 @@ def fmt(metric: str, mean: float, lo: float, hi: float, n: int | None = None,
 
 def _row(scenario, env, kind, name, metric, values) -> dict:
     mean, lo, hi, n = bootstrap_ci(values)
+    cell = fmt(metric, mean, lo, hi, n, len(values))
+    if kind == "algorithm" and n == 1 and np.isfinite(mean):  # one seed: no interval to show
+        cell = f"{mean:.{DIGITS.get(metric, 3)}f} (1 seed)"
     return {"scenario": int(scenario), "env": env, "title": env_title(env), "kind": kind,
             "name": name, "metric": metric, "mean": mean, "ci_low": lo, "ci_high": hi, "n": n,
-            "cell": fmt(metric, mean, lo, hi, n, len(values))}
+            "cell": cell}
 
 
 def seed_table(seeds: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.DataFrame:
