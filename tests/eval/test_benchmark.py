@@ -156,7 +156,9 @@ def test_ray_address_that_does_not_answer_fails_within_seconds(tmp_path):
                  ["train", "--algo", "ppo", "--pbt", "2", "--out", str(tmp_path / "p")]):
         start = time.monotonic()
         done = cosim([*args, "--ray-address", f"127.0.0.1:{port}"], timeout=60)
-        assert time.monotonic() - start < 20  # python + torch imports included; Ray itself retries ~60 s
+        # python + torch imports included (25 s seen on a loaded 2-core machine, nice 10);
+        # Ray's own retry would take ~60 s and the call's timeout is 60
+        assert time.monotonic() - start < 45
         assert done.returncode == 1, done.stderr
         assert f"no Ray cluster answers at 127.0.0.1:{port}" in done.stderr
         assert "ray start --head" in done.stderr
