@@ -205,15 +205,15 @@ def _write(df: pd.DataFrame, path: Path) -> None:
     tmp.replace(path)
 
 
-def test(plan: BenchmarkPlan, study: dict, out: Path, say,
-         seeds_of: dict[str, int] | None = None) -> pd.DataFrame:
-    """Held-out records of every (env, training seed), from the cache where present."""
+def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, int]) -> pd.DataFrame:
+    """Held-out records of every (env, training seed < seeds_of[env]), from the cache where
+    present."""
     from eval.protocol import ProtocolPlan, policy_factory, run_protocol
 
     t = study["test"]
     frames = []
     for env in plan.envs:
-        for seed in range(seeds_of[env] if seeds_of else plan.seeds):
+        for seed in range(seeds_of[env]):
             path = out / "test" / f"{env}__seed{seed}.parquet"
             if not path.exists():
                 start = time.monotonic()
@@ -320,10 +320,9 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
 
 # -- 4. results -------------------------------------------------------------------------------
 def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.DataFrame,
-            out: Path, command: str, seeds_of: dict[str, int] | None = None) -> str:
+            out: Path, command: str, seeds_of: dict[str, int]) -> str:
     """Every results file; returns summary.md's text. ``seeds_of``: training seeds per
-    environment where they differ (a --combine'd study), else ``plan.seeds`` each."""
-    seeds_of = seeds_of or {e: plan.seeds for e in plan.envs}
+    environment (``plan.seeds`` each, except in a --combine'd study)."""
     from eval.protocol import ProtocolPlan
     from eval.report import per_episode, provenance, write_paper_report
 
@@ -413,7 +412,6 @@ def main(argv=None) -> int:
     start = time.monotonic()
     try:
         out = args.out.resolve()
-        seeds_of = None
         if args.combine:
             plan, study, seeds_of = combine(args.combine, out, say)
         else:
@@ -424,6 +422,7 @@ def main(argv=None) -> int:
             study = study_plan(args, plan)
             check_plan(out, study)
             train(args, plan, out / "bench", say)
+            seeds_of = {e: plan.seeds for e in plan.envs}
         records = test(plan, study, out, say, seeds_of)
         refs = references(plan, study, out, say)
         command = "python bench/science.py " + " ".join(sys.argv[1:] if argv is None else argv)

@@ -46,10 +46,10 @@ NAMES = {"return": "return", "goal": "goal rate", "DISTANCE": "DISTANCE (m)",
          "TTFC": "TTFC (s)", "SPEED": "SPEED (km/h)"}
 DIGITS = {"return": 1, "goal": 2, "DISTANCE": 1, "TTFC": 2, "SPEED": 1}
 VERDICT_SCENARIO = 1
+"""The references run under Scenario 1 conditions (every AC in the traffic)."""
 MIN_SEEDS = 3
 """Issue 14, item 1 asks for 3 training seeds: with fewer the verdict is 'not shown', whatever
 the (then degenerate or two-point) bootstrap interval says."""
-"""The references run under Scenario 1 conditions (every AC in the traffic)."""
 NORM_LOW, NORM_HIGH = "random", "autopilot"
 """The IQM's normalisation: uniform random over Discrete(9) scores 0, the autopilot 1."""
 WINDOW = 20
@@ -112,6 +112,14 @@ def reference_table(refs: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.
 
 
 # -- verdict -------------------------------------------------------------------------------
+def degenerate_means(references: pd.DataFrame, env: str, metric: str,
+                     degenerate: Sequence[str] = tuple(DEGENERATE)) -> dict[str, float]:
+    """Mean ``metric`` of every degenerate reference run in ``env`` (name -> value)."""
+    r = references[(references["env"] == env) & (references["metric"] == metric)
+                   & references["name"].isin(degenerate)]
+    return dict(zip(r["name"], r["mean"].astype(float), strict=True))
+
+
 def verdict(table: pd.DataFrame, references: pd.DataFrame,
             degenerate: Sequence[str] = tuple(DEGENERATE), min_seeds: int = MIN_SEEDS
             ) -> pd.DataFrame:
@@ -123,7 +131,6 @@ def verdict(table: pd.DataFrame, references: pd.DataFrame,
     for each (name and value), return_ok, goal_ok, seeds_ok, passed, why (what failed, or '').
     """
     t = table[(table["kind"] == "algorithm") & (table["scenario"] == VERDICT_SCENARIO)]
-    refs = references[references["name"].isin(degenerate)].set_index(["env", "name", "metric"])
     rows = []
     for (algo, env), g in t.groupby(["name", "env"], sort=False):
         g = g.set_index("metric")
@@ -131,8 +138,7 @@ def verdict(table: pd.DataFrame, references: pd.DataFrame,
         why = []
         for m in ("return", "goal"):
             mean, lo, hi = (float(g.loc[m, c]) for c in ("mean", "ci_low", "ci_high"))
-            env_refs = {name: float(refs.loc[(env, name, m), "mean"]) for name in degenerate
-                        if (env, name, m) in refs.index}
+            env_refs = degenerate_means(references, env, m, degenerate)
             if not env_refs:
                 raise ValueError(f"no degenerate reference for {env} ({m}); run the references first")
             best = max(env_refs, key=env_refs.get)
@@ -340,15 +346,11 @@ def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCEN
         r = references[references["metric"] == metric].set_index(["name", "env"])["cell"]
         rows += [[f"*{n}*"] + [r.get((n, e), "") for e in envs] for n in reference_names
                  if any((n, e) in r.index for e in envs)]
-        means = references[(references["metric"] == metric)
-                           & references["name"].isin(DEGENERATE)].set_index(["env", "name"])["mean"]
         best = []
         for e in envs:
-            if e in means.index.get_level_values("env"):
-                name = means.loc[e].idxmax()
-                best.append(f"{means.loc[(e, name)]:.{DIGITS.get(metric, 3)}f} ({name})")
-            else:
-                best.append("")
+            means = degenerate_means(references, e, metric)
+            name = max(means, key=means.get) if means else None
+            best.append(f"{means[name]:.{DIGITS.get(metric, 3)}f} ({name})" if name else "")
         if any(best):
             rows.append(["*best degenerate*", *best])
     return _md(["algorithm", *[env_title(e) for e in envs]], rows)
