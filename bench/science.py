@@ -79,6 +79,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--agents", type=int, default=None,
                    help="ACs each training run drives (default: the preset's; the test always "
                         "drives one AC per algorithm)")
+    p.add_argument("--collisions", choices=["end", "continue"], default=None,
+                   help="training episodes at a collision: end (default, the paper's) or continue "
+                        "(the test's rule); the test never ends them")
     p.add_argument("--episodes", type=int, default=None,
                    help="test episodes per environment and seed (default: the preset's test)")
     p.add_argument("--test-steps", type=int, default=None, help="steps per test episode")
@@ -95,7 +98,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     given = {k for k, v in vars(args).items() if v is not None}
-    study_options = given & {"preset", "envs", "algos", "seeds", "steps", "agents", "episodes",
+    study_options = given & {"preset", "envs", "algos", "seeds", "steps", "agents", "collisions", "episodes",
                              "test_steps", "scenarios", "concurrent", "ray_address"}
     if args.combine and (study_options or args.smoke):
         p.error("--combine takes the studies' own settings; drop --"
@@ -163,6 +166,8 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
         cmd += ["--steps", str(plan.steps)]
     if plan.agents:
         cmd += ["--agents", str(plan.agents)]
+    if plan.collisions:
+        cmd += ["--collisions", plan.collisions]
     if saved.exists():
         cmd.append("--resume")
     if args.no_ray:
@@ -247,7 +252,7 @@ def references(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame
 
 
 # -- combining finished studies ---------------------------------------------------------------
-COMBINED_KEYS = ("preset", "algos", "steps", "agents")
+COMBINED_KEYS = ("preset", "algos", "steps", "agents", "collisions")
 """What the studies combined must share (with their whole test plan)."""
 
 
@@ -285,7 +290,8 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
             seeds_of[env] = int(b["seeds"])
     envs = [e for e in science.ENVS if e in seeds_of] + sorted(set(seeds_of) - set(science.ENVS))
     plan = BenchmarkPlan(preset=b0["preset"], envs=tuple(envs), algos=tuple(b0["algos"]),
-                         seeds=max(seeds_of.values()), steps=b0["steps"], agents=b0.get("agents"))
+                         seeds=max(seeds_of.values()), steps=b0["steps"], agents=b0.get("agents"),
+                         collisions=b0.get("collisions"))
     saved = out / "science.json"
     if saved.exists() and "combined" not in json.loads(saved.read_text()):
         raise ScienceError(f"{out} holds a study of its own; choose another --out for the "
@@ -349,6 +355,8 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     b = plan.to_dict()
     budget = f", {b['steps']} steps per trial" if b["steps"] else ""
     budget += f", {plan.agents} ACs per training run" if plan.agents else ""
+    budget += (", collisions do not end training episodes (`--collisions continue`)"
+               if plan.collisions == "continue" else "")
     counts = sorted(set(seeds_of.values()))
     per_env = (f"{counts[0]} seed(s)" if len(counts) == 1 else "seeds per environment: " + ", ".join(
         f"{env_title(e)} {seeds_of[e]}" for e in plan.envs))
@@ -417,7 +425,7 @@ def main(argv=None) -> int:
         else:
             plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs),
                                  algos=tuple(args.algos), seeds=args.seeds, steps=args.steps,
-                                 agents=args.agents)
+                                 agents=args.agents, collisions=args.collisions)
             plan.cells()  # an unknown preset or environment fails here, before any work
             study = study_plan(args, plan)
             check_plan(out, study)

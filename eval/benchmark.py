@@ -81,6 +81,9 @@ class BenchmarkPlan:
     """Environment steps per trial (default: the preset's, per algorithm)."""
     agents: int | None = None
     """ACs each trial trains (default: the preset's)."""
+    collisions: str | None = None
+    """Training episodes at a collision: None ("end", the paper's) or "continue" (the test's
+    rule; eval/config.py TrainConfig.collisions_end_episode)."""
 
     def __post_init__(self):
         unknown = sorted(set(self.algos) - set(ALGORITHMS))
@@ -92,18 +95,23 @@ class BenchmarkPlan:
             raise BenchmarkError("--envs: name at least one environment")
         if self.agents is not None and self.agents < 1:
             raise BenchmarkError(f"--agents must be >= 1, got {self.agents}")
+        if self.collisions not in (None, "end", "continue"):
+            raise BenchmarkError(f"--collisions must be end or continue, got {self.collisions!r}")
+        if self.collisions == "end":  # the default, stored as unset so that saved plans match
+            object.__setattr__(self, "collisions", None)
 
     def cells(self) -> list[TrainConfig]:
         """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
         return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, agents=self.agents,
-                            torch_threads=1)
+                            torch_threads=1, collisions=self.collisions or "end")
                 for env in self.envs for algo in self.algos for seed in range(self.seeds)]
 
     def to_dict(self) -> dict[str, Any]:
         plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
                 "seeds": self.seeds, "steps": self.steps}
-        # only when set: a plan saved before --agents existed still reads back as equal
-        return plan if self.agents is None else {**plan, "agents": self.agents}
+        # only when set: a plan saved before --agents / --collisions existed still reads back as equal
+        extra = {k: v for k, v in (("agents", self.agents), ("collisions", self.collisions)) if v is not None}
+        return {**plan, **extra}
 
 
 def cell_name(cfg: TrainConfig | dict) -> str:

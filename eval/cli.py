@@ -123,6 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
                    help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
                         "preset's, 1 = the paper's single frame); tests of the run stack K too")
+    t.add_argument("--collisions", choices=["end", "continue"], default="end",
+                   help="end: a collision ends the AC's training episode (the paper's); continue: "
+                        "as in the test, the episode goes on and each contact step is charged")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",
@@ -213,6 +216,8 @@ def _benchmark_parser(sub) -> None:
                    help="environment steps per trial (default: the preset's)")
     b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
                    help="ACs each trial trains (default: the preset's, 6 for quick/standard/paper)")
+    b.add_argument("--collisions", choices=["end", "continue"], default=None,
+                   help="training episodes at a collision (as `cosim train --collisions`; default end)")
     b.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
     b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",

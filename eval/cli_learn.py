@@ -30,7 +30,7 @@ def cmd_train(args) -> int:
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
                         hyper=hyper, envs=args.envs,
                         device=args.device, torch_threads=args.torch_threads, frame_stack=args.frame_stack,
-                        learner_threads=args.learner_threads)
+                        learner_threads=args.learner_threads, collisions=args.collisions)
             for a in algos
         ]
     except TrainError as exc:
@@ -52,7 +52,7 @@ def cmd_train(args) -> int:
     failed = []
     base = [sys.executable, "-m", "eval.cli", "train", "--env", args.env, "--preset", args.preset,
             "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
-            "--torch-threads", str(args.torch_threads)]
+            "--torch-threads", str(args.torch_threads), "--collisions", args.collisions]
     if args.agents is not None:
         base += ["--agents", str(args.agents)]
     if args.steps is not None:
@@ -103,7 +103,7 @@ def _train_pbt(args) -> int:
                               seed=args.seed, action_type=args.action_type,
                               agent_preset=args.agent_preset, hyper=parse_set(args.hyper),
                               envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
-                              frame_stack=args.frame_stack)
+                              frame_stack=args.frame_stack, collisions=args.collisions)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:
@@ -219,7 +219,8 @@ def cmd_benchmark(args) -> int:
         print(f"cosim benchmark: error: {INSTALL_HINT}", file=sys.stderr)
         return 2
     plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos),
-                         seeds=args.seeds, steps=args.steps, agents=args.agents)
+                         seeds=args.seeds, steps=args.steps, agents=args.agents,
+                         collisions=args.collisions)
     cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
     output_folder(args.out, "--out")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))

@@ -64,6 +64,11 @@ class TrainConfig:
     """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
     1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)
     and every test of a checkpoint does too, read from its observation shape."""
+    collisions_end_episode: bool = True
+    """A collision ends the AC's training episode (True: the paper's training protocol). False
+    (``--collisions continue``): as in the test, the car stays where it hit and pays the
+    collision reward every step it stays in contact, until the goal, leaving the road or the
+    horizon (README "Training")."""
 
     @property
     def action_type(self) -> str:
@@ -78,13 +83,15 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 image_size: int = 84, agent_preset: str | None = None,
                 hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
                 torch_threads: int = 0, frame_stack: int | None = None,
-                learner_threads: int = 0) -> TrainConfig:
+                learner_threads: int = 0, collisions: str = "end") -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
     (``cosim train --set actor_learning_rate=1e-4``). ``envs`` and ``frame_stack``
     default to the preset's (for A3C and IMPALA ``envs`` defaults to the preset's
     ``workers``: A3C runs one learner thread per environment, IMPALA acts in all).
+    ``collisions``: "end" (a collision ends the AC's training episode, the paper's) or
+    "continue" (the test's rule: the episode goes on and every contact step is charged).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -123,6 +130,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
         raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
                          f"{envs}, {torch_threads} and {learner_threads}")
+    if collisions not in ("end", "continue"):
+        raise TrainError(f"--collisions must be end or continue, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
     config_cls = registry.get_agent_class(algo).config_class
@@ -137,6 +146,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
         image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
         torch_threads=int(torch_threads), frame_stack=frame_stack, learner_threads=int(learner_threads),
+        collisions_end_episode=collisions == "end",
     )
 
 

@@ -250,7 +250,8 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
 
 def make_env(cfg_dict: dict, worker_seed: int | None = None):
     """Build the training env of a config (top-level, so worker processes can pickle it);
-    with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack)."""
+    with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack);
+    collisions end an AC's episode unless ``collisions_end_episode`` is off."""
     from cosim.env import CosimParallelEnv
     from cosim.wrappers import FrameStack
 
@@ -258,7 +259,7 @@ def make_env(cfg_dict: dict, worker_seed: int | None = None):
     env = CosimParallelEnv(
         cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
-        horizon=cfg.horizon, terminate_on_collision=True,
+        horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
     )
     return FrameStack(env, cfg.frame_stack) if cfg.frame_stack > 1 else env
 

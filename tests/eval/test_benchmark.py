@@ -116,6 +116,20 @@ def test_plan_agents_reach_every_trial_and_old_plans_still_match():
         BenchmarkPlan(agents=0)
 
 
+def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
+    from eval.benchmark import BenchmarkError, BenchmarkPlan
+
+    grid = {"preset": "quick", "envs": ("env_4",), "algos": ("dqn", "td3"), "seeds": 2}
+    base, cont = BenchmarkPlan(**grid), BenchmarkPlan(**grid, collisions="continue")
+    assert {c.collisions_end_episode for c in base.cells()} == {True}
+    assert {c.collisions_end_episode for c in cont.cells()} == {False} and len(cont.cells()) == 4
+    assert BenchmarkPlan(**grid, collisions="end") == base  # the default, also when named
+    assert "collisions" not in base.to_dict()
+    assert cont.to_dict() == {**base.to_dict(), "collisions": "continue"}
+    with pytest.raises(BenchmarkError, match="--collisions must be end or continue"):
+        BenchmarkPlan(collisions="stop")
+
+
 def test_commands_without_a_grid_never_import_ray():
     code = ("import sys, eval.cli, eval.benchmark, eval.pbt, eval.raysession; "
             "eval.cli.build_parser().parse_args(['benchmark', '--no-ray']); "

@@ -265,8 +265,14 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
     assert json.loads((both / "science.json").read_text())["benchmark"]["seeds"] == {
         "env_1": 2, "env_2": 1}
 
-    # an environment twice, a study's own folder as the output, or study options: refused
+    # an environment twice, a study's own folder as the output, a study trained under another
+    # collision rule, or study options: refused
+    _as_env(study, tmp_path / "s3", "env_3", seeds=1)
+    plan3 = json.loads((tmp_path / "s3" / "science.json").read_text())
+    plan3["benchmark"]["collisions"] = "continue"
+    (tmp_path / "s3" / "science.json").write_text(json.dumps(plan3))
     for extra, words in (([str(study), str(study)], "env_1 is in two"),
+                         ([str(study), str(tmp_path / "s3")], "in collisions;"),
                          ([str(tmp_path / "s2"), "--out", str(study)], "holds a study of its own"),
                          ([str(study), "--seeds", "2"], "drop --seeds")):
         bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x"),

@@ -1,5 +1,5 @@
-"""`cosim train --envs/--device/--torch-threads/--frame-stack`: recorded in the config, bad
-values refused."""
+"""`cosim train --envs/--device/--torch-threads/--frame-stack/--collisions`: recorded in the
+config, bad values refused."""
 
 import pytest
 
@@ -29,6 +29,7 @@ def test_a3c_and_impala_take_envs_and_default_to_the_presets_workers():
     ({"algo": "td3", "device": "tpu"}, "--device"),
     ({"algo": "ppo", "torch_threads": -1}, "--torch-threads"),
     ({"algo": "dqn", "frame_stack": 0}, "--frame-stack must be >= 1"),
+    ({"algo": "ppo", "collisions": "stop"}, "--collisions must be end or continue"),
 ])
 def test_bad_values_are_refused_naming_the_option(kwargs, match):
     algo = kwargs.pop("algo")
@@ -74,3 +75,43 @@ def test_the_preset_gives_envs_and_frame_stack_unless_the_command_does(monkeypat
     assert (cfg.envs, cfg.frame_stack) == (2, 2)
     assert make_config("a3c", "env_1", "quick").frame_stack == 2
     assert (make_config("ppo", "env_1", "quick", envs=1, frame_stack=1).envs, cfg.preset) == (1, "quick")
+
+
+def _ram(cfg) -> list[tuple[bool, bool, float]]:
+    """Drive the training env's ac_0 full throttle into a car placed 14 m ahead: per step
+    (collision, terminated, reward) until the episode ends or 40 steps pass."""
+    import numpy as np
+
+    from eval.train import make_env
+
+    env = make_env(cfg.to_dict())
+    try:
+        env.reset(seed=0)
+        x, y, h, _ = env.world.ac_state("ac_0")
+        env.world.bridge.place_car("target", x + 14 * np.cos(h), y + 14 * np.sin(h), h, "st_e")
+        out = []
+        for _ in range(40):
+            _, rew, term, trunc, info = env.step({"ac_0": np.array([1.0, 0.0], np.float32)})
+            out.append((bool(info["ac_0"]["collision_vehicle"]), bool(term["ac_0"]), float(rew["ac_0"])))
+            if term["ac_0"] or trunc["ac_0"]:
+                break
+        return out
+    finally:
+        env.close()
+
+
+def test_collisions_continue_trains_under_the_test_rule():
+    """`--collisions continue`: the AC's training episode goes on after it hits a car and every
+    contact step is charged, as in the test; the default ends it at the first hit (the paper's)."""
+    paper = make_config("ddpg", "env_1", "smoke", agents=1)
+    assert paper.collisions_end_episode and paper.to_dict()["collisions_end_episode"] is True
+    ended = _ram(paper)
+    assert ended[-1][:2] == (True, True) and sum(hit for hit, _, _ in ended) == 1
+    cfg = make_config("ddpg", "env_1", "smoke", agents=1, collisions="continue")
+    assert cfg.to_dict()["collisions_end_episode"] is False
+    going = _ram(cfg)
+    first = next(i for i, (hit, _, _) in enumerate(going) if hit)
+    assert first == len(ended) - 1  # the same world up to the hit
+    assert len(going) == 40 and not any(term for _, term, _ in going)
+    contact = [rew for hit, _, rew in going[first:] if hit]
+    assert len(contact) >= 2 and all(r < 0 for r in contact)  # charged again while in contact
