@@ -6,11 +6,15 @@ beside the reference rows, with confidence intervals over seeds.
     python bench/science.py --smoke --out /tmp/s # the CI version: env_1, PPO + DQN, 2 seeds
     python bench/science.py --envs env_2 env_3 --seeds 1 --out s23   # a part of the grid
     python bench/science.py --combine s1 s23 s45 --out all             # one table over the parts
+    python bench/science.py --envs env_5 --seeds 1 --runs b1 b2 --out s5  # runs trained elsewhere
 
 Stages, each resumable (rerun the same command after an interruption):
 
 1. training: ``cosim benchmark --train-only`` into ``OUT/bench`` (``--resume`` when that
-   folder holds a benchmark; skipped when every run is finished);
+   folder holds a benchmark; skipped when every run is finished); with ``--runs`` the
+   finished runs of other ``cosim benchmark --train-only`` folders (say two processes of
+   three algorithms each, one per core) are linked in instead, once their configs are
+   checked against the plan's;
 2. test: per (environment, training seed) the test protocol (eval/protocol.py) with that
    seed's checkpoints on episode seeds from eval.validity.HELD_OUT_SEED (10,000; training
    uses small seeds), saved as ``OUT/test/<env>__seed<k>.parquet``;
@@ -95,11 +99,14 @@ def parse(argv=None) -> argparse.Namespace:
                    help="instead of running a study: gather finished studies of different "
                         "environments (same algorithms, preset and test) into --out and write "
                         "the results over all of them")
+    p.add_argument("--runs", nargs="+", type=Path, default=None, metavar="BENCH",
+                   help="instead of training: link this study's finished runs from these "
+                        "`cosim benchmark --train-only` folders (checked against the plan)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     given = {k for k, v in vars(args).items() if v is not None}
     study_options = given & {"preset", "envs", "algos", "seeds", "steps", "agents", "collisions", "episodes",
-                             "test_steps", "scenarios", "concurrent", "ray_address"}
+                             "test_steps", "scenarios", "concurrent", "ray_address", "runs"}
     if args.combine and (study_options or args.smoke):
         p.error("--combine takes the studies' own settings; drop --"
                 + ", --".join(sorted(k.replace("_", "-") for k in study_options) or ["smoke"]))
@@ -183,6 +190,47 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
     if done.returncode:
         raise ScienceError(f"training stopped (cosim benchmark exit {done.returncode}); rerun "
                            "the same command to continue from the finished trials")
+
+
+RESULT_KEYS = ("algo", "env", "agents", "steps", "seed", "preset", "horizon", "image_size",
+               "agent_config", "envs", "frame_stack", "collisions_end_episode")
+"""What a linked run's config.yaml must share with its cell (not devices and threads)."""
+
+
+def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
+    """Stage 1 from runs trained elsewhere: link each cell's finished run from one of the
+    ``sources`` (``cosim benchmark --train-only`` folders) into ``bench/runs`` and record the
+    plan, so that :func:`train` finds every run done."""
+    from eval.runfolder import load_run_config
+
+    links = {}
+    for cfg in plan.cells():
+        name = cell_name(cfg)
+        found = [s.resolve() / "runs" / name for s in sources if (s / "runs" / name).is_dir()]
+        if len(found) != 1:
+            where = (f"in both {found[0].parents[1]} and {found[1].parents[1]}" if found
+                     else f"in none of {', '.join(map(str, sources))}")
+            raise ScienceError(f"--runs: the finished run {name} is {where}; give each run once "
+                               "(finish it with `cosim benchmark ... --train-only --resume`)")
+        ran = load_run_config(found[0]).to_dict()
+        diff = [k for k in RESULT_KEYS if ran[k] != cfg.to_dict()[k]]
+        if diff:
+            raise ScienceError(f"--runs: {found[0]} was trained with another {', '.join(diff)} than "
+                               "this study's plan; give the study that run's options or retrain it")
+        links[name] = found[0]
+    (bench / "runs").mkdir(parents=True, exist_ok=True)
+    for name, src in links.items():
+        link = bench / "runs" / name
+        if link.is_symlink() or link.exists():
+            if link.resolve() != src.resolve():
+                raise ScienceError(f"{link} already holds another run; choose another --out")
+            continue
+        link.symlink_to(src)
+    saved = bench / "benchmark.json"
+    if saved.exists() and json.loads(saved.read_text()) != plan.to_dict():
+        raise ScienceError(f"{saved} holds another plan; choose another --out")
+    saved.write_text(json.dumps(plan.to_dict()))
+    say(f"training: {len(links)} finished runs linked from {', '.join(map(str, sources))}")
 
 
 # -- 2. test on held-out seeds ------------------------------------------------------------------
@@ -429,6 +477,8 @@ def main(argv=None) -> int:
             plan.cells()  # an unknown preset or environment fails here, before any work
             study = study_plan(args, plan)
             check_plan(out, study)
+            if args.runs:
+                adopt(plan, out / "bench", args.runs, say)
             train(args, plan, out / "bench", say)
             seeds_of = {e: plan.seeds for e in plan.envs}
         records = test(plan, study, out, say, seeds_of)

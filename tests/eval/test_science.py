@@ -278,3 +278,37 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
         bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x"),
                               "--combine", *extra], capture_output=True, text=True, cwd=ROOT)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
+
+
+def test_runs_trained_elsewhere_are_linked_instead_of_trained(smoke, tmp_path):
+    """--runs: a study takes its finished runs from `cosim benchmark --train-only` folders
+    (split across processes), after checking each run's config against the plan."""
+    import shutil
+
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    # two folders of one algorithm each, as two processes would have left them
+    for algo in ("ppo", "dqn"):
+        (tmp_path / algo / "runs").mkdir(parents=True)
+        for k in range(2):
+            name = f"env_1__{algo}__{k}__bench"
+            (tmp_path / algo / "runs" / name).symlink_to((study / "bench" / "runs" / name).resolve())
+    out = tmp_path / "linked"
+    out.mkdir()
+    for stage in ("test", "references"):  # the same held-out records: nothing to rerun
+        shutil.copytree(study / stage, out / stage)
+    linked = _run(out, "--runs", str(tmp_path / "ppo"), str(tmp_path / "dqn"))
+    assert linked.returncode == 0, linked.stderr[-2000:]
+    assert "4 finished runs linked" in linked.stderr and "training: all 4 runs finished" in linked.stderr
+    assert "cosim benchmark" not in linked.stderr and "tested" not in linked.stderr
+    assert (out / "bench" / "runs" / "env_1__dqn__1__bench").resolve() == (
+        study / "bench" / "runs" / "env_1__dqn__1__bench").resolve()
+    key = ["kind", "name", "metric", "scenario", "mean", "ci_low", "ci_high"]
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv")[key], pd.read_csv(study / "results.csv")[key])
+    # a run missing from the folders, or trained under another rule: refused, naming it
+    for extra, words in ((["--runs", str(tmp_path / "ppo")], "env_1__dqn__0__bench is in none of"),
+                         (["--runs", str(tmp_path / "ppo"), str(tmp_path / "dqn"), "--collisions",
+                           "continue"], "with another collisions_end_episode")):
+        bad = _run(tmp_path / "bad", *extra)
+        assert bad.returncode == 2 and words in bad.stderr, bad.stderr[-2000:]
+        shutil.rmtree(tmp_path / "bad")
