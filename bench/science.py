@@ -212,8 +212,9 @@ def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
                      else f"in none of {', '.join(map(str, sources))}")
             raise ScienceError(f"--runs: the finished run {name} is {where}; give each run once "
                                "(finish it with `cosim benchmark ... --train-only --resume`)")
-        ran = load_run_config(found[0]).to_dict()
-        diff = [k for k in RESULT_KEYS if ran[k] != cfg.to_dict()[k]]
+        # through JSON: config.yaml holds lists where the config holds tuples
+        ran, want = (json.loads(json.dumps(c.to_dict())) for c in (load_run_config(found[0]), cfg))
+        diff = [k for k in RESULT_KEYS if ran[k] != want[k]]
         if diff:
             raise ScienceError(f"--runs: {found[0]} was trained with another {', '.join(diff)} than "
                                "this study's plan; give the study that run's options or retrain it")
