@@ -114,9 +114,9 @@ def load_run_config(run: Path) -> TrainConfig:
     for key, f in fields.items():
         if key not in data or key == "algo":
             continue
-        kind = {"int": int, "str": str, "dict[str, Any]": dict}.get(str(f.type), object)
+        kind = {"int": int, "str": str, "bool": bool, "dict[str, Any]": dict}.get(str(f.type), object)
         value = data[key]
-        if not isinstance(value, kind) or isinstance(value, bool):
+        if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
             raise TrainError(f"{path}: '{key}' must be {kind.__name__}, got {value!r}; {fix}")
     cfg = TrainConfig(**data)
     if min(cfg.agents, cfg.steps, cfg.horizon, cfg.checkpoint_every, cfg.workers, cfg.image_size) < 1:

@@ -115,3 +115,21 @@ def test_collisions_continue_trains_under_the_test_rule():
     assert len(going) == 40 and not any(term for _, term, _ in going)
     contact = [rew for hit, _, rew in going[first:] if hit]
     assert len(contact) >= 2 and all(r < 0 for r in contact)  # charged again while in contact
+
+
+def test_a_continue_run_config_reads_back_and_a_bad_flag_is_refused(tmp_path):
+    """config.yaml of a `--collisions continue` run loads again (resume, tests, --runs); a
+    value that is not true/false is refused naming the key."""
+    import yaml
+
+    from eval.runfolder import load_run_config
+
+    cfg = make_config("dqn", "env_1", "smoke", agents=1, collisions="continue")
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+    assert load_run_config(tmp_path).collisions_end_episode is False
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({**cfg.to_dict(), "collisions_end_episode": "no"}))
+    with pytest.raises(TrainError, match="'collisions_end_episode' must be bool"):
+        load_run_config(tmp_path)
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({**cfg.to_dict(), "agents": True}))
+    with pytest.raises(TrainError, match="'agents' must be int"):
+        load_run_config(tmp_path)
