@@ -28,9 +28,9 @@ def cmd_train(args) -> int:
         configs = [
             make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
-                        hyper=hyper, envs=args.envs,
-                        device=args.device, torch_threads=args.torch_threads, frame_stack=args.frame_stack,
-                        learner_threads=args.learner_threads, collisions=args.collisions)
+                        hyper=hyper, envs=args.envs, device=args.device, collisions=args.collisions,
+                        torch_threads=args.torch_threads, frame_stack=args.frame_stack,
+                        learner_threads=args.learner_threads)
             for a in algos
         ]
     except TrainError as exc:
@@ -218,9 +218,8 @@ def cmd_benchmark(args) -> int:
     if not args.no_ray and not ray_available():
         print(f"cosim benchmark: error: {INSTALL_HINT}", file=sys.stderr)
         return 2
-    plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos),
-                         seeds=args.seeds, steps=args.steps, agents=args.agents,
-                         collisions=args.collisions)
+    plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos), seeds=args.seeds,
+                         steps=args.steps, agents=args.agents, collisions=args.collisions)
     cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
     output_folder(args.out, "--out")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
