@@ -133,3 +133,14 @@ def test_a_continue_run_config_reads_back_and_a_bad_flag_is_refused(tmp_path):
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({**cfg.to_dict(), "agents": True}))
     with pytest.raises(TrainError, match="'agents' must be int"):
         load_run_config(tmp_path)
+
+
+def test_cosim_train_collisions_continue_reaches_the_run_config(tmp_path):
+    import yaml
+
+    from eval.cli import main
+
+    assert main(["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "4",
+                 "--collisions", "continue", "--out", str(tmp_path), "--quiet"]) == 0
+    (run,) = tmp_path.iterdir()
+    assert yaml.safe_load((run / "config.yaml").read_text())["collisions_end_episode"] is False
