@@ -50,6 +50,7 @@ import pandas as pd  # noqa: E402
 from cosim.errors import CosimError  # noqa: E402
 from eval import science  # noqa: E402
 from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, cell_name  # noqa: E402
+from eval.config import COLLISION_RULES  # noqa: E402
 from eval.presets import load_presets  # noqa: E402
 from eval.protocol import ProtocolPlan, rules  # noqa: E402
 from eval.report import env_title  # noqa: E402
@@ -83,7 +84,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--agents", type=int, default=None,
                    help="ACs each training run drives (default: the preset's; the test always "
                         "drives one AC per algorithm)")
-    p.add_argument("--collisions", choices=["end", "continue"], default=None,
+    p.add_argument("--collisions", choices=COLLISION_RULES, default=None,
                    help="training episodes at a collision: end (default, the paper's) or continue "
                         "(the test's rule); the test never ends them")
     p.add_argument("--episodes", type=int, default=None,
@@ -192,9 +193,9 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
                            "the same command to continue from the finished trials")
 
 
-RESULT_KEYS = ("algo", "env", "agents", "steps", "seed", "preset", "horizon", "image_size",
-               "agent_config", "envs", "frame_stack", "collisions_end_episode")
-"""What a linked run's config.yaml must share with its cell (not devices and threads)."""
+HOW_KEYS = ("device", "torch_threads", "learner_threads")
+"""Config keys a linked run may differ in from its cell: where and on how many threads it
+ran, not what it learned from (every other key must match)."""
 
 
 def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
@@ -214,7 +215,7 @@ def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
                                "(finish it with `cosim benchmark ... --train-only --resume`)")
         # through JSON: config.yaml holds lists where the config holds tuples
         ran, want = (json.loads(json.dumps(c.to_dict())) for c in (load_run_config(found[0]), cfg))
-        diff = [k for k in RESULT_KEYS if ran[k] != want[k]]
+        diff = [k for k in want if k not in HOW_KEYS and ran[k] != want[k]]
         if diff:
             raise ScienceError(f"--runs: {found[0]} was trained with another {', '.join(diff)} than "
                                "this study's plan; give the study that run's options or retrain it")

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import CosimError
+from eval.config import COLLISION_RULES
 from eval.train import ALGORITHMS, TrainConfig, make_config, train
 from eval.validity import POLICIES
 
@@ -95,7 +96,7 @@ class BenchmarkPlan:
             raise BenchmarkError("--envs: name at least one environment")
         if self.agents is not None and self.agents < 1:
             raise BenchmarkError(f"--agents must be >= 1, got {self.agents}")
-        if self.collisions not in (None, "end", "continue"):
+        if self.collisions is not None and self.collisions not in COLLISION_RULES:
             raise BenchmarkError(f"--collisions must be end or continue, got {self.collisions!r}")
         if self.collisions == "end":  # the default, stored as unset so that saved plans match
             object.__setattr__(self, "collisions", None)

@@ -98,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.set_defaults(func=cli_sim.cmd_nets)
 
     from agents.registry import ALGORITHMS, DISCRETE  # the catalogue (no algorithm imported)
+    from eval.config import COLLISION_RULES
     from eval.presets import preset_names
 
     t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
@@ -123,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
                    help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
                         "preset's, 1 = the paper's single frame); tests of the run stack K too")
-    t.add_argument("--collisions", choices=["end", "continue"], default="end",
+    t.add_argument("--collisions", choices=COLLISION_RULES, default="end",
                    help="end: a collision ends the AC's training episode (the paper's); continue: "
                         "as in the test, the episode goes on and each contact step is charged")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
@@ -203,6 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _benchmark_parser(sub) -> None:
     from agents.registry import ALGORITHMS
+    from eval.config import COLLISION_RULES
     from eval.presets import preset_names
 
     b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
@@ -216,7 +218,7 @@ def _benchmark_parser(sub) -> None:
                    help="environment steps per trial (default: the preset's)")
     b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
                    help="ACs each trial trains (default: the preset's, 6 for quick/standard/paper)")
-    b.add_argument("--collisions", choices=["end", "continue"], default=None,
+    b.add_argument("--collisions", choices=COLLISION_RULES, default=None,
                    help="training episodes at a collision (as `cosim train --collisions`; default end)")
     b.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")

@@ -19,13 +19,16 @@ from agents import registry
 from cosim.errors import CosimError
 from eval.presets import load_presets
 
-__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "CONTINUOUS_ALGOS", "DISCRETE_ALGOS", "TrainConfig", "TrainError",
-           "make_config", "parse_hyper", "parse_set"]
+__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DISCRETE_ALGOS",
+           "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
 
 ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
 DISCRETE_ALGOS = registry.DISCRETE
 CONTINUOUS_ALGOS = registry.CONTINUOUS
 ASYNC_ALGOS = registry.ASYNC
+COLLISION_RULES = ("end", "continue")
+"""``--collisions``: a collision ends the AC's training episode (the paper's, the default) or
+the episode goes on as in the test (TrainConfig.collisions_end_episode)."""
 
 
 class TrainError(CosimError, ValueError):
@@ -130,7 +133,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
         raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
                          f"{envs}, {torch_threads} and {learner_threads}")
-    if collisions not in ("end", "continue"):
+    if collisions not in COLLISION_RULES:
         raise TrainError(f"--collisions must be end or continue, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
