@@ -18,7 +18,8 @@ thread per trial in both cases, so PPO, DQN, DDPG and TD3 give the same weights
 either way (A3C's learner threads apply their updates in no fixed order: with more
 than one environment it is not bit-reproducible).
 A finished cell is never trained again: ``--resume`` continues an interrupted
-benchmark from each unfinished trial's last checkpoint.
+benchmark from each unfinished trial's last checkpoint, and ``--resume`` with a larger
+``--seeds`` adds the new seeds to a finished benchmark (nothing else may change).
 """
 
 from __future__ import annotations
@@ -199,21 +200,48 @@ def _export(run: Path, dest: Path, move: bool = False) -> None:
     tmp.rename(dest)
 
 
-def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> None:
+def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> bool:
+    """Check ``out`` against the saved plan and save this one.
+
+    Returns:
+        True when ``--resume`` raises ``--seeds`` of a finished benchmark (the new seeds
+        train; the finished cells stay), False otherwise.
+    """
     out.mkdir(parents=True, exist_ok=True)
     saved = out / "benchmark.json"
+    more_seeds = False
     if resume:
         if not saved.exists():
             raise BenchmarkError(f"--resume: {out} holds no benchmark (no benchmark.json); "
                                  "start one without --resume")
         old = json.loads(saved.read_text())
-        if old != plan.to_dict():
+        more_seeds = _adds_seeds(old, plan)
+        if old != plan.to_dict() and not more_seeds:
             raise BenchmarkError(f"--resume: {saved} was started with {old}; repeat those options "
-                                 "(or drop --resume and choose another --out)")
+                                 "(or drop --resume and choose another --out; only --seeds may grow)")
+        if more_seeds:
+            unfinished = [name for name in _saved_cells(old, plan) if not (out / "runs" / name).exists()]
+            if unfinished:
+                raise BenchmarkError(f"--resume --seeds {plan.seeds}: {len(unfinished)} trial(s) of the "
+                                     f"saved {old['seeds']}-seed benchmark are unfinished ({unfinished[0]}, ...); "
+                                     f"finish them first with --resume --seeds {old['seeds']}")
     elif saved.exists():
         raise BenchmarkError(f"{out} already holds a benchmark; continue it with --resume or "
                              "choose another --out")
     saved.write_text(json.dumps(plan.to_dict(), indent=2))
+    return more_seeds
+
+
+def _adds_seeds(old: dict, plan: BenchmarkPlan) -> bool:
+    """Whether ``plan`` is the saved plan ``old`` with more seeds and nothing else changed."""
+    new = plan.to_dict()
+    return (isinstance(old.get("seeds"), int) and new["seeds"] > old["seeds"]
+            and {**old, "seeds": new["seeds"]} == new)
+
+
+def _saved_cells(old: dict, plan: BenchmarkPlan) -> list[str]:
+    """Cell names of the saved plan ``old`` (``plan`` with the saved seed count)."""
+    return [cell_name(c) for c in plan.cells() if c.seed < old["seeds"]]
 
 
 def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
@@ -261,22 +289,29 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
 
     out = Path(out).resolve()
     with ray_session(address):
-        _prepare(plan, out, resume)
+        more_seeds = _prepare(plan, out, resume)
         from ray import tune
 
         cells = plan.cells()
+        finished = {cell_name(c): out / "runs" / cell_name(c) for c in cells
+                    if (out / "runs" / cell_name(c)).exists()}
+        todo = [c for c in cells if cell_name(c) not in finished]
+        if not todo:
+            return finished
         local_cpus = None if address else (os.cpu_count() or 1)
         trainable = tune.with_resources(
             _tune_trial, lambda config: trial_resources(TrainConfig(**config["cell"]), local_cpus,
                                                         gpus_per_trial))
         path = out / "tune" / "grid"
-        if resume and tune.Tuner.can_restore(str(path)):
+        if more_seeds:  # the saved grid finished (its runs are exported): a new grid of the new seeds
+            shutil.rmtree(path, ignore_errors=True)
+        if resume and not more_seeds and tune.Tuner.can_restore(str(path)):
             tuner = tune.Tuner.restore(str(path), trainable, resume_unfinished=True,
                                        resume_errored=True)
         else:
             tuner = tune.Tuner(
                 trainable,
-                param_space={"cell": tune.grid_search([c.to_dict() for c in cells]),
+                param_space={"cell": tune.grid_search([c.to_dict() for c in todo]),
                              "scratch": str(out / "trials")},
                 # a finished trial's worker takes the next trial: no process start and torch
                 # import per trial (each trial reseeds and sets its torch threads itself)
@@ -291,7 +326,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                     failure_config=tune.FailureConfig(max_failures=0)),
             )
         grid = tuner.fit()
-    return _collect(grid, cells, out)
+    return {**finished, **_collect(grid, cells, out)}
 
 
 def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:

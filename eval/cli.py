@@ -230,7 +230,8 @@ def _benchmark_parser(sub) -> None:
     b.add_argument("--train-only", action="store_true", help="train the grid, skip the test and report")
     b.add_argument("--out", type=Path, default=Path("benchmark"), help="benchmark folder")
     b.add_argument("--resume", action="store_true",
-                   help="continue an interrupted benchmark in --out without redoing finished trials")
+                   help="continue an interrupted benchmark in --out without redoing finished trials; "
+                        "with a larger --seeds, add those seeds to a finished one")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cli_learn.cmd_benchmark)
 

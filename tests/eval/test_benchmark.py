@@ -130,6 +130,54 @@ def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
         BenchmarkPlan(collisions="stop")
 
 
+def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch):
+    from eval import benchmark
+    from eval.benchmark import BenchmarkError, BenchmarkPlan, run_sequential
+
+    trained = []
+
+    def fake_train_cell(cfg, folder):  # a finished run folder without training
+        trained.append(benchmark.cell_name(cfg))
+        run = Path(folder) / "run"
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+        return run
+
+    monkeypatch.setattr(benchmark, "train_cell", fake_train_cell)
+    grid = {"preset": "smoke", "envs": ("env_1",), "algos": ("ppo", "dqn")}
+    out = tmp_path / "b"
+    run_sequential(BenchmarkPlan(**grid, seeds=1), out)
+    assert trained == ["env_1__ppo__0__bench", "env_1__dqn__0__bench"]
+    first = (out / "runs" / "env_1__ppo__0__bench" / "config.yaml").stat().st_mtime_ns
+    with pytest.raises(BenchmarkError, match="already holds a benchmark"):
+        run_sequential(BenchmarkPlan(**grid, seeds=3), out)  # without --resume
+    with pytest.raises(BenchmarkError, match="only --seeds may grow"):
+        run_sequential(BenchmarkPlan(**grid, seeds=3, agents=3), out, resume=True)
+    done = run_sequential(BenchmarkPlan(**grid, seeds=3), out, resume=True)
+    assert trained[2:] == [f"env_1__{a}__{s}__bench" for a in ("ppo", "dqn") for s in (1, 2)]
+    assert len(done) == 6 and all(path.exists() for path in done.values())
+    assert (out / "runs" / "env_1__ppo__0__bench" / "config.yaml").stat().st_mtime_ns == first
+    assert json.loads((out / "benchmark.json").read_text())["seeds"] == 3
+    # fewer seeds than saved is another plan, not a resume
+    with pytest.raises(BenchmarkError, match="only --seeds may grow"):
+        run_sequential(BenchmarkPlan(**grid, seeds=2), out, resume=True)
+
+
+def test_more_seeds_wait_for_the_saved_benchmark_to_finish(tmp_path):
+    from eval.benchmark import BenchmarkError, BenchmarkPlan, _prepare
+
+    grid = {"preset": "smoke", "envs": ("env_1",), "algos": ("ppo",)}
+    out = tmp_path / "b"
+    assert _prepare(BenchmarkPlan(**grid, seeds=2), out, resume=False) is False
+    (out / "runs" / "env_1__ppo__0__bench").mkdir(parents=True)  # seed 1 never finished
+    with pytest.raises(BenchmarkError, match=r"unfinished \(env_1__ppo__1__bench.*--resume --seeds 2"):
+        _prepare(BenchmarkPlan(**grid, seeds=3), out, resume=True)
+    assert json.loads((out / "benchmark.json").read_text())["seeds"] == 2  # left as it was
+    (out / "runs" / "env_1__ppo__1__bench").mkdir()
+    assert _prepare(BenchmarkPlan(**grid, seeds=3), out, resume=True) is True
+    assert _prepare(BenchmarkPlan(**grid, seeds=3), out, resume=True) is False  # saved now
+
+
 def test_commands_without_a_grid_never_import_ray():
     code = ("import sys, eval.cli, eval.benchmark, eval.pbt, eval.raysession; "
             "eval.cli.build_parser().parse_args(['benchmark', '--no-ray']); "
@@ -328,6 +376,22 @@ def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp):
     assert first.read_text() == finished  # the finished trial was not trained again
     for cell in ("env_1__ppo__0__bench", "env_1__dqn__0__bench"):
         assert json.loads((out / "runs" / cell / "state.json").read_text())["env_steps"] == 160
+
+
+@needs_ray
+@pytest.mark.slow
+def test_resume_with_more_seeds_on_ray_keeps_the_finished_runs(tmp_path, ray_tmp):
+    out = tmp_path / "b"
+    args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "--steps", "80",
+            "--concurrent", "1", "--train-only", "--out", str(out)]
+    assert cosim(args, ray_tmp).returncode == 0
+    state = out / "runs" / "env_1__ppo__0__bench" / "state.json"
+    before = state.stat().st_mtime_ns
+    more = cosim([*args, "--seeds", "2", "--resume"], ray_tmp)
+    assert more.returncode == 0, more.stderr[-3000:]
+    assert state.stat().st_mtime_ns == before  # seed 0 was not trained again
+    assert json.loads((out / "runs" / "env_1__ppo__1__bench" / "state.json").read_text())["env_steps"] == 80
+    assert sorted(p.name for p in (out / "tune" / "grid").iterdir() if p.is_dir()) == ["env_1__ppo__1__bench"]
 
 
 @needs_ray
