@@ -98,7 +98,7 @@ class BenchmarkPlan:
         if self.agents is not None and self.agents < 1:
             raise BenchmarkError(f"--agents must be >= 1, got {self.agents}")
         if self.collisions is not None and self.collisions not in COLLISION_RULES:
-            raise BenchmarkError(f"--collisions must be end or continue, got {self.collisions!r}")
+            raise BenchmarkError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {self.collisions!r}")
         if self.collisions == "end":  # the default, stored as unset so that saved plans match
             object.__setattr__(self, "collisions", None)
 

@@ -134,7 +134,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
                          f"{envs}, {torch_threads} and {learner_threads}")
     if collisions not in COLLISION_RULES:
-        raise TrainError(f"--collisions must be end or continue, got {collisions!r}")
+        raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
     config_cls = registry.get_agent_class(algo).config_class
