@@ -248,6 +248,9 @@ def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
                    progress: Callable[[str], None] | None = None) -> dict[str, Path]:
     """Train every cell in this process, one after another (``--no-ray``).
 
+    ``progress`` is called with each cell's name once it is trained (not for cells
+    whose run was already in ``out/runs``).
+
     Returns:
         Cell name -> finished run folder under ``out/runs``.
     """
@@ -266,9 +269,9 @@ def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
             else:
                 run = train_cell(cfg, folder)
             _export(run, dest, move=True)
+            if progress:
+                progress(name)
         done[name] = dest
-        if progress:
-            progress(name)
     return done
 
 

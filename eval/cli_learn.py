@@ -212,7 +212,7 @@ def cmd_test(args) -> int:
 def cmd_benchmark(args) -> int:
     import time
 
-    from eval.benchmark import BenchmarkPlan, run_ray, run_sequential, write_report
+    from eval.benchmark import BenchmarkPlan, cell_name, run_ray, run_sequential, write_report
     from eval.raysession import INSTALL_HINT, ray_available
 
     if not args.no_ray and not ray_available():
@@ -223,15 +223,15 @@ def cmd_benchmark(args) -> int:
     cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
     output_folder(args.out, "--out")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
-    start = time.monotonic()
-    say(f"benchmark {args.preset}: {len(cells)} trials -> {args.out}")
+    start, kept = time.monotonic(), sum((args.out / "runs" / cell_name(c)).exists() for c in cells)
+    say(f"benchmark {args.preset}: {len(cells)} trials ({kept} finished earlier, kept) -> {args.out}")
     if args.no_ray:
         runs = run_sequential(plan, args.out, resume=args.resume, progress=lambda n: say(f"trained {n}"))
     else:
         concurrent = args.concurrent or (0 if args.ray_address else (os.cpu_count() or 1))
         runs = run_ray(plan, args.out, resume=args.resume, address=args.ray_address,
                        concurrent=concurrent, gpus_per_trial=args.gpus_per_trial)
-    say(f"trained {len(runs)} trials in {time.monotonic() - start:.0f} s: {args.out / 'runs'}")
+    say(f"trained {len(runs) - kept} trials in {time.monotonic() - start:.0f} s: {args.out / 'runs'}")
     if args.train_only:
         return 0
     written = write_report(plan, args.out, command=["benchmark", *sys.argv[2:]],

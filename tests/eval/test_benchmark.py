@@ -153,14 +153,37 @@ def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch)
         run_sequential(BenchmarkPlan(**grid, seeds=3), out)  # without --resume
     with pytest.raises(BenchmarkError, match="only --seeds may grow"):
         run_sequential(BenchmarkPlan(**grid, seeds=3, agents=3), out, resume=True)
-    done = run_sequential(BenchmarkPlan(**grid, seeds=3), out, resume=True)
+    reported = []
+    done = run_sequential(BenchmarkPlan(**grid, seeds=3), out, resume=True, progress=reported.append)
     assert trained[2:] == [f"env_1__{a}__{s}__bench" for a in ("ppo", "dqn") for s in (1, 2)]
+    assert reported == trained[2:]  # the kept seed-0 runs are not reported as trained
     assert len(done) == 6 and all(path.exists() for path in done.values())
     assert (out / "runs" / "env_1__ppo__0__bench" / "config.yaml").stat().st_mtime_ns == first
     assert json.loads((out / "benchmark.json").read_text())["seeds"] == 3
     # fewer seeds than saved is another plan, not a resume
     with pytest.raises(BenchmarkError, match="only --seeds may grow"):
         run_sequential(BenchmarkPlan(**grid, seeds=2), out, resume=True)
+
+
+def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, monkeypatch, capsys):
+    from eval import benchmark
+    from eval.cli import main
+
+    def fake_train_cell(cfg, folder):
+        run = Path(folder) / "run"
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+        return run
+
+    monkeypatch.setattr(benchmark, "train_cell", fake_train_cell)
+    args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn", "--no-ray",
+            "--train-only", "--out", str(tmp_path / "b")]
+    assert main([*args, "--seeds", "1"]) == 0
+    assert "trained 2 trials" in capsys.readouterr().out
+    assert main([*args, "--seeds", "3", "--resume"]) == 0
+    out = capsys.readouterr().out
+    assert "6 trials (2 finished earlier, kept)" in out
+    assert "trained 4 trials" in out and "trained env_1__ppo__0__bench" not in out
 
 
 def test_more_seeds_wait_for_the_saved_benchmark_to_finish(tmp_path):
