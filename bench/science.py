@@ -8,7 +8,9 @@ beside the reference rows, with confidence intervals over seeds.
     python bench/science.py --combine s1 s23 s45 --out all             # one table over the parts
     python bench/science.py --envs env_5 --seeds 1 --runs b1 b2 --out s5  # runs trained elsewhere
 
-Stages, each resumable (rerun the same command after an interruption):
+Stages, each resumable (rerun the same command after an interruption). A finished study
+takes more seeds by rerunning it with a larger ``--seeds`` (nothing else changed): its runs
+and test records stay, only the new seeds are trained (or linked with ``--runs``) and tested.
 
 1. training: ``cosim benchmark --train-only`` into ``OUT/bench`` (``--resume`` when that
    folder holds a benchmark; skipped when every run is finished); with ``--runs`` the
@@ -49,7 +51,7 @@ import pandas as pd  # noqa: E402
 
 from cosim.errors import CosimError  # noqa: E402
 from eval import science  # noqa: E402
-from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, cell_name  # noqa: E402
+from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, adds_seeds, cell_name  # noqa: E402
 from eval.config import COLLISION_RULES  # noqa: E402
 from eval.presets import load_presets  # noqa: E402
 from eval.protocol import ProtocolPlan, rules  # noqa: E402
@@ -78,7 +80,8 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--preset", default=None, help=f"training budget (default: {default_preset()})")
     p.add_argument("--envs", nargs="+", default=None, help="default: env_1 .. env_5")
     p.add_argument("--algos", nargs="+", default=None, help="default: all six")
-    p.add_argument("--seeds", type=int, default=None, help="training seeds 0..K-1 (default 3)")
+    p.add_argument("--seeds", type=int, default=None,
+                   help="training seeds 0..K-1 (default 3); a larger K on a finished study adds seeds")
     p.add_argument("--steps", type=int, default=None, help="environment steps per trial "
                                                            "(default: the preset's)")
     p.add_argument("--agents", type=int, default=None,
@@ -146,16 +149,23 @@ def study_plan(args, plan: BenchmarkPlan) -> dict:
 
 
 def check_plan(out: Path, study: dict) -> None:
-    """science.json: the plan a rerun must repeat (its cached test records depend on it)."""
+    """science.json: the plan a rerun must repeat (its cached test records depend on it).
+
+    Only ``--seeds`` may grow: the finished seeds' runs and test records are kept (a seed's
+    test uses that seed's checkpoints only), the new seeds are trained and tested.
+    """
     saved = out / "science.json"
     if saved.exists():
         old = json.loads(saved.read_text())
-        if {k: old.get(k) for k in study} != study:
+        kept = {k: old.get(k) for k in study}
+        if kept == study:
+            return
+        if not (kept["test"] == study["test"] and adds_seeds(kept["benchmark"], study["benchmark"])):
             raise ScienceError(f"{out} holds a study started with {old['benchmark']} and test "
-                               f"{old['test']}; repeat those options or choose another --out")
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        saved.write_text(json.dumps(study, indent=2))
+                               f"{old['test']}; repeat those options (only --seeds may grow) "
+                               "or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    saved.write_text(json.dumps(study, indent=2))
 
 
 # -- 1. training -----------------------------------------------------------------------------
@@ -229,7 +239,8 @@ def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
             continue
         link.symlink_to(src)
     saved = bench / "benchmark.json"
-    if saved.exists() and json.loads(saved.read_text()) != plan.to_dict():
+    if saved.exists() and json.loads(saved.read_text()) != plan.to_dict() and not adds_seeds(
+            json.loads(saved.read_text()), plan):
         raise ScienceError(f"{saved} holds another plan; choose another --out")
     saved.write_text(json.dumps(plan.to_dict()))
     say(f"training: {len(links)} finished runs linked from {', '.join(map(str, sources))}")

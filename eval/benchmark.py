@@ -215,7 +215,7 @@ def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> bool:
             raise BenchmarkError(f"--resume: {out} holds no benchmark (no benchmark.json); "
                                  "start one without --resume")
         old = json.loads(saved.read_text())
-        more_seeds = _adds_seeds(old, plan)
+        more_seeds = adds_seeds(old, plan)
         if old != plan.to_dict() and not more_seeds:
             raise BenchmarkError(f"--resume: {saved} was started with {old}; repeat those options "
                                  "(or drop --resume and choose another --out; only --seeds may grow)")
@@ -232,9 +232,10 @@ def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> bool:
     return more_seeds
 
 
-def _adds_seeds(old: dict, plan: BenchmarkPlan) -> bool:
-    """Whether ``plan`` is the saved plan ``old`` with more seeds and nothing else changed."""
-    new = plan.to_dict()
+def adds_seeds(old: dict, plan: BenchmarkPlan | dict) -> bool:
+    """Whether ``plan`` (or its ``to_dict()``) is the saved plan ``old`` with more seeds and
+    nothing else changed."""
+    new = plan if isinstance(plan, dict) else plan.to_dict()
     return (isinstance(old.get("seeds"), int) and new["seeds"] > old["seeds"]
             and {**old, "seeds": new["seeds"]} == new)
 

@@ -202,11 +202,13 @@ def test_smoke_study_writes_every_result_and_resumes(smoke):
     assert {p: p.stat().st_mtime_ns for p in cached} == cached
     assert pd.read_csv(out / "verdict.csv").equals(verdict)
 
-    # other options on the same folder: refused in one line, before any work
-    other = _run(out, "--seeds", "3")
-    assert other.returncode == 2
-    assert other.stderr.strip().startswith("science: error: ") and len(other.stderr.strip().splitlines()) == 1
-    assert "repeat those options" in other.stderr
+    # other options on the same folder (fewer seeds, other episodes): refused in one line,
+    # before any work
+    for extra in (("--seeds", "1"), ("--episodes", "3")):
+        other = _run(out, *extra)
+        assert other.returncode == 2
+        assert other.stderr.strip().startswith("science: error: ") and len(other.stderr.strip().splitlines()) == 1
+        assert "repeat those options (only --seeds may grow)" in other.stderr
 
 
 def _as_env(study: Path, dest: Path, env: str, seeds: int) -> None:
@@ -278,6 +280,42 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
         bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x"),
                               "--combine", *extra], capture_output=True, text=True, cwd=ROOT)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
+
+
+def test_a_finished_study_grows_by_seeds(smoke, tmp_path):
+    """A 1-seed study rerun with --seeds 2 and --runs: seed 0's test records are kept, only
+    seed 1 is tested, and the results hold both seeds (as the 2-seed study's)."""
+    import shutil
+
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = tmp_path / "grown"
+    (out / "test").mkdir(parents=True)
+    shutil.copytree(study / "references", out / "references")
+    shutil.copy(study / "test" / "env_1__seed0.parquet", out / "test")
+    runs = tmp_path / "runs" / "runs"
+    runs.mkdir(parents=True)
+    for name in (p.name for p in (study / "bench" / "runs").iterdir()):
+        (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
+    # the 1-seed study as it was left: its plan, its seed-0 runs, its seed-0 records
+    plan = json.loads((study / "science.json").read_text())
+    plan["benchmark"]["seeds"] = 1
+    (out / "science.json").write_text(json.dumps({k: plan[k] for k in ("benchmark", "test")}))
+    (out / "bench" / "runs").mkdir(parents=True)
+    for algo in plan["benchmark"]["algos"]:
+        (out / "bench" / "runs" / f"env_1__{algo}__0__bench").symlink_to(runs / f"env_1__{algo}__0__bench")
+    (out / "bench" / "benchmark.json").write_text(json.dumps({**plan["benchmark"], "seeds": 1}))
+    seed0 = (out / "test" / "env_1__seed0.parquet").stat().st_mtime_ns
+
+    grown = _run(out, "--runs", str(tmp_path / "runs"))
+    assert grown.returncode == 0, grown.stderr[-2000:]
+    assert "tested env_1 seed 1" in grown.stderr and "tested env_1 seed 0" not in grown.stderr
+    assert (out / "test" / "env_1__seed0.parquet").stat().st_mtime_ns == seed0
+    assert json.loads((out / "science.json").read_text())["benchmark"]["seeds"] == 2
+    key = ["kind", "name", "metric", "scenario", "n"]
+    ours = pd.read_csv(out / "results.csv")
+    assert (ours.loc[(ours["kind"] == "algorithm") & (ours["metric"] == "return"), "n"] == 2).all()
+    pd.testing.assert_frame_equal(ours[key], pd.read_csv(study / "results.csv")[key])
 
 
 def test_runs_trained_elsewhere_are_linked_instead_of_trained(smoke, tmp_path):
