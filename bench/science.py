@@ -239,8 +239,8 @@ def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
             continue
         link.symlink_to(src)
     saved = bench / "benchmark.json"
-    if saved.exists() and json.loads(saved.read_text()) != plan.to_dict() and not adds_seeds(
-            json.loads(saved.read_text()), plan):
+    old = json.loads(saved.read_text()) if saved.exists() else None
+    if old is not None and old != plan.to_dict() and not adds_seeds(old, plan):
         raise ScienceError(f"{saved} holds another plan; choose another --out")
     saved.write_text(json.dumps(plan.to_dict()))
     say(f"training: {len(links)} finished runs linked from {', '.join(map(str, sources))}")
