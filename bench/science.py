@@ -51,7 +51,7 @@ import pandas as pd  # noqa: E402
 
 from cosim.errors import CosimError  # noqa: E402
 from eval import science  # noqa: E402
-from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, adds_seeds, cell_name  # noqa: E402
+from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, adds_seeds, cell_name, finished_runs  # noqa: E402
 from eval.config import COLLISION_RULES  # noqa: E402
 from eval.presets import load_presets  # noqa: E402
 from eval.protocol import ProtocolPlan, rules  # noqa: E402
@@ -173,8 +173,8 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
     """`cosim benchmark --train-only` (with --resume once started); skipped when done."""
     cells = [cell_name(c) for c in plan.cells()]
     saved = bench / "benchmark.json"
-    if saved.exists() and json.loads(saved.read_text()) == plan.to_dict() and all(
-            (bench / "runs" / c).exists() for c in cells):
+    if saved.exists() and json.loads(saved.read_text()) == plan.to_dict() and len(
+            finished_runs(plan, bench)) == len(cells):
         say(f"training: all {len(cells)} runs finished in {bench / 'runs'}")
         return
     cmd = [sys.executable, "-m", "eval.cli", "benchmark", "--preset", plan.preset,

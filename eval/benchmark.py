@@ -220,7 +220,8 @@ def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> bool:
             raise BenchmarkError(f"--resume: {saved} was started with {old}; repeat those options "
                                  "(or drop --resume and choose another --out; only --seeds may grow)")
         if more_seeds:
-            unfinished = [name for name in _saved_cells(old, plan) if not (out / "runs" / name).exists()]
+            finished = finished_runs(plan, out)
+            unfinished = [name for name in _saved_cells(old, plan) if name not in finished]
             if unfinished:
                 raise BenchmarkError(f"--resume --seeds {plan.seeds}: {len(unfinished)} trial(s) of the "
                                      f"saved {old['seeds']}-seed benchmark are unfinished ({unfinished[0]}, ...); "
@@ -238,6 +239,13 @@ def adds_seeds(old: dict, plan: BenchmarkPlan | dict) -> bool:
     new = plan if isinstance(plan, dict) else plan.to_dict()
     return (isinstance(old.get("seeds"), int) and new["seeds"] > old["seeds"]
             and {**old, "seeds": new["seeds"]} == new)
+
+
+def finished_runs(plan: BenchmarkPlan, out: Path) -> dict[str, Path]:
+    """Cell name -> run folder of every cell of ``plan`` whose run is in ``out/runs``
+    (a cell's run is moved there only once it finished)."""
+    names = (cell_name(c) for c in plan.cells())
+    return {name: Path(out) / "runs" / name for name in names if (Path(out) / "runs" / name).exists()}
 
 
 def _saved_cells(old: dict, plan: BenchmarkPlan) -> list[str]:
@@ -297,8 +305,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
         from ray import tune
 
         cells = plan.cells()
-        finished = {cell_name(c): out / "runs" / cell_name(c) for c in cells
-                    if (out / "runs" / cell_name(c)).exists()}
+        finished = finished_runs(plan, out)
         todo = [c for c in cells if cell_name(c) not in finished]
         if not todo:
             return finished

@@ -212,7 +212,7 @@ def cmd_test(args) -> int:
 def cmd_benchmark(args) -> int:
     import time
 
-    from eval.benchmark import BenchmarkPlan, cell_name, run_ray, run_sequential, write_report
+    from eval.benchmark import BenchmarkPlan, finished_runs, run_ray, run_sequential, write_report
     from eval.raysession import INSTALL_HINT, ray_available
 
     if not args.no_ray and not ray_available():
@@ -223,7 +223,7 @@ def cmd_benchmark(args) -> int:
     cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
     output_folder(args.out, "--out")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
-    start, kept = time.monotonic(), sum((args.out / "runs" / cell_name(c)).exists() for c in cells)
+    start, kept = time.monotonic(), len(finished_runs(plan, args.out))
     say(f"benchmark {args.preset}: {len(cells)} trials ({kept} finished earlier, kept) -> {args.out}")
     if args.no_ray:
         runs = run_sequential(plan, args.out, resume=args.resume, progress=lambda n: say(f"trained {n}"))
