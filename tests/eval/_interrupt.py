@@ -70,4 +70,8 @@ if __name__ == "__main__":  # worker processes (spawn) import this module again
     eval.runlog.RunLog.checkpoint = checkpoint
     eval.runlog.atomic_write = atomic_write
     agents.checkpoint.torch.save = save
-    sys.exit(main(sys.argv[sys.argv.index("--") + 1:]))
+    code = main(sys.argv[sys.argv.index("--") + 1:])
+    # reached only when the signal never fired: say why, for the test's failure message
+    print(f"_interrupt.py: {sys.argv[3]} at {moment!r} of checkpoint {nth} never fired: this "
+          f"process made {calls['checkpoint']} checkpoint(s) and exited {code}", file=sys.stderr)
+    sys.exit(code)
