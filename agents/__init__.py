@@ -72,17 +72,19 @@ __all__ = [
 ]
 
 
-def load(path, device: str = "cpu"):
+def load(path, device: str = "cpu", require_full: bool = False):
     """Rebuild any registered agent from a checkpoint file.
 
     Args:
         path: A file written by ``agent.save(path)``.
         device: Torch device for the rebuilt networks.
+        require_full: Refuse a policy-only checkpoint (to resume training from it).
 
     Raises:
         CheckpointError: If the file is missing, corrupt, of another format, or
-            holds an algorithm that is not registered.
+            holds an algorithm that is not registered, or is policy-only and
+            ``require_full`` is set.
     """
     from agents.checkpoint import load_checkpoint
 
-    return load_checkpoint(path, device=device)
+    return load_checkpoint(path, device=device, require_full=require_full)

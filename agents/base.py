@@ -185,6 +185,8 @@ class Agent(abc.ABC):
 
     algo: ClassVar[str]
     config_class: ClassVar[type[AgentConfig]]
+    policy_only: bool = False
+    """True when loaded from a policy checkpoint: it acts, but holds no optimizer or target state."""
 
     def __init__(
         self,
@@ -290,11 +292,12 @@ class Agent(abc.ABC):
                 optimizer.load_state_dict(state["optimizers"][name])
         self._load_extra_state(state.get("extra", {}))
 
-    def save(self, path) -> None:
-        """Write a self-describing checkpoint (see :func:`agents.checkpoint.save_checkpoint`)."""
+    def save(self, path, policy_only: bool = False) -> None:
+        """Write a self-describing checkpoint (see :func:`agents.checkpoint.save_checkpoint`);
+        ``policy_only`` keeps only what acting needs."""
         from agents.checkpoint import save_checkpoint
 
-        save_checkpoint(path, self)
+        save_checkpoint(path, self, policy_only=policy_only)
 
     @classmethod
     def load(cls, path, device: str = "cpu") -> Agent:

@@ -14,6 +14,16 @@ knowing how it was trained::
 Spaces are plain dicts, not pickled objects, and every value is a tensor or a
 plain Python value, so loading uses ``torch.load(weights_only=True)``: a
 checkpoint cannot run code on the machine that loads it.
+
+Two kinds (``"kind"`` in the payload): a *full* checkpoint holds every network,
+optimizer state and counter, all that resuming training needs; a *policy*
+checkpoint (``save_checkpoint(..., policy_only=True)``) holds only the networks
+that choose actions (``agents.registry.POLICY_NETWORKS``: no optimizer moments,
+no target networks, no critic of DDPG/TD3) and the counters, 1/3 to 1/20 of the
+size. A policy checkpoint loads into an agent that acts exactly as the full one
+would; its ``policy_only`` attribute is True and training it is refused where a
+loader asks for a full checkpoint (``require_full=True``). Weights are stored
+as float32 either way: nothing is rounded.
 """
 
 from __future__ import annotations
@@ -35,6 +45,7 @@ __all__ = [
     "FORMAT_VERSION",
     "CheckpointError",
     "load_checkpoint",
+    "policy_state",
     "save_checkpoint",
     "space_from_dict",
     "space_to_dict",
@@ -97,7 +108,17 @@ def space_from_dict(data: dict[str, Any]) -> gymnasium.Space:
     raise ValueError(f"unknown space type {data['type']!r}")
 
 
-def save_checkpoint(path, agent) -> None:
+def policy_state(agent) -> dict[str, Any]:
+    """The part of ``agent.state_dict()`` that acting needs: the policy networks and counters."""
+    from agents.registry import POLICY_NETWORKS
+
+    state = agent.state_dict()
+    keep = POLICY_NETWORKS[agent.algo]
+    return {"networks": {k: v for k, v in state["networks"].items() if k in keep},
+            "optimizers": {}, "extra": state.get("extra", {})}
+
+
+def save_checkpoint(path, agent, policy_only: bool = False) -> None:
     """Write ``agent`` to ``path`` as one self-describing file.
 
     The file is written to a temporary name and renamed, so an interrupted save
@@ -106,18 +127,21 @@ def save_checkpoint(path, agent) -> None:
     Args:
         path: Destination file (parent folders are created).
         agent: An :class:`agents.base.Agent`.
+        policy_only: Keep only what acting needs (module docstring), not what
+            resuming training needs.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
+        "kind": "policy" if policy_only else "full",
         "algo": agent.algo,
         "config": agent.config.to_dict(),
         "observation_space": space_to_dict(agent.observation_space),
         "action_space": space_to_dict(agent.action_space),
         "seed": agent.seed,
-        "state": agent.state_dict(),
+        "state": policy_state(agent) if policy_only else agent.state_dict(),
         "versions": {
             "torch": str(torch.__version__),
             "numpy": str(np.__version__),
@@ -156,27 +180,39 @@ def _read(path: Path) -> dict[str, Any]:
     return payload
 
 
-def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None):
+def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None,
+                    require_full: bool = False):
     """Rebuild an agent from a checkpoint written by :func:`save_checkpoint`.
 
     Args:
         path: The checkpoint file.
         device: Torch device for the rebuilt agent.
         expected_algo: If given, the checkpoint must hold this algorithm.
+        require_full: Refuse a policy checkpoint (to resume training, which needs
+            the optimizer states and target networks it does not hold).
 
     Returns:
-        The agent, with weights, optimizer states and counters restored.
+        The agent, with weights, optimizer states and counters restored (a policy
+        checkpoint: the policy networks and counters; ``agent.policy_only`` True).
 
     Raises:
         CheckpointError: If the file is missing, truncated or corrupt, of another
-            format or version, of another algorithm than ``expected_algo``, or its
-            contents do not match the algorithm's networks.
+            format or version, of another algorithm than ``expected_algo``, its
+            contents do not match the algorithm's networks, or it is a policy
+            checkpoint and ``require_full`` is set.
     """
-    from agents.registry import get_agent_class
+    from agents.registry import POLICY_NETWORKS, get_agent_class
 
     path = Path(path)
     payload = _read(path)
     algo = payload.get("algo")
+    policy_only = payload.get("kind", "full") == "policy"
+    if policy_only and require_full:
+        raise CheckpointError(
+            f"checkpoint {path} holds the policy only (no optimizer states or target networks), "
+            "so training cannot resume from it; resume from the run's latest.pt (kept while a run "
+            "is unfinished, or with --keep all)"
+        )
     if expected_algo is not None and algo != expected_algo:
         raise CheckpointError(
             f"checkpoint {path} holds a {algo!r} agent, not {expected_algo!r}; "
@@ -195,7 +231,17 @@ def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None)
             seed=payload.get("seed", 0),
             device=device,
         )
-        agent.load_state_dict(payload["state"])
+        if policy_only:
+            state = payload["state"]
+            missing = sorted(set(POLICY_NETWORKS[algo]) - set(state["networks"]))
+            if missing:
+                raise KeyError(f"policy checkpoint has no weights for network(s) {missing}")
+            for name in POLICY_NETWORKS[algo]:
+                agent.networks[name].load_state_dict(state["networks"][name])
+            agent._load_extra_state(state.get("extra", {}))
+        else:
+            agent.load_state_dict(payload["state"])
+        agent.policy_only = policy_only
     except (KeyError, ValueError, TypeError, RuntimeError) as err:
         raise CheckpointError(
             f"checkpoint {path} ({algo}) does not match this library's {cls.__name__}: "

@@ -11,8 +11,8 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-__all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DISCRETE", "Algorithm", "available",
-           "get_agent_class"]
+__all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DISCRETE", "POLICY_NETWORKS", "Algorithm",
+           "available", "get_agent_class"]
 
 
 @dataclass(frozen=True)
@@ -28,17 +28,20 @@ class Algorithm:
     loop: str
     """``"sync"``: one process steps the environments (agents.loop.run_vector_loop);
     ``"async"``: worker/actor processes, each with its own environment."""
+    policy: tuple[str, ...]
+    """The networks (keys of ``agent.networks``) that choose actions: all a policy
+    checkpoint keeps (agents/checkpoint.py; run folders' ``best.pt``)."""
 
 
 # ---------------------------------------------------------------------------------------
 # THE CATALOGUE: one line per algorithm, in the paper's order (SPEC §5 tables).
 CATALOGUE: tuple[Algorithm, ...] = (
-    Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync"),
-    Algorithm("a3c", "agents.a3c:A3C", "discrete", "async"),
-    Algorithm("impala", "agents.impala:IMPALA", "discrete", "async"),
-    Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync"),
-    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync"),
-    Algorithm("td3", "agents.td3:TD3", "continuous", "sync"),
+    Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync", ("net",)),
+    Algorithm("a3c", "agents.a3c:A3C", "discrete", "async", ("actor_critic",)),
+    Algorithm("impala", "agents.impala:IMPALA", "discrete", "async", ("actor_critic",)),
+    Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",)),
+    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor",)),
+    Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor",)),
 )
 # ---------------------------------------------------------------------------------------
 
@@ -47,6 +50,8 @@ ALGORITHMS: dict[str, str] = {a.name: a.target for a in CATALOGUE}
 DISCRETE: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.action == "discrete")
 CONTINUOUS: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.action == "continuous")
 ASYNC: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.loop == "async")
+POLICY_NETWORKS: dict[str, tuple[str, ...]] = {a.name: a.policy for a in CATALOGUE}
+"""name -> the networks a policy checkpoint keeps."""
 
 
 def available() -> list[str]:

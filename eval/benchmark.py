@@ -4,15 +4,20 @@ a Ray Tune trial, then the test protocol on the trained policies and its report.
 A benchmark folder (``--out``)::
 
     benchmark.json     the plan (preset, envs, algos, seeds) that --resume reads back
-    tune/grid/         Ray Tune's experiment: trial results and checkpoints (2 kept per trial)
-    trials/<cell>/     where a trial trains (a normal run folder inside; gone once finished)
+    tune/grid/         Ray Tune's experiment: trial results, and checkpoints that point at
+                       the trial's run folder (a few bytes each: no copy of the run)
+    trials/<cell>/     where a trial trains (a normal run folder inside; moved once finished)
     runs/<cell>/       the finished run folders, <env>__<algo>__<seed>__bench (what `cosim test` loads)
     report/            the `cosim test` report: Scenario 1 and 2 in every environment
 
 A trial is the ordinary training run (:func:`eval.train.train`); it reports
 ``env_steps`` and ``mean_return`` (the mean episodic return over each AC's last 20
-episodes) to Tune at every checkpoint, and the checkpoint is the run folder itself,
-so a restored trial continues with ``train(resume=...)``. ``--no-ray`` trains the
+episodes) to Tune at every checkpoint. The run folder is resumable by itself
+(eval/runfolder.py), so Tune's checkpoint holds only its path (``run_path.txt``) and a
+restored trial continues with ``train(resume=...)`` from the folder's own last commit:
+Tune never copies checkpoints (with several nodes, ``--out`` must be a path every node
+reaches, as Tune's storage_path must). A finished run keeps what ``--keep`` says
+(eval/runfolder.py KEEP_POLICIES; default ``best``: one policy file per AC). ``--no-ray`` trains the
 same cells one after another in this process: same configs, same seeds, one torch
 thread per trial in both cases, so PPO, DQN, DDPG and TD3 give the same weights
 either way (A3C's learner threads apply their updates in no fixed order: with more
@@ -142,9 +147,10 @@ def _seed_everything(seed: int) -> None:
 
 def train_cell(cfg: TrainConfig, folder: Path, restore_from: Path | None = None,
                on_checkpoint: Callable[[Path, int, float], None] | None = None,
-               prepare: Callable[[Path], None] | None = None) -> Path:
+               prepare: Callable[[Path], None] | None = None, keep: str = "all") -> Path:
     """Train one cell in ``folder`` (wiped first), from scratch or from a copied run folder
-    (``prepare(run)`` edits the copy before it is resumed).
+    (``prepare(run)`` edits the copy before it is resumed); ``keep``: what the finished run
+    keeps (eval/runfolder.py KEEP_POLICIES).
 
     Returns:
         The run folder.
@@ -153,12 +159,12 @@ def train_cell(cfg: TrainConfig, folder: Path, restore_from: Path | None = None,
     folder.mkdir(parents=True)
     _seed_everything(cfg.seed)
     if restore_from is None:
-        return train(cfg, folder, quiet=True, progress=False, on_checkpoint=on_checkpoint)
+        return train(cfg, folder, quiet=True, progress=False, on_checkpoint=on_checkpoint, keep=keep)
     run = folder / "run"
     shutil.copytree(restore_from, run)
     if prepare is not None:
         prepare(run)
-    return train(None, resume=run, quiet=True, progress=False, on_checkpoint=on_checkpoint)
+    return train(None, resume=run, quiet=True, progress=False, on_checkpoint=on_checkpoint, keep=keep)
 
 
 def finite(value: float) -> float:
@@ -166,24 +172,42 @@ def finite(value: float) -> float:
     return float(value) if np.isfinite(value) else float("-inf")
 
 
+RUN_POINTER = "run_path.txt"
+"""The one file of a grid trial's Tune checkpoint: the absolute path of its run folder."""
+
+
+def run_of_checkpoint(checkpoint) -> Path:
+    """The run folder a grid trial's Tune checkpoint points at."""
+    with checkpoint.as_directory() as restored:
+        return Path((Path(restored) / RUN_POINTER).read_text().strip())
+
+
 def _tune_trial(config: dict) -> None:
-    """Ray Tune function trainable: one cell, reporting at every checkpoint."""
+    """Ray Tune function trainable: one cell, reporting at every checkpoint.
+
+    The checkpoint Tune keeps is a pointer to the run folder, which is resumable by
+    itself (module docstring): a restored trial resumes that folder in place."""
+    import tempfile
+
     from ray import tune
 
     cfg = TrainConfig(**config["cell"])
     folder = Path(config["scratch"]) / cell_name(cfg)
+    keep = config.get("keep", "best")
 
     def report(run: Path, env_steps: int, mean_return: float) -> None:
-        tune.report({"env_steps": env_steps, "mean_return": finite(mean_return)},
-                    checkpoint=tune.Checkpoint.from_directory(str(run)))
+        with tempfile.TemporaryDirectory() as tmp:  # tune.report persists it before returning
+            (Path(tmp) / RUN_POINTER).write_text(str(Path(run).resolve()))
+            tune.report({"env_steps": env_steps, "mean_return": finite(mean_return)},
+                        checkpoint=tune.Checkpoint.from_directory(tmp))
 
     checkpoint = tune.get_checkpoint()
-    if checkpoint is None:
-        train_cell(cfg, folder, None, report)
+    run = run_of_checkpoint(checkpoint) if checkpoint is not None else None
+    if run is not None and (run / "config.yaml").exists():
+        _seed_everything(cfg.seed)
+        train(None, resume=run, quiet=True, progress=False, on_checkpoint=report, keep=keep)
     else:
-        with checkpoint.as_directory() as restored:
-            train_cell(cfg, folder, Path(restored), report)
-    shutil.rmtree(folder, ignore_errors=True)  # its last checkpoint holds the finished run
+        train_cell(cfg, folder, None, report, keep=keep)
 
 
 # -- the grid ----------------------------------------------------------------------------
@@ -254,11 +278,11 @@ def _saved_cells(old: dict, plan: BenchmarkPlan) -> list[str]:
 
 
 def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
-                   progress: Callable[[str], None] | None = None) -> dict[str, Path]:
+                   progress: Callable[[str], None] | None = None, keep: str = "best") -> dict[str, Path]:
     """Train every cell in this process, one after another (``--no-ray``).
 
     ``progress`` is called with each cell's name once it is trained (not for cells
-    whose run was already in ``out/runs``).
+    whose run was already in ``out/runs``); ``keep``: what a finished run keeps.
 
     Returns:
         Cell name -> finished run folder under ``out/runs``.
@@ -274,10 +298,11 @@ def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
             runs = sorted(p for p in folder.glob("*") if (p / "config.yaml").exists()) if resume else []
             if runs:  # interrupted: continue from its last checkpoint
                 _seed_everything(cfg.seed)
-                run = train(None, resume=runs[-1], quiet=True, progress=False)
+                run = train(None, resume=runs[-1], quiet=True, progress=False, keep=keep)
             else:
-                run = train_cell(cfg, folder)
+                run = train_cell(cfg, folder, keep=keep)
             _export(run, dest, move=True)
+            shutil.rmtree(folder, ignore_errors=True)
             if progress:
                 progress(name)
         done[name] = dest
@@ -285,8 +310,9 @@ def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
 
 
 def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: str | None = None,
-            concurrent: int = 2, gpus_per_trial: float = 0.0) -> dict[str, Path]:
-    """Train every cell as a Ray Tune trial, ``concurrent`` at a time.
+            concurrent: int = 2, gpus_per_trial: float = 0.0, keep: str = "best") -> dict[str, Path]:
+    """Train every cell as a Ray Tune trial, ``concurrent`` at a time; ``keep``: what a
+    finished run keeps (eval/runfolder.py KEEP_POLICIES).
 
     Returns:
         Cell name -> finished run folder under ``out/runs``.
@@ -323,7 +349,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
             tuner = tune.Tuner(
                 trainable,
                 param_space={"cell": tune.grid_search([c.to_dict() for c in todo]),
-                             "scratch": str(out / "trials")},
+                             "scratch": str(out / "trials"), "keep": keep},
                 # a finished trial's worker takes the next trial: no process start and torch
                 # import per trial (each trial reseeds and sets its torch threads itself)
                 tune_config=tune.TuneConfig(max_concurrent_trials=concurrent or None, reuse_actors=True,
@@ -331,9 +357,9 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                                             trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
                 run_config=tune.RunConfig(
                     name="grid", storage_path=str(out / "tune"), verbose=0,
-                    # a run folder is ~80 MB at 2 ACs (weights and Adam moments, latest and
-                    # best): 2 kept per trial (PBT, which clones, keeps 4)
-                    checkpoint_config=tune.CheckpointConfig(num_to_keep=2),
+                    # a checkpoint is a pointer to the run folder (_tune_trial): the last one is
+                    # all a restore needs (PBT, which clones run folders, keeps copies)
+                    checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
                     failure_config=tune.FailureConfig(max_failures=0)),
             )
         grid = tuner.fit()
@@ -353,7 +379,9 @@ def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
         else:
             dest = out / "runs" / name
             if not dest.exists():
-                _export(Path(result.checkpoint.path), dest)
+                run = run_of_checkpoint(result.checkpoint)
+                _export(run, dest, move=True)
+                shutil.rmtree(out / "trials" / name, ignore_errors=True)
             done[name] = dest
     if failed:
         raise BenchmarkError(f"{len(failed)} trial(s) failed: {'; '.join(failed)}")

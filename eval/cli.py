@@ -100,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     from agents.registry import ALGORITHMS, DISCRETE  # the catalogue (no algorithm imported)
     from eval.config import COLLISION_RULES
     from eval.presets import preset_names
+    from eval.runfolder import KEEP_POLICIES
 
     t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
     t.add_argument("--algo", default="ppo",
@@ -141,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "preset's checkpoint interval)")
     t.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="with --pbt: an existing Ray cluster (default: local Ray)")
+    t.add_argument("--keep", choices=sorted(KEEP_POLICIES), default="best",
+                   help="what a finished run folder keeps: best = each AC's best.pt (the policy the "
+                        "test drives), all = latest.pt too, to train it further (default: best)")
     t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
     t.set_defaults(func=cli_learn.cmd_train)
     e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
@@ -206,6 +210,7 @@ def _benchmark_parser(sub) -> None:
     from agents.registry import ALGORITHMS
     from eval.config import COLLISION_RULES
     from eval.presets import preset_names
+    from eval.runfolder import KEEP_POLICIES
 
     b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
                                          "trial, then test them and write the report")
@@ -228,6 +233,9 @@ def _benchmark_parser(sub) -> None:
     b.add_argument("--no-ray", action="store_true",
                    help="train the same grid one trial after another in this process")
     b.add_argument("--train-only", action="store_true", help="train the grid, skip the test and report")
+    b.add_argument("--keep", choices=sorted(KEEP_POLICIES), default="best",
+                   help="what a finished trial's run folder keeps: best = each AC's best.pt, all = "
+                        "latest.pt too (default: best)")
     b.add_argument("--out", type=Path, default=Path("benchmark"), help="benchmark folder")
     b.add_argument("--resume", action="store_true",
                    help="continue an interrupted benchmark in --out without redoing finished trials; "

@@ -20,7 +20,7 @@ def cmd_train(args) -> int:
         return _train_pbt(args)
     try:
         if args.resume is not None:
-            run = train(None, resume=args.resume, quiet=args.quiet)
+            run = train(None, resume=args.resume, quiet=args.quiet, keep=args.keep)
             print(f"run folder: {run}")
             return 0
         algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
@@ -38,7 +38,7 @@ def cmd_train(args) -> int:
         return 2
     if len(configs) == 1:
         try:
-            run = train(configs[0], args.out, quiet=args.quiet)
+            run = train(configs[0], args.out, quiet=args.quiet, keep=args.keep)
         except TrainError as exc:
             print(f"cosim train: error: {exc}", file=sys.stderr)
             return 2
@@ -52,7 +52,8 @@ def cmd_train(args) -> int:
     failed = []
     base = [sys.executable, "-m", "eval.cli", "train", "--env", args.env, "--preset", args.preset,
             "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
-            "--torch-threads", str(args.torch_threads), "--collisions", args.collisions]
+            "--torch-threads", str(args.torch_threads), "--collisions", args.collisions,
+            "--keep", args.keep]
     if args.agents is not None:
         base += ["--agents", str(args.agents)]
     if args.steps is not None:
@@ -226,11 +227,12 @@ def cmd_benchmark(args) -> int:
     start, kept = time.monotonic(), len(finished_runs(plan, args.out))
     say(f"benchmark {args.preset}: {len(cells)} trials ({kept} finished earlier, kept) -> {args.out}")
     if args.no_ray:
-        runs = run_sequential(plan, args.out, resume=args.resume, progress=lambda n: say(f"trained {n}"))
+        runs = run_sequential(plan, args.out, resume=args.resume, progress=lambda n: say(f"trained {n}"),
+                              keep=args.keep)
     else:
         concurrent = args.concurrent or (0 if args.ray_address else (os.cpu_count() or 1))
         runs = run_ray(plan, args.out, resume=args.resume, address=args.ray_address,
-                       concurrent=concurrent, gpus_per_trial=args.gpus_per_trial)
+                       concurrent=concurrent, gpus_per_trial=args.gpus_per_trial, keep=args.keep)
     say(f"trained {len(runs) - kept} trials in {time.monotonic() - start:.0f} s: {args.out / 'runs'}")
     if args.train_only:
         return 0

@@ -28,6 +28,14 @@ buffer after a resume.
 
 episodes.csv, TensorBoard and the checkpoints themselves are written by
 :class:`eval.runlog.RunLog`.
+
+Disk (``--keep``, :data:`KEEP_POLICIES`): ``latest.pt`` holds everything resuming
+needs (weights, optimizer moments, target networks), ``best.pt`` only the policy the
+test drives (agents/checkpoint.py). While a run is unfinished both stay; once it
+reaches its step budget, ``--keep best`` (the CLI's default) deletes each AC's
+``latest.pt``, so a finished run holds one policy file per AC, and ``--keep all``
+keeps it (to train further from it, or for PBT, whose trials clone each other's
+``latest.pt``).
 """
 
 from __future__ import annotations
@@ -275,3 +283,31 @@ def output_folder(path: Path, flag: str) -> Path:
     if reason:
         raise OptionError(f"{flag} {path}: cannot write there ({reason}); choose another {flag}")
     return path
+
+
+KEEP_POLICIES = {
+    "best": "a finished run keeps each AC's best.pt (the policy the test drives) and drops latest.pt",
+    "all": "a finished run keeps latest.pt too (optimizer and target networks: to train it further)",
+}
+"""``--keep``: what a run folder keeps once its step budget is reached (module docstring)."""
+
+
+def prune_finished(run: Path, keep: str) -> int:
+    """Apply the ``keep`` policy to a finished run folder; return the bytes freed.
+
+    ``best``: every AC's ``latest.pt`` goes where its ``best.pt`` exists (an AC
+    without one keeps its ``latest.pt``: nothing the test can load is deleted).
+
+    Raises:
+        ValueError: ``keep`` is not one of :data:`KEEP_POLICIES`.
+    """
+    if keep not in KEEP_POLICIES:
+        raise ValueError(f"keep={keep!r} is not a keep policy; choose one of {sorted(KEEP_POLICIES)}")
+    freed = 0
+    if keep == "best":
+        for folder in sorted((Path(run) / "checkpoints").glob("*")):
+            latest, best = folder / "latest.pt", folder / "best.pt"
+            if latest.is_file() and best.is_file():
+                freed += latest.stat().st_size
+                latest.unlink()
+    return freed

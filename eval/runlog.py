@@ -144,7 +144,9 @@ class RunLog:
                 names.append("best.pt")
             for name in names:
                 pending = folder / pending_name(name, env_step)
-                agent.save(pending)  # itself written to a temporary name and renamed
+                # latest.pt resumes training (everything); best.pt is what the test drives (the
+                # policy only: a third to a twentieth of the size, agents/checkpoint.py)
+                agent.save(pending, policy_only=name == "best.pt")  # written to a temp name, renamed
                 staged.append((pending, folder / name))
         state = {"env_steps": env_step, "episodes": self.episodes, "best": best,
                  "csv_rows": self.rows, "elapsed_s": self.elapsed, "timing": extra_time or {}}

@@ -26,7 +26,14 @@ import numpy as np
 from cosim.env import EPISODE_INFO
 from eval.config import ASYNC_ALGOS, TrainConfig, TrainError
 from eval.plots import plot_convergence
-from eval.runfolder import RunLock, load_run_config, new_run_dir, read_state, recover_checkpoints
+from eval.runfolder import (
+    RunLock,
+    load_run_config,
+    new_run_dir,
+    prune_finished,
+    read_state,
+    recover_checkpoints,
+)
 from eval.runlog import RunLog
 
 log = logging.getLogger(__name__)
@@ -34,11 +41,13 @@ log = logging.getLogger(__name__)
 
 def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = None,
           quiet: bool = False, progress: bool = True,
-          on_checkpoint: Callable[[Path, int, float], None] | None = None) -> Path:
+          on_checkpoint: Callable[[Path, int, float], None] | None = None, keep: str = "all") -> Path:
     """Run (or resume) one training run; return its folder.
 
     ``on_checkpoint(run, env_steps, mean_return)`` is called after each committed
     checkpoint (how Ray Tune trials report, eval/benchmark.py and eval/pbt.py).
+    ``keep`` is what the folder keeps once the run is finished (eval/runfolder.py
+    KEEP_POLICIES; ``"all"``, the library default, deletes nothing).
 
     Raises:
         TrainError: the run folder is held by another process (naming its PID), or
@@ -63,6 +72,10 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
         state = None
     try:
         _train_locked(cfg, run, state, quiet, progress, on_checkpoint)
+        finished = read_state(run)
+        if keep != "all" and finished is not None and int(finished["env_steps"]) >= cfg.steps:
+            freed = prune_finished(run, keep)
+            log.info("run %s finished: --keep %s freed %.1f MB", run, keep, freed / 1e6)
     finally:
         lock.release()
     return run

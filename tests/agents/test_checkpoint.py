@@ -9,7 +9,7 @@ from agents.checkpoint import FORMAT, space_from_dict, space_to_dict
 from agents.envs import ColourBar, SingleAgentParallel
 from agents.loop import run_loop
 from agents.ppo import PPO
-from agents.registry import get_agent_class
+from agents.registry import POLICY_NETWORKS, get_agent_class
 
 from .conftest import FAST, GYM_ENV, SPACES
 
@@ -42,6 +42,38 @@ def test_round_trip_gives_identical_actions_and_state(algo, tmp_path):
     for name, opt in agent.optimizers.items():
         assert loaded.optimizers[name].state_dict()["state"].keys() == opt.state_dict()["state"].keys()
     assert loaded.state_dict()["extra"] == agent.state_dict()["extra"]
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_a_policy_checkpoint_acts_like_the_full_one_and_holds_only_the_policy(algo, tmp_path):
+    agent = _trained(algo)
+    agent.save(tmp_path / "full.pt")
+    agent.save(tmp_path / "policy.pt", policy_only=True)
+    policy = agents.load(tmp_path / "policy.pt")
+    assert policy.policy_only and not agents.load(tmp_path / "full.pt").policy_only
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        obs = rng.normal(size=agent.observation_space.shape).astype(np.float32)
+        np.testing.assert_array_equal(policy.act(obs, deterministic=True), agent.act(obs, deterministic=True))
+    payload = torch.load(tmp_path / "policy.pt", weights_only=True)
+    assert payload["kind"] == "policy" and payload["state"]["optimizers"] == {}
+    assert tuple(payload["state"]["networks"]) == POLICY_NETWORKS[algo]
+    assert (tmp_path / "policy.pt").stat().st_size < (tmp_path / "full.pt").stat().st_size / 2
+    with pytest.raises(agents.CheckpointError, match="policy only"):
+        agents.load(tmp_path / "policy.pt", require_full=True)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
+def test_every_policy_network_is_an_agent_network_and_the_camera_policy_fits_the_disk_budget(algo, tmp_path):
+    """A quick run folder (6 ACs) keeps one policy file per AC: <= 60 MB needs <= 10 MB each."""
+    import gymnasium as gym
+
+    cls = get_agent_class(algo)
+    action = gym.spaces.Box(-1, 1, (2,), np.float32) if algo in ("ddpg", "td3") else gym.spaces.Discrete(9)
+    agent = cls.from_spaces(gym.spaces.Box(0, 255, (84, 84, 3), np.uint8), action)
+    assert set(POLICY_NETWORKS[algo]) <= set(agent.networks)
+    agent.save(tmp_path / "best.pt", policy_only=True)
+    assert (tmp_path / "best.pt").stat().st_size <= 10e6
 
 
 def test_image_round_trip_and_compact_space(tmp_path):

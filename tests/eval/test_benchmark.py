@@ -136,7 +136,7 @@ def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch)
 
     trained = []
 
-    def fake_train_cell(cfg, folder):  # a finished run folder without training
+    def fake_train_cell(cfg, folder, keep="all"):  # a finished run folder without training
         trained.append(benchmark.cell_name(cfg))
         run = Path(folder) / "run"
         run.mkdir(parents=True)
@@ -169,7 +169,7 @@ def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, mo
     from eval import benchmark
     from eval.cli import main
 
-    def fake_train_cell(cfg, folder):
+    def fake_train_cell(cfg, folder, keep="all"):
         run = Path(folder) / "run"
         run.mkdir(parents=True)
         (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))

@@ -34,9 +34,10 @@ def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
     assert sorted(runs) == sorted(ALGORITHMS)
     obs = np.zeros((84, 84, 3), np.uint8)
     for algo, run in runs.items():
-        for ac in ("ac_0", "ac_1"):
-            agent = agents.load(run / "checkpoints" / ac / "latest.pt")
-            assert agent.algo == algo
+        for ac in ("ac_0", "ac_1"):  # --keep best (the default): the finished run keeps the policy
+            assert sorted(p.name for p in (run / "checkpoints" / ac).iterdir()) == ["best.pt"]
+            agent = agents.load(run / "checkpoints" / ac / "best.pt")
+            assert agent.algo == algo and agent.policy_only
             action = agent.act(obs, deterministic=True)
             assert agent.action_space.contains(
                 np.asarray(action, dtype=agent.action_space.dtype) if algo in ("ddpg", "td3") else int(action)
@@ -45,6 +46,26 @@ def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
         assert state["env_steps"] == 120
         assert (run / "convergence.png").exists() and (run / "manifest.json").exists()
         assert list((run / "tb").iterdir()), "TensorBoard scalars were written"
+
+
+def test_keep_all_keeps_the_resumable_checkpoint_and_prune_drops_only_covered_ones(tmp_path):
+    from eval.runfolder import prune_finished
+
+    cfg = make_config("dqn", "env_1", "smoke", steps=40)
+    run = train(cfg, tmp_path, quiet=True, progress=False, keep="all")
+    folders = sorted((run / "checkpoints").iterdir())
+    assert [sorted(p.name for p in f.iterdir()) for f in folders] == [["best.pt", "latest.pt"]] * 2
+    full = agents.load(folders[0] / "latest.pt", require_full=True)
+    policy = agents.load(folders[0] / "best.pt")
+    assert not full.policy_only and policy.policy_only
+    with pytest.raises(agents.CheckpointError, match="policy only"):
+        agents.load(folders[0] / "best.pt", require_full=True)
+    (folders[1] / "best.pt").unlink()  # an AC without best.pt keeps its latest.pt
+    size = (folders[0] / "latest.pt").stat().st_size
+    assert prune_finished(run, "best") == size
+    assert [sorted(p.name for p in f.iterdir()) for f in folders] == [["best.pt"], ["latest.pt"]]
+    with pytest.raises(ValueError, match="keep policy"):
+        prune_finished(run, "none")
 
 
 def _wait_for_checkpoint(run_root: Path, proc, at_least: int, timeout: float = 300) -> Path:
