@@ -1,5 +1,5 @@
 """The science study (issue 14): its statistics (eval/science.py) against hand-computed
-values, and its smoke version (bench/science.py --smoke) end to end, rerun and refused."""
+values, and its smoke version (studies/science.py --smoke) end to end, rerun and refused."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from eval import science
 from eval.validity import DEGENERATE, POLICIES
 
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "bench" / "science.py"
+SCRIPT = ROOT / "studies" / "science.py"
 
 
 # -- statistics ------------------------------------------------------------------------------

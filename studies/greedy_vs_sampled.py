@@ -1,6 +1,6 @@
 """Greedy (the mode) versus sampled actions for the stochastic-policy algorithms.
 
-    python bench/greedy_vs_sampled.py --runs runs/science_env1/bench/runs --env env_1
+    python studies/greedy_vs_sampled.py --runs runs/science_env1/bench/runs --env env_1
 
 For every run of PPO, A3C and IMPALA under ``--runs`` trained in ``--env``: its ``ac_0``
 (Scenario 2 drives ac_0's spawn and goal) alone on held-out episode seeds, once taking

@@ -2,7 +2,7 @@
 algorithm trained with the preset's 3, in the science study's test.
 
     for s in 0 1 2; do cosim train --algo ppo --env env_1 --preset quick --agents 6 --seed $s --out runs/six_acs; done
-    python bench/six_acs.py --science runs/science_env1 --runs runs/six_acs --algo ppo
+    python studies/six_acs.py --science runs/science_env1 --runs runs/six_acs --algo ppo
 
 Per training seed k: the science study's Scenario 1 test (eval/protocol.py; rotated
 slots, each slot driven by the run's AC trained in it, held-out episode seeds) with
@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-for path in (ROOT, ROOT / "bench"):  # run as a script from a checkout; bench/science.py
+for path in (ROOT, ROOT / "studies"):  # run as a script from a checkout; studies/science.py
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
 
@@ -36,7 +36,7 @@ COLUMNS = ["return", "goal", "CV", "CO", "OS", "SPEED"]
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--science", type=Path, required=True, help="a bench/science.py folder")
+    p.add_argument("--science", type=Path, required=True, help="a studies/science.py folder")
     p.add_argument("--runs", type=Path, required=True, help="the 6-AC run folders")
     p.add_argument("--algo", default="ppo")
     args = p.parse_args(argv)

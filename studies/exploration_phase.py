@@ -10,7 +10,7 @@ and return. The camera does not act on the dynamics, so the environment renders 
 frames to keep this fast; actions are drawn exactly as
 ``TD3.act`` draws its random phase (numpy ``uniform(low, high)``).
 
-    python bench/exploration_phase.py [--envs env_1 ... env_5] [--steps 1000] [--lows -1 -0.5]
+    python studies/exploration_phase.py [--envs env_1 ... env_5] [--steps 1000] [--lows -1 -0.5]
 """
 
 from __future__ import annotations

@@ -2,11 +2,11 @@
 `cosim benchmark`, tested on held-out episode seeds (collisions do not end an episode)
 beside the reference rows, with confidence intervals over seeds.
 
-    python bench/science.py                      # 6 algorithms x 5 environments x 3 seeds
-    python bench/science.py --smoke --out /tmp/s # the CI version: env_1, PPO + DQN, 2 seeds
-    python bench/science.py --envs env_2 env_3 --seeds 1 --out s23   # a part of the grid
-    python bench/science.py --combine s1 s23 s45 --out all             # one table over the parts
-    python bench/science.py --envs env_5 --seeds 1 --runs b1 b2 --out s5  # runs trained elsewhere
+    python studies/science.py                      # 6 algorithms x 5 environments x 3 seeds
+    python studies/science.py --smoke --out /tmp/s # the CI version: env_1, PPO + DQN, 2 seeds
+    python studies/science.py --envs env_2 env_3 --seeds 1 --out s23   # a part of the grid
+    python studies/science.py --combine s1 s23 s45 --out all             # one table over the parts
+    python studies/science.py --envs env_5 --seeds 1 --runs b1 b2 --out s5  # runs trained elsewhere
 
 Stages, each resumable (rerun the same command after an interruption). A finished study
 takes more seeds by rerunning it with a larger ``--seeds`` (nothing else changed): its runs
@@ -25,7 +25,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
 4. results (eval/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
    seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``,
    ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``),
-   ``summary.md`` (printed: the README's results section), ``report/`` (the `cosim test`
+   ``summary.md`` (printed: a study's results section, as in docs/results/*/README.md), ``report/`` (the `cosim test`
    report of the held-out records, seeds pooled) and ``science.json`` (plan, checkpoints).
 
 ``--combine`` replaces stages 1-3: finished studies of different environments (run as
@@ -331,7 +331,7 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
         saved = src / "science.json"
         if not saved.is_file():
             raise ScienceError(f"--combine {src}: no science.json there; give the --out folder "
-                               "of a bench/science.py study")
+                               "of a studies/science.py study")
         studies.append((src, json.loads(saved.read_text())))
     (src0, first), b0 = studies[0], studies[0][1]["benchmark"]
     seeds_of: dict[str, int] = {}
@@ -496,7 +496,7 @@ def main(argv=None) -> int:
             seeds_of = {e: plan.seeds for e in plan.envs}
         records = test(plan, study, out, say, seeds_of)
         refs = references(plan, study, out, say)
-        command = "python bench/science.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        command = "python studies/science.py " + " ".join(sys.argv[1:] if argv is None else argv)
         text = results(plan, study, records, refs, out, command, seeds_of)
     except CosimError as exc:
         print(f"science: error: {exc}", file=sys.stderr)

@@ -6,11 +6,11 @@ checkpoint of every AC and a uniform random policy on the SAME held-out seeds
 prints mean return, DISTANCE and OS (lane violations) per policy, over all ACs
 and per AC.
 
-    python bench/train_env1.py [--algos ppo td3] [--episodes 5] [--out bench/results]
-    python bench/train_env1.py --eval runs/env_1__ppo__1__...   # evaluate finished runs only
-    python bench/train_env1.py --algos ppo --lane-weight -5      # train with 10x the lane weight
-    python bench/train_env1.py --eval --baselines                 # non-learning references only
-    python bench/train_env1.py --algos ppo --jitter 5 0.5 --baselines   # env_1 with spawn jitter
+    python studies/train_env1.py [--algos ppo td3] [--episodes 5] [--out runs/train_env1]
+    python studies/train_env1.py --eval runs/env_1__ppo__1__...   # evaluate finished runs only
+    python studies/train_env1.py --algos ppo --lane-weight -5      # train with 10x the lane weight
+    python studies/train_env1.py --eval --baselines                 # non-learning references only
+    python studies/train_env1.py --algos ppo --jitter 5 0.5 --baselines   # env_1 with spawn jitter
 """
 
 from __future__ import annotations
@@ -116,7 +116,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algos", nargs="+", default=["ppo", "td3"])
     parser.add_argument("--episodes", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument("--out", type=Path, default=Path("runs/train_env1"))
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--docs", type=Path, default=None, help="copy convergence plots here")
     parser.add_argument("--steps", type=int, default=None, help="override the quick budget")
@@ -144,7 +144,7 @@ def main() -> None:
         results = [evaluate_run(run, args.episodes, eval_env) for run in args.eval]
     hyper = parse_set(args.set)
     for algo in [] if args.eval is not None else args.algos:
-        # agents=3: the figures in the README were taken with the quick preset's 3 ACs of the
+        # agents=3: the figures in docs/results/2026-11-22-train-env1/README.md were taken with the quick preset's 3 ACs of the
         # time (the preset now trains 6, eval/hyperparams/runs.yaml).
         cfg = make_config(algo, args.env, "quick", agents=3, seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()

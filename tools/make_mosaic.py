@@ -8,7 +8,7 @@ warm-up) catch all six ACs driving, with pedestrians on the crossings; by step
 150 two ACs have reached their goals and some cameras stare at the car queued
 right ahead at the red light.
 
-    python bench/make_mosaic.py [--scenario env_3] [--steps 40] [--seed 3] [--out docs/camera_mosaic.png]
+    python tools/make_mosaic.py [--scenario env_3] [--steps 40] [--seed 3] [--out docs/camera_mosaic.png]
 """
 
 from __future__ import annotations
