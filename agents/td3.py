@@ -70,7 +70,7 @@ class TD3Config(AgentConfig):
     """lower end of the random phase's uniform draw, per action component (empty: the
     action space's low). The driving presets raise the throttle/brake floor to -0.6:
     drawn over [-1, 1] the car brakes harder (8 m/s^2) than it accelerates (3.5), so it
-    stands still most of the phase (README, Training)."""
+    stands still most of the phase (docs/guide.md#exploration-that-moves-the-car-ddpg-td3)."""
     train_freq: int = 1
     """env steps between training phases."""
     gradient_steps: int = 1

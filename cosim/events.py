@@ -187,7 +187,7 @@ def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float) -> dict
     """The weighted reward terms of SPEC §3; the reward is their sum."""
     # F: speed along the route, not along the car's heading, and negative when driving
     # against it, so that circling at speed averages to nothing (policies exploited both
-    # the heading version and a [0, 1] clip; see README)
+    # the heading version and a [0, 1] clip; see docs/design.md, "F, the speed term")
     forward = min(max(ev.route_speed / speed_limit, -1.0), 1.0)
     return {
         "collision": weights.collision * float(ev.collision),

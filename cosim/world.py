@@ -4,7 +4,7 @@
 The environments (:mod:`cosim.env`) add the PyBullet mirror and the cameras on
 top of it; benchmarks and the scripted controller use it directly.
 
-The order of one step (README "The order of one step"), done in :meth:`World.step`:
+The order of one step (docs/guide.md#the-order-of-one-step), done in :meth:`World.step`:
 
 1. actions -> controls (throttle/brake, steer), validated per AC
 2. ego dynamics: kinematic bicycle over dt, for every active AC

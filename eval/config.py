@@ -71,7 +71,7 @@ class TrainConfig:
     """A collision ends the AC's training episode (True: the paper's training protocol). False
     (``--collisions continue``): as in the test, the car stays where it hit and pays the
     collision reward every step it stays in contact, until the goal, leaving the road or the
-    horizon (README "Training")."""
+    horizon (docs/guide.md#collisions-in-training)."""
 
     @property
     def action_type(self) -> str:

@@ -42,8 +42,8 @@ ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
 SAMPLED = ("ppo", "a3c", "impala")
 """Algorithms whose learned policy is a distribution: the test samples it (their training
 maximised the return of the sampled policy; its mode is a different policy: two IMPALA
-modes crawled at 8-14 km/h and reached no goal where their samples drove; README
-"Testing trained cars", bench/greedy_vs_sampled.py). DQN, DDPG and TD3 learn a
+modes crawled at 8-14 km/h and reached no goal where their samples drove;
+docs/results/2026-11-23-greedy-vs-sampled/README.md). DQN, DDPG and TD3 learn a
 deterministic policy and act greedily (no epsilon, no action noise). ``cosim test
 --greedy`` takes every policy's mode."""
 

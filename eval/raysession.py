@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 
 INSTALL_HINT = "Ray Tune is not installed; install it with: pip install -e '.[tune]'  (or --no-ray)"
 
-# set before Ray starts, inherited by its processes (README, Benchmark on Ray)
+# set before Ray starts, inherited by its processes (docs/guide.md#benchmark-on-ray)
 RAY_ENV = {
     "RAY_USAGE_STATS_ENABLED": "0",
     "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",

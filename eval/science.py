@@ -1,4 +1,4 @@
-"""The statistics of the science study (``bench/science.py``, issue 14).
+"""The statistics of the science study (``studies/science.py``, issue 14).
 
 The study trains every (algorithm, environment, seed) with ``cosim benchmark`` and
 tests each trained policy on held-out episode seeds under the test protocol

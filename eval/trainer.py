@@ -197,7 +197,7 @@ def _set_torch_threads(cfg: TrainConfig) -> None:
     process) shared among the learner threads, at least 1; A3C's learner threads are its
     parallelism (1 torch thread). IMPALA's one learner gets the same share as the
     parallel ACs would (1 on 2 cores): more OpenMP threads were not measured to help. Two OpenMP threads per update on a busy 2-core machine
-    made a forward pass ~20x slower (README, Training throughput): parallel ACs, not
+    made a forward pass ~20x slower (docs/benchmarks.md#where-ppos-cpu-goes-with-1-and-2-envs): parallel ACs, not
     parallel ops, use the cores here."""
     import torch
 
