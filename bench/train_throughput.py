@@ -35,7 +35,7 @@ import numpy as np
 
 from eval.train import make_config, make_env, train
 
-AGENTS = 3  # the default of --agents: the README's first tables were taken with 3 ACs
+AGENTS = 3  # the default of --agents: the first tables of docs/benchmarks.md were taken with 3 ACs
 
 
 def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dict[str, float]:

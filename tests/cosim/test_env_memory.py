@@ -3,7 +3,7 @@
 Before the fix each mirror kept ~0.75 MB (the Python lists pybullet's
 ``createVisualShape(vertices=...)`` never releases): 40 environments grew RSS by
 ~30 MB. The bound here is loose enough for allocator noise on a busy machine and
-still fails with that leak; ``bench/env_memory.py`` measures 200 (README, Benchmarks).
+still fails with that leak; ``bench/env_memory.py`` measures 200 (docs/benchmarks.md#memory-of-environments-created-and-closed).
 """
 
 import json

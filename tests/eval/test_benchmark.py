@@ -423,7 +423,7 @@ def test_ray_start_head_on_loopback_and_benchmark_on_it(tmp_path, ray_tmp):
     import secrets
 
     port = free_port()
-    # a head on loopback only, with token authentication; the driver joins it as the README
+    # a head on loopback only, with token authentication; the driver joins it as docs/guide.md
     # says: RAY_AUTH_MODE=token and the head's token (here in RAY_AUTH_TOKEN on both sides)
     token = secrets.token_hex(32)
     auth = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": token}
