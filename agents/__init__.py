@@ -4,19 +4,19 @@ This package sees only Gymnasium spaces and numpy arrays; it never imports the
 simulator. ``agents/base.py`` defines the interface, ``agents/loop.py`` the
 environment loop that documents the contract, ``agents/checkpoint.py`` the
 self-describing checkpoint format, ``agents/registry.py`` the name -> class
-table that :func:`load` uses and ``agents/errors.py`` the root of every error the
-project raises on purpose (imported by ``cosim`` too, hence the lazy imports below).
+table that :func:`load` uses and ``agents/errors.py`` the root of every error this
+package raises on purpose (imported without torch, hence the lazy imports below).
 """
 
 import importlib
 
 # Submodules are imported on first use (PEP 562), so ``import agents.errors`` (which
-# cosim.errors re-exports) does not import torch.
+# the command line imports to catch AgentError) does not import torch.
 _EXPORTS = {
     "Agent": "agents.base", "AgentConfig": "agents.base",
     "CheckpointError": "agents.checkpoint", "load_checkpoint": "agents.checkpoint",
     "save_checkpoint": "agents.checkpoint",
-    "CosimError": "agents.errors",
+    "AgentError": "agents.errors",
     "DDPG": "agents.ddpg", "DDPGConfig": "agents.ddpg",
     "DQN": "agents.dqn", "DQNConfig": "agents.dqn",
     "LoopStats": "agents.loop", "evaluate": "agents.loop", "run_loop": "agents.loop",
@@ -49,7 +49,7 @@ __all__ = [
     "Agent",
     "AgentConfig",
     "CheckpointError",
-    "CosimError",
+    "AgentError",
     "DDPGConfig",
     "DQNConfig",
     "InProcessVectorEnv",

@@ -38,7 +38,7 @@ import gymnasium
 import numpy as np
 import torch
 
-from agents.errors import CosimError
+from agents.errors import AgentError
 
 __all__ = [
     "FORMAT",
@@ -57,7 +57,7 @@ FORMAT = "cosim-agents-checkpoint"
 FORMAT_VERSION = 1
 
 
-class CheckpointError(CosimError):
+class CheckpointError(AgentError):
     """A checkpoint file is missing, unreadable, of another format or another algorithm."""
 
 

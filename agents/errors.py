@@ -1,18 +1,19 @@
-"""The one root of every error cosim raises on purpose: :class:`CosimError`.
+"""The root of every error the ``agents`` package raises on purpose: :class:`AgentError`.
 
-Why it lives here: the command line catches one class, and errors come from
-both ``cosim`` (scenarios, actions, SUMO) and ``agents`` (checkpoints, worker
-processes), with ``eval`` (training runs, the test protocol) on top of both.
-``agents`` must never import ``cosim`` (it sees only Gymnasium spaces and
-numpy arrays), so the root cannot live in ``cosim``. This module imports
-nothing, and ``agents/__init__.py`` imports its submodules lazily, so
-``cosim.errors`` re-exports :class:`CosimError` from here without pulling in
-torch or any algorithm.
+``agents`` sees only Gymnasium spaces and numpy arrays and never imports ``cosim`` or
+``eval``, so it has its own root rather than sharing cosim's: checkpoints
+(:class:`agents.checkpoint.CheckpointError`) and worker processes
+(:class:`agents.workers.WorkerError`) subclass it. This module imports nothing, and
+``agents/__init__.py`` imports its submodules lazily, so catching :class:`AgentError`
+does not pull in torch.
 
-Every subclass's message names the bad input and the fix; the CLI prints it as
-one line (``cosim: error: ...``) and exits non-zero.
+Every subclass's message names the bad input and the fix; the command line
+(``eval/cli.py``) catches this root and ``cosim.errors.CosimError`` alike and prints the
+message as one line (``cosim: error: ...``; exit codes: docs/reference.md#exit-codes-and-errors).
 """
 
+__all__ = ["AgentError"]
 
-class CosimError(Exception):
-    """Base class of every error cosim, agents and eval raise on purpose."""
+
+class AgentError(Exception):
+    """Base class of every error the agents package raises on purpose."""

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 
-from agents.errors import CosimError
+from agents.errors import AgentError
 
 __all__ = [
     "EPISODE_INFO",
@@ -59,7 +59,7 @@ logger = logging.getLogger(__name__)
 START_METHODS = ("spawn", "forkserver")
 
 
-class WorkerError(CosimError, RuntimeError):
+class WorkerError(AgentError, RuntimeError):
     """A worker process failed; the message carries the worker's own traceback.
 
     Attributes:

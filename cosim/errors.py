@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-# The root lives in agents/errors.py, a module that imports nothing, so that agents
-# (which never imports cosim) and eval subclass the same class; the CLI catches it.
-from agents.errors import CosimError
-
 __all__ = [
     "ActionError",
     "CosimError",
@@ -16,6 +12,13 @@ __all__ = [
     "SimulatorUnavailable",
     "SumoError",
 ]
+
+
+class CosimError(Exception):
+    """Base class of every error the simulation package (and ``eval`` on top of it) raises on
+    purpose. ``agents`` has its own root, ``agents.errors.AgentError``, since it never imports
+    cosim; the command line (``eval/cli.py``) catches both and prints one line
+    (docs/reference.md#exit-codes-and-errors)."""
 
 
 class ScenarioError(CosimError, ValueError):

@@ -23,24 +23,31 @@ from eval import cli_learn, cli_sim
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if not args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
-    if not hasattr(args, "func"):
-        parser.print_help()
-        return 2
+    """Run one command; the exit code follows one policy (docs/reference.md#exit-codes-and-errors):
+    0 done, 2 a user error (argparse's usage errors, and any error a user can cause:
+    ``cosim.errors.CosimError``, ``agents.errors.AgentError``), 1 a bug or a failed check
+    (check-scenarios), 130 interrupted."""
+    from agents.errors import AgentError
     from cosim.errors import CosimError
 
     try:
+        # inside the try: building the parser reads the preset YAMLs (eval/presets.py), and a
+        # bad one must be one line naming the file, not a traceback, for every command
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        logging.basicConfig(level=logging.WARNING if not args.verbose else logging.INFO,
+                            format="%(levelname)s %(name)s: %(message)s")
+        if not hasattr(args, "func"):
+            parser.print_help()
+            return USAGE
         return int(args.func(args) or 0)
-    except CosimError as exc:
-        # the project's one error root (cosim, agents and eval): the message names the
+    except (CosimError, AgentError) as exc:
+        # the roots of cosim (eval's errors subclass it) and of agents: the message names the
         # input and the fix; a multi-line one (a worker's traceback) goes to a log file
         lines = str(exc).strip().splitlines() or [type(exc).__name__]
         more = f" (details in {_write_log(str(exc))})" if len(lines) > 1 else ""
         print(f"cosim: error: {lines[0]}{more}", file=sys.stderr)
-        return 1
+        return USAGE
     except KeyboardInterrupt:
         print("cosim: interrupted", file=sys.stderr)
         return 130
@@ -52,6 +59,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cosim: unexpected error {type(exc).__name__}: {first} (traceback in {path}; "
               "please report it)", file=sys.stderr)
         return 1
+
+
+USAGE = 2
+"""The exit code of every user error: argparse's (a bad command line) and the errors a user
+can cause (bad input, a refused option or resume, a missing optional dependency); 1 is a bug
+or a failed check, so a script can tell "fix the input" from "cosim failed"."""
 
 
 def _write_log(text: str) -> Path:

@@ -20,8 +20,9 @@ from typing import Any
 import yaml
 
 from agents.registry import ALGORITHMS
+from cosim.errors import CosimError
 
-__all__ = ["HYPERPARAMS", "TrainPreset", "load_presets", "preset_names"]
+__all__ = ["HYPERPARAMS", "PresetError", "TrainPreset", "load_presets", "preset_names"]
 
 HYPERPARAMS = Path(__file__).with_name("hyperparams")
 """The folder of the preset YAML files (package data)."""
@@ -61,17 +62,37 @@ class TrainPreset:
 _ALGO_KEYS = ("steps", "hyperparameters")
 
 
+class PresetError(CosimError, ValueError):
+    """A preset YAML in ``eval/hyperparams/`` is missing, not YAML, or holds an unknown key or
+    value; the message names the file and the fix. Every command builds its parser from these
+    files, so the CLI reports this as one line for every command (docs/reference.md#presets)."""
+
+    def __init__(self, path: Path, problem: str):
+        path = Path(path)
+        restore = (f" (or restore it: git checkout -- eval/hyperparams/{path.name})"
+                   if path.parent.resolve() == HYPERPARAMS.resolve() else "")
+        super().__init__(f"{path}: {problem}; fix that file{restore}; the format is in "
+                         "docs/reference.md#presets")
+
+
 def _read(path: Path) -> dict[str, dict[str, Any]]:
-    data = yaml.safe_load(path.read_text())
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise PresetError(path, f"cannot read it ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        where = getattr(exc, "problem_mark", None)
+        line = f" at line {where.line + 1}" if where is not None else ""
+        raise PresetError(path, f"not valid YAML{line} ({getattr(exc, 'problem', None) or exc})") from None
     if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
-        raise ValueError(f"{path}: expected a mapping of preset name -> settings")
+        raise PresetError(path, "expected a mapping of preset name -> settings")
     return data
 
 
 def _check_keys(path: Path, where: str, keys, valid) -> None:
     unknown = sorted(set(keys) - set(valid))
     if unknown:
-        raise ValueError(f"{path}: {where}: unknown key(s) {unknown}; valid keys: {sorted(valid)}")
+        raise PresetError(path, f"{where}: unknown key(s) {unknown}; valid keys: {sorted(valid)}")
 
 
 def preset_names() -> tuple[str, ...]:
@@ -84,8 +105,9 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
     """The run presets, by name, from ``folder``'s runs.yaml and <algo>.yaml files.
 
     Raises:
-        ValueError: a missing file, an unknown key (listing the valid ones), or an
-            algorithm without a step budget for a preset.
+        PresetError: (a ValueError and a CosimError) a missing or unreadable file, bad YAML,
+            an unknown key (listing the valid ones), or an algorithm without a step budget
+            for a preset; the message names the file and the fix.
     """
     folder = Path(folder)
     runs = _read(folder / "runs.yaml")
@@ -100,9 +122,13 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
             _check_keys(path, "presets", entries, runs)
             entry = entries.get(name)
             if entry is None or "steps" not in entry:
-                raise ValueError(f"{path}: preset {name!r} needs 'steps' (environment steps)")
+                raise PresetError(path, f"preset {name!r} needs 'steps' (environment steps)")
             _check_keys(path, name, entry, _ALGO_KEYS)
-            steps[algo] = int(entry["steps"])
+            try:
+                steps[algo] = int(entry["steps"])
+            except (TypeError, ValueError):
+                raise PresetError(path, f"{name}: steps must be a whole number of environment "
+                                        f"steps, got {entry['steps']!r}") from None
             if entry.get("hyperparameters"):
                 overrides[algo] = dict(entry["hyperparameters"])
         presets[name] = TrainPreset(steps=steps, overrides=overrides, **settings)

@@ -49,6 +49,7 @@ if str(ROOT) not in sys.path:  # run as a script from a checkout
 
 import pandas as pd  # noqa: E402
 
+from agents.errors import AgentError  # noqa: E402
 from cosim.errors import CosimError  # noqa: E402
 from eval import science  # noqa: E402
 from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, adds_seeds, cell_name, finished_runs  # noqa: E402
@@ -498,7 +499,7 @@ def main(argv=None) -> int:
         refs = references(plan, study, out, say)
         command = "python studies/science.py " + " ".join(sys.argv[1:] if argv is None else argv)
         text = results(plan, study, records, refs, out, command, seeds_of)
-    except CosimError as exc:
+    except (CosimError, AgentError) as exc:
         print(f"science: error: {exc}", file=sys.stderr)
         return 2
     print(text)

@@ -1,7 +1,7 @@
 """Every input a user can get wrong ends in one line that names it and the fix.
 
 The CLI cases run `eval.cli.main` in this process with the file descriptors
-captured (SUMO's own C++ messages included): the exit is non-zero, the last line
+captured (SUMO's own C++ messages included): the exit is 2, the last line
 of stderr names the offending input, and no traceback is printed. API cases (an
 environment's actions and reset options) raise a CosimError naming the input.
 Scenario-validation cases (issue 10 item 3) are here too: each names the file and
@@ -146,7 +146,7 @@ def test_bad_cli_input_is_one_line_naming_it(make_argv, expected, tmp_path, capf
     argv = make_argv(tmp_path)
     started = time.monotonic()
     code, err = run_cli(argv, capfd)
-    assert code not in (0, None), f"exit {code}"
+    assert code == 2, f"exit {code}: every user error exits 2 (docs/reference.md#exit-codes-and-errors)"
     assert "Traceback" not in err and "unexpected error" not in err, err
     last = err.strip().splitlines()[-1]
     for text in expected:
@@ -211,15 +211,54 @@ def test_reset_option_typo_is_refused_naming_the_valid_keys(mixed_env, caplog):
     assert set(obs) == {"ac_0", "ac_1"}
 
 
-def test_every_deliberate_error_shares_one_root():
+def test_every_deliberate_error_has_its_package_root():
+    """cosim's errors (and eval's, above it) share cosim.errors.CosimError; agents, which never
+    imports cosim, has its own root, agents.errors.AgentError; the CLI catches both."""
     from agents.checkpoint import CheckpointError
+    from agents.errors import AgentError
     from agents.workers import WorkerError
+    from eval.presets import PresetError
     from eval.protocol import ProtocolError
     from eval.train import TrainError
 
-    for cls in (ScenarioError, ActionError, OptionError, CheckpointError, WorkerError,
-                TrainError, ProtocolError):
-        assert issubclass(cls, CosimError), cls
+    for cls in (ScenarioError, ActionError, OptionError, TrainError, ProtocolError, PresetError):
+        assert issubclass(cls, CosimError) and not issubclass(cls, AgentError), cls
+    for cls in (CheckpointError, WorkerError):
+        assert issubclass(cls, AgentError) and not issubclass(cls, CosimError), cls
+
+
+@pytest.mark.parametrize("command", [["scenarios"], ["train", "--algo", "ppo"], ["drive", "env_1"]])
+def test_a_bad_preset_yaml_is_one_line_naming_the_file_for_every_command(command, tmp_path, capfd,
+                                                                         monkeypatch):
+    """The parser of every command is built from eval/hyperparams/*.yaml: a typo there is one
+    line naming the file and the fix (exit 2), never a traceback, even for `cosim scenarios`."""
+    import eval.presets as presets
+
+    for path in presets.HYPERPARAMS.glob("*.yaml"):
+        (tmp_path / path.name).write_text(path.read_text())
+    (tmp_path / "td3.yaml").write_text("quick: {steps: 10\n")  # unclosed mapping
+    load = presets.load_presets
+    monkeypatch.setattr(presets, "load_presets", lambda folder=tmp_path: load(folder))
+    code, err = run_cli(command, capfd)
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith("cosim: error: ") and "td3.yaml: not valid YAML at line 2" in err, err
+    assert "fix that file" in err and "docs/reference.md#presets" in err
+
+
+def test_a_preset_yaml_with_an_unknown_key_names_the_key_and_the_valid_ones(tmp_path, capfd,
+                                                                           monkeypatch):
+    import eval.presets as presets
+
+    for path in presets.HYPERPARAMS.glob("*.yaml"):
+        (tmp_path / path.name).write_text(path.read_text())
+    runs = yaml.safe_load((tmp_path / "runs.yaml").read_text())
+    runs["quick"]["horizn"] = 10
+    (tmp_path / "runs.yaml").write_text(yaml.safe_dump(runs))
+    load = presets.load_presets
+    monkeypatch.setattr(presets, "load_presets", lambda folder=tmp_path: load(folder))
+    code, err = run_cli(["scenarios"], capfd)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "runs.yaml: quick: unknown key(s) ['horizn']; valid keys: " in err and "'horizon'" in err
 
 
 def test_a_bug_prints_one_line_and_the_log_holding_its_traceback(capfd, monkeypatch):
@@ -246,7 +285,7 @@ def test_a_multi_line_error_prints_its_first_line_and_keeps_the_rest_in_a_log(ca
 
     monkeypatch.setattr(eval.cli_sim, "cmd_scenarios", worker_died)
     code, err = run_cli(["scenarios"], capfd)
-    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err  # a user error (AgentError)
     assert err.startswith("cosim: error: worker 1 failed: exited with code 1 (details in ")
     log = Path(err.split("details in ")[1].rstrip(")\n"))
     assert "boom" in log.read_text()

@@ -32,7 +32,7 @@ def test_view_writes_mosaics_and_gifs(tmp_path, capsys):
 
 
 def test_errors_exit_non_zero_with_a_one_line_reason(capsys):
-    assert main(["drive", "env_9", "--quiet"]) == 1
+    assert main(["drive", "env_9", "--quiet"]) == 2  # a user error (docs/reference.md)
     err = capsys.readouterr().err
     assert err.startswith("cosim: error: unknown scenario 'env_9'") and err.count("\n") == 1
 

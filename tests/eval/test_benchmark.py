@@ -244,11 +244,11 @@ def test_ray_address_that_does_not_answer_fails_within_seconds(tmp_path):
         # python + torch imports included (25 s seen on a loaded 2-core machine, nice 10);
         # Ray's own retry would take ~60 s and the call's timeout is 60
         assert time.monotonic() - start < 45
-        assert done.returncode == 1, done.stderr
+        assert done.returncode == 2, done.stderr
         assert f"no Ray cluster answers at 127.0.0.1:{port}" in done.stderr
         assert "ray start --head" in done.stderr
     bad = cosim(["benchmark", "--ray-address", "nonsense", "--out", str(tmp_path / "c")], timeout=60)
-    assert bad.returncode == 1 and "write HOST:PORT" in bad.stderr
+    assert bad.returncode == 2 and "write HOST:PORT" in bad.stderr
 
 
 def _checkpoints(tune_dir: Path) -> dict[tuple[str, int], Path]:
@@ -448,7 +448,7 @@ def test_ray_start_head_on_loopback_and_benchmark_on_it(tmp_path, ray_tmp):
         refused = cosim(["benchmark", "--envs", "env_1", "--algos", "ppo", "--ray-address",
                          f"127.0.0.1:{port}", "--out", str(tmp_path / "c")], ray_tmp,
                         env_extra={"RAY_AUTH_MODE": "disabled", "RAY_AUTH_TOKEN": token}, timeout=180)
-        assert refused.returncode == 1, refused.stderr[-2000:]
+        assert refused.returncode == 2, refused.stderr[-2000:]
         assert "RAY_AUTH_MODE=token" in refused.stderr.strip().splitlines()[-1]
         assert (tmp_path / "b" / "runs" / "env_1__ppo__0__bench" / "checkpoints").exists()
     finally:  # the head's processes, by PID (never `ray stop`: it stops every Ray on the machine)

@@ -200,7 +200,7 @@ def test_corrupt_checkpoint_is_a_one_line_error(tmp_path, capsys):
     ckpt = tmp_path / "env_1__ppo__0__20260101-000000" / "checkpoints" / "ac_0" / "best.pt"
     ckpt.parent.mkdir(parents=True)
     ckpt.write_bytes(b"not a checkpoint")
-    assert main(["test", "--agents", "1", "--runs", str(tmp_path), "--envs", "env_1", "--quiet"]) == 1
+    assert main(["test", "--agents", "1", "--runs", str(tmp_path), "--envs", "env_1", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "best.pt" in err and "corrupt" in err and err.count("\n") == 1
 

@@ -124,7 +124,7 @@ def test_unknown_algorithm_and_environment_name_the_choices(capsys):
     assert main(["train", "--algo", "sac"]) == 2
     err = capsys.readouterr().err
     assert "unknown algorithm 'sac'" in err and "ppo, a3c, impala, dqn, ddpg, td3" in err
-    assert main(["train", "--algo", "ppo", "--env", "env_42"]) == 1
+    assert main(["train", "--algo", "ppo", "--env", "env_42"]) == 2
     assert "available: env_1, env_2, env_3, env_4, env_5" in capsys.readouterr().err
 
 
