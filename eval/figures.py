@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from eval.report import ALGO_ORDER, SCENARIO_NAMES, algo_order
+from eval.labels import ALGO_ORDER, SCENARIO_NAMES, algo_order, env_title
 
 COLOURS = {"ppo": "#0072B2", "a3c": "#E69F00", "impala": "#009E73", "dqn": "#CC79A7",
            "ddpg": "#D55E00", "td3": "#56B4E9"}
@@ -132,8 +132,6 @@ def speed_grid(records: pd.DataFrame, out: Path, labels: Mapping[str, str], dt: 
 
 def _label_panel(ax, env: str, scenario, ylabel: str | None, xlabel: bool) -> None:
     """Title, grid and axis labels of one panel of an environment x scenario grid."""
-    from eval.report import env_title
-
     ax.set_title(f"{env_title(env)}, {SCENARIO_NAMES.get(scenario, scenario)}", loc="left")
     ax.grid(lw=0.3)
     if ylabel:

@@ -33,29 +33,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from eval.labels import ALGO_ORDER, SCENARIO_NAMES, algo_order, env_title  # noqa: F401 - re-exported
 from eval.metrics import episode_metrics
 
-ALGO_ORDER = ("ppo", "a3c", "impala", "dqn", "ddpg", "td3")
 TABLE_METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
-SCENARIO_NAMES = {1: "Scenario 1 (multi-agent)", 2: "Scenario 2 (single-agent)"}
 BOOTSTRAP = 2000
 CI_SEED = 0
 UNITS = {"TTFC": "s", "SPEED": "km/h", "DISTANCE": "m"}
-
-
-def algo_order(names) -> list[str]:
-    names = set(names)
-    return [a for a in ALGO_ORDER if a in names] + sorted(names - set(ALGO_ORDER))
-
-
-def env_title(env: str) -> str:
-    """The environment's title from its scenario YAML (Straight, ...), else its name."""
-    try:
-        from cosim.scenario import load_scenario
-
-        return load_scenario(env).title or env
-    except Exception:  # noqa: BLE001 - a report must not fail on a title
-        return env
 
 
 def bootstrap_ci(values, resamples: int = BOOTSTRAP, seed: int = CI_SEED) -> tuple[float, float, float, int]:
