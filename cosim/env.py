@@ -17,8 +17,10 @@ Reward (per agent, per step; weights from the scenario YAML)
     + lane (-0.5 per step off the road or outside its lanes) + step (-1).
     Each weighted term is in ``infos[agent]["reward_terms"]``.
 Termination
-    collision (``terminate_on_collision``; on for training, off for testing),
-    goal reached, leaving the region; truncation at ``horizon`` steps.
+    goal reached, leaving the region; truncation at ``horizon`` steps. A collision
+    does not end the episode (the test's rule, the default for training too: each
+    contact step is charged); ``terminate_on_collision=True`` is the paper's training
+    rule (docs/task.md, "Training rule").
 Infos
     every event (collision_vehicle / _pedestrian / _object, off_road, wrong_lane,
     goal_reached, out_of_region), distance_to_goal, progress, speed, x, y,

@@ -66,8 +66,10 @@ class RewardWeights:
 class Termination:
     """When an AC's episode ends early."""
 
-    on_collision: bool = True
-    """End the AC's episode at its first collision (on for training, off for testing)."""
+    on_collision: bool = False
+    """End the AC's episode at its first collision. Off (the default): the test's rule, used in
+    training too, the episode goes on and each contact step is charged; on: the paper's
+    training rule (``cosim train --collisions end``). Why: docs/task.md, "Training rule"."""
     on_goal: bool = True
     """End the AC's episode when it reaches its goal."""
     on_offroad: bool = False

@@ -138,9 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
                    help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
                         "preset's, 1 = the paper's single frame); tests of the run stack K too")
-    t.add_argument("--collisions", choices=COLLISION_RULES, default="end",
-                   help="end: a collision ends the AC's training episode (the paper's); continue: "
-                        "as in the test, the episode goes on and each contact step is charged")
+    t.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
+                   help="continue (default): as in the test, the episode goes on and each contact "
+                        "step is charged; end: a collision ends the AC's training episode (the "
+                        "paper's rule; docs/task.md, Training rule)")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",

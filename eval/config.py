@@ -26,9 +26,10 @@ ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
 DISCRETE_ALGOS = registry.DISCRETE
 CONTINUOUS_ALGOS = registry.CONTINUOUS
 ASYNC_ALGOS = registry.ASYNC
-COLLISION_RULES = ("end", "continue")
-"""``--collisions``: a collision ends the AC's training episode (the paper's, the default) or
-the episode goes on as in the test (TrainConfig.collisions_end_episode)."""
+COLLISION_RULES = ("continue", "end")
+"""``--collisions``: the episode goes on after a collision as in the test (the default) or a
+collision ends the AC's training episode (the paper's rule); TrainConfig.collisions_end_episode
+and docs/task.md, "Training rule"."""
 
 
 class TrainError(CosimError, ValueError):
@@ -67,11 +68,12 @@ class TrainConfig:
     """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
     1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)
     and every test of a checkpoint does too, read from its observation shape."""
-    collisions_end_episode: bool = True
-    """A collision ends the AC's training episode (True: the paper's training protocol). False
-    (``--collisions continue``): as in the test, the car stays where it hit and pays the
-    collision reward every step it stays in contact, until the goal, leaving the road or the
-    horizon (docs/guide.md#collisions-in-training)."""
+    collisions_end_episode: bool = False
+    """False (the default, ``--collisions continue``): the test's rule, the episode goes on after
+    a collision and the car pays the collision reward every step it stays in contact, until the
+    goal, leaving the region or the horizon. True (``--collisions end``): a collision ends the
+    AC's training episode (the paper's training protocol), which makes crashing worth more than
+    waiting when 71 or more steps remain (docs/task.md, "Training rule")."""
 
     @property
     def action_type(self) -> str:
@@ -86,15 +88,15 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 image_size: int = 84, agent_preset: str | None = None,
                 hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
                 torch_threads: int = 0, frame_stack: int | None = None,
-                learner_threads: int = 0, collisions: str = "end") -> TrainConfig:
+                learner_threads: int = 0, collisions: str = "continue") -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
     (``cosim train --set actor_learning_rate=1e-4``). ``envs`` and ``frame_stack``
     default to the preset's (for A3C and IMPALA ``envs`` defaults to the preset's
     ``workers``: A3C runs one learner thread per environment, IMPALA acts in all).
-    ``collisions``: "end" (a collision ends the AC's training episode, the paper's) or
-    "continue" (the test's rule: the episode goes on and every contact step is charged).
+    ``collisions``: "continue" (the default, the test's rule: the episode goes on and every
+    contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action

@@ -126,7 +126,7 @@ def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
     assert BenchmarkPlan(**grid, collisions="end") == base  # the default, also when named
     assert "collisions" not in base.to_dict()
     assert cont.to_dict() == {**base.to_dict(), "collisions": "continue"}
-    with pytest.raises(BenchmarkError, match="--collisions must be end or continue"):
+    with pytest.raises(BenchmarkError, match="--collisions must be continue or end"):
         BenchmarkPlan(collisions="stop")
 
 
