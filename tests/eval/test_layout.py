@@ -253,7 +253,7 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
     """docs/benchmarks.md "Training throughput per algorithm": env steps/s per algorithm with
     the presets' 6 ACs, quiet machine (the table whose rate column says "6 ACs")."""
     doc = (Path(eval.__file__).resolve().parents[1] / "docs" / "benchmarks.md").read_text()
-    section = doc.split("### Training throughput per algorithm")[1]
+    section = doc.split("\n## Training throughput per algorithm\n")[1]
     (table,) = [t for t in section.split("\n\n") if t.startswith("| algorithm | env steps/s (6 ACs")]
     rates = {}
     for line in table.splitlines()[2:]:
