@@ -5,6 +5,11 @@ brakes for what is ahead on its path (cars, pedestrians), for red and yellow
 lights, and for cars whose predicted paths cross its own in the next seconds.
 It reads the world directly (privileged), so it is a reference driver, not a
 learning agent.
+
+Three references come from it (docs/task.md, "Reference policies"):
+:meth:`Autopilot.act` (continuous), :meth:`Autopilot.act_discrete` (the same driver
+restricted to Discrete(9), the ceiling of a discrete learner) and :class:`NonTurner`
+(the same driver that never turns: it holds before the first junction its route turns at).
 """
 
 from __future__ import annotations
@@ -13,8 +18,9 @@ import math
 
 import numpy as np
 
-from cosim.dynamics import DISCRETE_ACTIONS
+from cosim.dynamics import discrete_controls
 from cosim.geometry import Polyline, rect_corners
+from cosim.roadmap import movement
 from cosim.sumo_bridge import PERSON_RADIUS
 from cosim.world import World
 
@@ -28,6 +34,11 @@ CREEP_SPEED = 1.5  # m/s at most while creeping
 JUNCTION_SPAN = 20.0  # metres: crossings closer than this along a path belong to one junction
 JUNCTION_LOOKAHEAD = 6.0  # seconds of walking a junction's crossings must stay clear to enter
 STANDING_MARGIN = 0.2  # metres of clearance to pass a car standing across or against us
+# Discrete(9) quantiser (Autopilot.act_discrete): weights of the (throttle/brake, steer)
+# errors it trades off, and the most error it carries over between steps (anti-windup)
+QUANT_WEIGHTS = np.array([1.0, 2.0])
+QUANT_CARRY = np.array([0.5, 1.0])
+HOLD_MARGIN = 2.0  # metres before the stop line it aims its front bumper at (it overshoots ~1.5 m)
 
 
 def _crossing_spans(world: World, path) -> list[tuple[float, float]]:
@@ -76,6 +87,7 @@ class Autopilot:
         self._creep = 0  # steps of creeping left (a gridlock breaker, see _respects)
         self._conflicts: dict[str, tuple[float, float] | None] = {}
         self._crossings = _crossing_spans(world, world.route(ac).path)
+        self._carry = np.zeros(2)  # act_discrete's quantisation error, carried to the next step
 
     def act(self) -> np.ndarray:
         """Continuous action (throttle(+)/brake(-), steer) for the AC's current state."""
@@ -110,9 +122,23 @@ class Autopilot:
         return np.array([tb, steer], dtype=np.float32)
 
     def act_discrete(self) -> int:
-        """The nearest of the nine discrete actions to :meth:`act`."""
-        a = self.act()
-        return int(np.argmin(np.sum((DISCRETE_ACTIONS - a) ** 2 * [1.0, 4.0], axis=1)))
+        """:meth:`act` restricted to Discrete(9): the discrete action whose effect is nearest
+        to the continuous one plus the error carried from earlier steps (error diffusion, a
+        sigma-delta quantiser), so that over a few steps the table's few wheel angles and
+        throttle levels average to the continuous autopilot's (a pulsed "left" between 35
+        and 3.5 degrees makes a 20 degree curve). Effects are compared as the wheel angle
+        the bicycle would really use at this speed (grip-limited, ``VehicleParams.wheel_angle``)
+        and the throttle/brake level; the carry is clipped (QUANT_CARRY), so a wish the table
+        cannot meet (brake harder than -0.5) does not pile up."""
+        want = self.act().astype(float)
+        p = self.world.vehicle
+        v = self.world.ac_state(self.ac)[3]
+        table = discrete_controls(p)
+        have = np.column_stack([table[:, 0], p.wheel_angle(table[:, 1], v) / p.max_steer])
+        target = np.array([want[0], p.wheel_angle(want[1], v) / p.max_steer]) + self._carry
+        k = int(np.argmin(np.sum(((have - target) * QUANT_WEIGHTS) ** 2, axis=1)))
+        self._carry = np.clip(target - have[k], -QUANT_CARRY, QUANT_CARRY)
+        return k
 
     # -- pieces --------------------------------------------------------------
     def _off_crossings(self, s: float, gap: float) -> float:
@@ -338,4 +364,44 @@ class Autopilot:
             if len(hit):
                 conflict_s = s + v_self * ts[hit[0]]
                 gaps.append(conflict_s - s - 6.0)
+        return gaps
+
+
+def first_turn_stop(world: World, ac: str) -> float | None:
+    """Arc length along the AC's route of the stop line before the first junction at which
+    the route turns (``cosim.roadmap.movement`` of that pair of edges is not "straight":
+    a left or right turn, a roundabout entry), or None for a route that never turns."""
+    route = world.route(ac)
+    net = world.roadmap.net
+    for prev, nxt in zip(route.edges[:-1], route.edges[1:], strict=True):
+        if movement(net, [prev, nxt]) == "straight":
+            continue
+        ends = np.array([ln.getShape()[-1][:2] for ln in net.getEdge(prev).getLanes()])
+        along, lat = route.path.project_many(ends)
+        return float(along[int(np.argmin(np.abs(lat)))])
+    return None
+
+
+class NonTurner(Autopilot):
+    """The ``safe-non-turner`` reference: the autopilot that never turns.
+
+    It drives its lane like :class:`Autopilot` (yielding, lights, people) and, on a
+    route that turns, holds with its front bumper behind the stop line of
+    the first junction its route turns at (:func:`first_turn_stop`) for the rest of the
+    episode. Routes that only go straight (env_1, the main road of env_5, the straight
+    slots of env_2 and env_3) it drives to their goals; a roundabout's entry and env_5's
+    ramp (it joins at 62 degrees) are turns.
+    It shows whether a learner learned to turn (docs/task.md, "Reference policies")."""
+
+    def __init__(self, world: World, ac: str, target_speed: float | None = None,
+                 horizon: float = 3.0):
+        super().__init__(world, ac, target_speed, horizon)
+        self.hold_s = first_turn_stop(world, ac)
+
+    def _stops(self, x, y, heading, v, path, s):
+        gaps = super()._stops(x, y, heading, v, path, s)
+        if self.hold_s is not None:
+            # a gap g brings the centre to rest at s + g - STOP_MARGIN (see act)
+            rest = self.hold_s - self.world.vehicle.length / 2 - HOLD_MARGIN
+            gaps.append(rest - s + STOP_MARGIN)
         return gaps

@@ -4,6 +4,13 @@ Actions follow SPEC §2. Discrete(9) is the paper's table of (throttle/brake,
 steer) pairs; Box(-1, 1, (2,)) is (throttle(+)/brake(-), steer). Negative steer
 turns left (CARLA's convention, kept from the paper's code). Reverse is disabled:
 braking stops the car, never backs it up.
+
+Steering (docs/task.md, "Actions and steering"): a continuous steer of +-1 is the
+bicycle's wheel limit ``VehicleParams.max_steer`` (35 degrees); the discrete table's
+steer fractions are of CARLA's 70 degree wheel limit, the one the paper's table was
+written for (``VehicleParams.discrete_steer_reference``), so "left" is 35 degrees and
+"forward-left" 3.5 degrees, as the paper's cars had them. At speed every wheel angle,
+discrete or continuous, is limited by grip (``VehicleParams.max_lateral_accel``).
 """
 
 from __future__ import annotations
@@ -15,7 +22,9 @@ import numpy as np
 
 from cosim.errors import ActionError
 
-# (throttle(+)/brake(-), steer) per discrete action, from the paper's published code.
+# (throttle(+)/brake(-), steer) per discrete action, from the paper's published code; the
+# steer column is a fraction of VehicleParams.discrete_steer_reference (CARLA's 70 degrees),
+# not of max_steer: discrete_controls() gives the table in the units bicycle_step takes.
 DISCRETE_ACTIONS = np.array(
     [
         [0.0, 0.0],  # 0 coast
@@ -47,7 +56,25 @@ class VehicleParams:
     wheelbase: float = 2.7
     """Metres between axles."""
     max_steer: float = math.radians(35.0)
-    """Radians of front-wheel angle at steer = +-1."""
+    """Radians of front-wheel angle at steer = +-1 (a continuous action's full authority:
+    rear-axle turning radius 3.9 m, tighter than every turn of the bundled nets, whose
+    right turns need ~5.2 m and roundabout entries and exits ~6.5 m)."""
+    discrete_steer_reference: float = math.radians(70.0)
+    """Radians of wheel angle that the discrete table's steer fractions are of.
+
+    The paper's table (+-0.5 left/right, +-0.05 forward-left/right) was written for
+    CARLA, whose default wheel limit is 70 degrees: its "left" turned the wheels ~35
+    degrees. Taken as fractions of our 35 degree ``max_steer`` instead, "left" would be
+    17.5 degrees (radius ~8.7 m) and no discrete policy could take a right turn or a
+    roundabout exit. So discrete steer ``f`` commands ``f * discrete_steer_reference``,
+    clipped to ``max_steer``: left/right 35 degrees, forward-left/right 3.5 degrees
+    (docs/task.md, "Actions and steering")."""
+    max_lateral_accel: float = 8.0
+    """m/s^2 of lateral acceleration the tyres can give (~0.8 g, dry asphalt): at speed v
+    the wheel angle is limited to ``atan(max_lateral_accel * wheelbase / v**2)``, for
+    discrete and continuous actions alike. It binds above ~5.6 m/s at full lock and keeps
+    the kinematic bicycle from turning at several g (full lock at 14 m/s would be 5 g);
+    every turn of the nets, taken at the autopilot's 2 m/s^2, is far below it."""
     max_accel: float = 3.5
     """m/s^2 at full throttle."""
     max_brake: float = 8.0
@@ -60,16 +87,44 @@ class VehicleParams:
     """Quadratic drag coefficient, 1/m (so top speed at full throttle is ~48 m/s before the cap)."""
 
     def __post_init__(self) -> None:
-        for name in ("length", "width", "wheelbase", "max_steer", "max_accel", "max_brake", "max_speed"):
+        for name in ("length", "width", "wheelbase", "max_steer", "discrete_steer_reference",
+                     "max_lateral_accel", "max_accel", "max_brake", "max_speed"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"VehicleParams.{name} must be > 0, got {getattr(self, name)}")
+        if self.max_steer >= math.pi / 2:
+            raise ValueError(f"VehicleParams.max_steer must be below pi/2 rad (90 degrees), "
+                             f"got {self.max_steer}")
+
+    def wheel_angle(self, steer, speed):
+        """Front-wheel angle (radians, positive = left) for steer commands in [-1, 1] of
+        ``max_steer`` at the given speeds (m/s), after the grip limit ``max_lateral_accel``."""
+        delta = -np.asarray(steer, dtype=float) * self.max_steer
+        v2 = np.maximum(np.asarray(speed, dtype=float) ** 2, 1e-9)
+        grip = np.arctan(self.max_lateral_accel * self.wheelbase / v2)
+        return np.clip(delta, -grip, grip)
 
 
-def action_to_control(action, discrete: bool, agent: str) -> tuple[float, float]:
-    """One agent's action -> (throttle/brake in [-1, 1], steer in [-1, 1]).
+def discrete_controls(params: VehicleParams | None = None) -> np.ndarray:
+    """The discrete table in bicycle_step's units: (throttle/brake, steer of ``max_steer``).
 
-    Continuous actions outside [-1, 1] are clipped; NaN/inf, wrong shapes and
-    out-of-range discrete actions raise :class:`ActionError` naming the agent.
+    Steer fractions of the table are of ``params.discrete_steer_reference`` (docs/task.md,
+    "Actions and steering"); with the defaults: left/right -1/+1, forward-left/right -0.1/+0.1.
+    """
+    params = params or VehicleParams()
+    table = DISCRETE_ACTIONS.copy()
+    scale = params.discrete_steer_reference / params.max_steer
+    table[:, 1] = np.clip(table[:, 1] * scale, -1.0, 1.0)
+    return table
+
+
+def action_to_control(action, discrete: bool, agent: str,
+                      params: VehicleParams | None = None) -> tuple[float, float]:
+    """One agent's action -> (throttle/brake in [-1, 1], steer in [-1, 1] of ``max_steer``).
+
+    A discrete action is its row of :func:`discrete_controls` (``params``, default
+    :class:`VehicleParams`). Continuous actions outside [-1, 1] are clipped; NaN/inf,
+    wrong shapes and out-of-range discrete actions raise :class:`ActionError` naming
+    the agent.
     """
     if discrete:
         if isinstance(action, np.ndarray):
@@ -85,7 +140,7 @@ def action_to_control(action, discrete: bool, agent: str) -> tuple[float, float]
             )
         if not 0 <= int(action) < len(DISCRETE_ACTIONS):
             raise ActionError(f"agent {agent!r}: discrete action {action} is outside Discrete(9) (0..8)")
-        tb, steer = DISCRETE_ACTIONS[int(action)]
+        tb, steer = discrete_controls(params)[int(action)]
         return float(tb), float(steer)
     try:
         arr = None if isinstance(action, int | bool) else np.asarray(action)
@@ -117,7 +172,8 @@ def bicycle_step(
     """Advance N cars one step of the kinematic bicycle model (rear-axle free, centre reference).
 
     Positive throttle_brake accelerates, negative brakes; speed never goes below 0.
-    Negative steer turns left (counter-clockwise).
+    Negative steer turns left (counter-clockwise); the wheel angle is
+    :meth:`VehicleParams.wheel_angle` at the step's mean speed (grip-limited).
     """
     accel = np.where(
         throttle_brake >= 0,
@@ -128,7 +184,7 @@ def bicycle_step(
     resist = np.where(moving, params.rolling_decel + params.drag * speed * speed, 0.0)
     new_speed = np.clip(speed + (accel - resist) * dt, 0.0, params.max_speed)
     v = 0.5 * (speed + new_speed)  # trapezoidal: exact for constant acceleration
-    delta = -steer * params.max_steer
+    delta = params.wheel_angle(steer, v)
     # slip angle at the centre of a kinematic bicycle with the centre mid-wheelbase
     beta = np.arctan(0.5 * np.tan(delta))
     new_heading = heading + v / params.wheelbase * np.cos(beta) * np.tan(delta) * dt

@@ -5,11 +5,15 @@ drives fixed reference policies through a scenario on held-out seeds, with the
 test protocol's rules (collisions do not end an episode), and checks the validity
 criteria of docs/scenarios.md:
 
-- the ``autopilot`` (the scripted, privileged reference driver) reaches at least
-  ``AUTOPILOT_MIN_GOAL`` of the goals without a single vehicle, object or
-  pedestrian collision;
+- the ``autopilot`` (the scripted, privileged reference driver) and the
+  ``autopilot-discrete`` (the same driver restricted to Discrete(9), the ceiling of a
+  discrete learner) each reach at least ``AUTOPILOT_MIN_GOAL`` of the goals without a
+  single vehicle, object or pedestrian collision;
+- the ``safe-non-turner`` (the autopilot that holds before its route's first turn) never
+  collides; it reaches the goals of the straight routes only, a row for learners to beat
+  (docs/task.md, "Reference policies");
 - every degenerate policy reaches at most ``DEGENERATE_MAX_GOAL`` of the goals and
-  earns at most ``DEGENERATE_MAX_RETURN`` of the autopilot's mean return.
+  earns at most ``DEGENERATE_MAX_RETURN`` of the (continuous) autopilot's mean return.
 
 The policies need no camera, so they run on :class:`cosim.world.World` (no
 rendering): a whole environment takes seconds to a minute.
@@ -23,8 +27,8 @@ from collections.abc import Callable
 import numpy as np
 import pandas as pd
 
-from cosim.controller import Autopilot
-from cosim.dynamics import DISCRETE_ACTIONS
+from cosim.controller import Autopilot, NonTurner
+from cosim.dynamics import discrete_controls
 from cosim.scenario import Scenario, load_scenario
 from cosim.world import World
 
@@ -33,7 +37,12 @@ DEGENERATE_MAX_GOAL = 0.2
 DEGENERATE_MAX_RETURN = 0.5  # fraction of the autopilot's mean return
 HELD_OUT_SEED = 10_000  # episode seeds start here; training runs use small seeds
 
-# name -> what it does, as (throttle(+)/brake(-), steer) with steer < 0 = left;
+_TABLE = discrete_controls()  # the Discrete(9) table in World.step's units (cosim.dynamics)
+
+# the scripted references (cosim/controller.py): they must drive (autopilots) or be safe
+REFERENCES = ("autopilot", "autopilot-discrete", "safe-non-turner")
+DRIVERS = ("autopilot", "autopilot-discrete")  # held to AUTOPILOT_MIN_GOAL with no collision
+# name -> what it does, as (throttle(+)/brake(-), steer of max_steer) with steer < 0 = left;
 # "random" and "random-box" draw a new action every step
 DEGENERATE: dict[str, tuple[float, float] | None] = {
     "random": None,  # uniform over the nine discrete actions (SPEC's Discrete(9) table)
@@ -43,10 +52,10 @@ DEGENERATE: dict[str, tuple[float, float] | None] = {
     "always-brake": (-1.0, 0.0),
     "full-left": (0.5, -1.0),
     "full-right": (0.5, 1.0),
-    "forward-drift-left": (0.5, -0.05),  # discrete action 5: forward with a small steer
-    "forward-drift-right": (0.5, 0.05),  # discrete action 6
+    "forward-drift-left": tuple(_TABLE[5]),  # discrete action 5: forward with a small steer
+    "forward-drift-right": tuple(_TABLE[6]),  # discrete action 6
 }
-POLICIES = ("autopilot", *DEGENERATE)
+POLICIES = (*REFERENCES, *DEGENERATE)
 COLUMNS = ("return", "goal", "DISTANCE", "CV", "CO", "CP", "OS", "RL")
 
 
@@ -54,8 +63,14 @@ def _controller(name: str, world: World, rng: np.random.Generator) -> Callable[[
     if name == "autopilot":
         pilots = {ac: Autopilot(world, ac) for ac in world.ac_ids}
         return lambda ac: tuple(pilots[ac].act())
+    if name == "autopilot-discrete":
+        pilots = {ac: Autopilot(world, ac) for ac in world.ac_ids}
+        return lambda ac: tuple(_TABLE[pilots[ac].act_discrete()])
+    if name == "safe-non-turner":
+        pilots = {ac: NonTurner(world, ac) for ac in world.ac_ids}
+        return lambda ac: tuple(pilots[ac].act())
     if name == "random":
-        return lambda ac: tuple(DISCRETE_ACTIONS[rng.integers(len(DISCRETE_ACTIONS))])
+        return lambda ac: tuple(_TABLE[rng.integers(len(_TABLE))])
     if name == "random-box":
         return lambda ac: tuple(rng.uniform(-1.0, 1.0, 2))
     fixed = DEGENERATE[name]
@@ -151,13 +166,20 @@ def failures(table: pd.DataFrame) -> list[str]:
     if "autopilot" not in table.index:
         return ["the autopilot was not run, so no criterion can be checked"]
     ap = table.loc["autopilot"]
-    if ap["goal"] < AUTOPILOT_MIN_GOAL:
-        out.append(f"autopilot reaches {ap['goal']:.0%} of goals (needs >= {AUTOPILOT_MIN_GOAL:.0%})")
-    if ap["collision_steps"] > 0:
-        out.append(f"autopilot collides ({ap['collision_steps']:.2f} collision steps per AC)")
+    for name in DRIVERS:
+        if name not in table.index:
+            continue
+        row = table.loc[name]
+        if row["goal"] < AUTOPILOT_MIN_GOAL:
+            out.append(f"{name} reaches {row['goal']:.0%} of goals (needs >= {AUTOPILOT_MIN_GOAL:.0%})")
+        if row["collision_steps"] > 0:
+            out.append(f"{name} collides ({row['collision_steps']:.2f} collision steps per AC)")
+    if "safe-non-turner" in table.index and table.loc["safe-non-turner", "collision_steps"] > 0:
+        steps = table.loc["safe-non-turner", "collision_steps"]
+        out.append(f"safe-non-turner collides ({steps:.2f} collision steps per AC)")
     limit = DEGENERATE_MAX_RETURN * ap["return"]
     for name in table.index:
-        if name == "autopilot":
+        if name in REFERENCES:
             continue
         row = table.loc[name]
         if row["goal"] > DEGENERATE_MAX_GOAL:
