@@ -152,6 +152,26 @@ def due(before: int, now: int, every: int, start: int = 0) -> int:
     return max(0, now // every - low // every) if now >= start else 0
 
 
+def check_frames(trained: gymnasium.Space, given_shape: tuple, what: str) -> None:
+    """Refuse observations with another number of stacked camera frames than ``trained``, in
+    one line naming both and the fix (the frame stack is recorded in every checkpoint as its
+    observation shape, H x W x 3K; docs/task.md, "Observation").
+
+    Raises:
+        ValueError: the image sizes match but the frame counts differ.
+    """
+    shape = tuple(getattr(trained, "shape", None) or ())
+    given_shape = tuple(given_shape)
+    if len(shape) != 3 or len(given_shape) != 3 or shape == given_shape or shape[:2] != given_shape[:2]:
+        return
+    k, k_given = shape[-1] / 3, given_shape[-1] / 3
+    fmt = lambda v: f"{v:g}"  # noqa: E731 - whole frames print as integers
+    raise ValueError(
+        f"{what} was trained on {fmt(k)} stacked camera frame(s) ({'x'.join(map(str, shape))}) but "
+        f"is given {fmt(k_given)} ({'x'.join(map(str, given_shape))}); use --frame-stack {fmt(k)} "
+        f"(the run's frame_stack) with it")
+
+
 @contextlib.contextmanager
 def seeded_init(seed: int):
     """Run network construction under ``seed`` without touching the caller's torch RNG.
@@ -322,6 +342,8 @@ class Agent(abc.ABC):
         """One observation -> a batch of one on the agent's device, checking its shape."""
         array = np.asarray(obs)
         if array.shape != self.observation_space.shape:
+            if array.ndim == 3 and array.shape[:2] == self.observation_space.shape[:2]:
+                check_frames(self.observation_space, array.shape, f"{self.algo} agent")
             raise ValueError(
                 f"{self.algo} agent expected an observation of shape {self.observation_space.shape}, "
                 f"got {array.shape}; pass one observation at a time"

@@ -27,7 +27,7 @@ import torch
 
 from agents.networks import obs_to_tensor
 
-__all__ = ["ReplayBuffer", "ReplaySample", "RolloutBuffer"]
+__all__ = ["FRAME_CHANNELS", "ReplayBuffer", "ReplaySample", "RolloutBuffer", "frames_in"]
 
 
 def _obs_dtype(space: gymnasium.spaces.Box) -> np.dtype:
@@ -157,6 +157,20 @@ class ReplaySample:
     terminateds: torch.Tensor
 
 
+FRAME_CHANNELS = 3
+"""Channels of one camera frame (RGB): a uint8 image of 3K channels is K stacked frames."""
+
+
+def frames_in(space) -> int:
+    """How many camera frames an observation space stacks (cosim.wrappers.FrameStack): K for
+    a uint8 (H, W, 3K) image, else 1 (docs/task.md, "Observation")."""
+    shape = getattr(space, "shape", None) or ()
+    if getattr(space, "dtype", None) != np.uint8 or len(shape) != 3:
+        return 1
+    channels = shape[-1]
+    return channels // FRAME_CHANNELS if channels % FRAME_CHANNELS == 0 else 1
+
+
 class ReplayBuffer:
     """Circular replay buffer of one agent's transitions, each observation stored once.
 
@@ -166,23 +180,49 @@ class ReplayBuffer:
     column's ring is full, all but its oldest transition are sampled: the oldest
     slot already holds the newest ``next_obs``.
 
+    Frame stacks are stored one frame per slot. With observations of K stacked frames
+    (``frame_stack``; by default read from the space, :func:`frames_in`), each slot keeps
+    only its newest frame and a sample rebuilds the K-frame stack from the slots before it,
+    back to the start of its episode (where the stack repeats its first frame, as
+    cosim.wrappers.FrameStack does), so the buffer takes the memory of single frames
+    (the DQN recipe of Mnih et al. 2015). An episode start whose stack is not K copies of one
+    frame keeps its whole stack on the side; a ring that is full leaves its K-1 oldest
+    slots unsampled (their history is overwritten). Observations that are not such a stack
+    (the older frames of ``next_obs`` are not the newer frames of ``obs``) are refused.
+
     Args:
         capacity: Maximum number of transitions kept (split evenly between columns).
         observation_space: Space of one observation (uint8 images stay uint8).
         action_space: Discrete or Box space of one action.
         seed: Seed of the sampling generator.
         columns: Number of environments feeding the buffer (one ring each).
+        frame_stack: Frames per observation (None: :func:`frames_in` of the space).
     """
 
-    def __init__(self, capacity: int, observation_space, action_space, seed: int = 0, columns: int = 1):
+    def __init__(self, capacity: int, observation_space, action_space, seed: int = 0, columns: int = 1,
+                 frame_stack: int | None = None):
         if columns < 1:
             raise ValueError(f"ReplayBuffer columns must be >= 1, got {columns}")
         if capacity // columns < 2:
             raise ValueError(f"ReplayBuffer capacity must be >= 2 per column, got {capacity} for {columns} column(s)")
+        self.k = frames_in(observation_space) if frame_stack is None else int(frame_stack)
+        shape = tuple(observation_space.shape)
+        divides = self.k == 1 or (bool(shape) and self.k >= 1 and shape[-1] % self.k == 0)
+        if not divides:
+            raise ValueError(f"frame_stack={frame_stack} does not divide the observation's last axis "
+                             f"{shape}; pass frame_stack=1 for observations that are not frame stacks")
+        if capacity // columns < self.k + 1:
+            raise ValueError(f"ReplayBuffer capacity must be >= {self.k + 1} per column for "
+                             f"{self.k}-frame stacks, got {capacity} for {columns} column(s)")
         self.columns = columns
         self.ring = capacity // columns
         self.capacity = capacity = self.ring * columns
-        self.obs = np.zeros((capacity, *observation_space.shape), _obs_dtype(observation_space))
+        self.obs_shape = shape
+        self.channels = shape[-1] // self.k if shape else 0
+        """Channels of one stored frame (the whole observation when ``k`` is 1)."""
+        frame = (*shape[:-1], self.channels) if shape else ()
+        self.obs = np.zeros((capacity, *frame), _obs_dtype(observation_space))
+        """The newest frame of each slot's observation (the observation itself when k = 1)."""
         if isinstance(action_space, gymnasium.spaces.Discrete):
             self.actions = np.zeros(capacity, np.int64)
         else:
@@ -190,9 +230,12 @@ class ReplayBuffer:
         self.rewards = np.zeros(capacity, np.float32)
         self.terminateds = np.zeros(capacity, np.float32)
         self.truncateds = np.zeros(capacity, bool)
+        self.starts = np.zeros(capacity, bool)  # the slot's observation starts an episode
+        self.heads: dict[int, np.ndarray] = {}  # start slot -> its whole stack, when not k copies
         self.final_obs: dict[int, np.ndarray] = {}  # truncated slot -> its real next_obs
         self.positions = np.zeros(columns, np.int64)  # next slot of each ring, relative to its start
         self.sizes = np.zeros(columns, np.int64)
+        self._last_next: list[np.ndarray | None] = [None] * columns  # each column's previous next_obs
         self.rng = np.random.default_rng(seed)
 
     @property
@@ -205,17 +248,46 @@ class ReplayBuffer:
         """Next slot of column 0 (the only one for a single environment)."""
         return int(self.positions[0])
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the stored observations (what dominates the buffer's memory)."""
+        return int(self.obs.nbytes)
+
     def __len__(self) -> int:
         return self.size
 
     def add(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool, column: int = 0) -> None:
-        """Store one transition of environment ``column``."""
+        """Store one transition of environment ``column``.
+
+        Raises:
+            ValueError: with ``k`` > 1 frames, ``next_obs`` is not ``obs`` shifted by one frame.
+        """
         base, j = column * self.ring, int(self.positions[column])
         i, after = base + j, base + (j + 1) % self.ring
-        self.obs[i] = obs
-        # Written now so the newest transition can be sampled; the next add() overwrites it
-        # with the same array while the episode goes on.
-        self.obs[after] = next_obs
+        obs, next_obs = np.asarray(obs), np.asarray(next_obs)
+        previous = self._last_next[column]
+        start = previous is None or not np.array_equal(previous, obs)
+        self.starts[i] = start
+        self.heads.pop(i, None)
+        if self.k > 1:
+            c = self.channels
+            if not np.array_equal(next_obs[..., :-c], obs[..., c:]):
+                raise ValueError(
+                    f"replay buffer of {self.k}-frame stacks: the older frames of next_obs are not "
+                    f"the newer frames of obs, so these observations are not frame stacks; build the "
+                    f"ReplayBuffer with frame_stack=1")
+            if start and not all(np.array_equal(obs[..., -c:], obs[..., m * c:(m + 1) * c])
+                                 for m in range(self.k - 1)):
+                self.heads[i] = np.array(obs, dtype=self.obs.dtype, copy=True)
+            self.obs[i] = obs[..., -c:]
+            # Written now so the newest transition can be sampled; the next add() overwrites it
+            # with the same frame while the episode goes on.
+            self.obs[after] = next_obs[..., -c:]
+        else:
+            self.obs[i] = obs
+            self.obs[after] = next_obs
+        self.starts[after] = False
+        self.heads.pop(after, None)
         self.actions[i] = action
         self.rewards[i] = reward
         self.terminateds[i] = float(terminated)
@@ -223,8 +295,34 @@ class ReplayBuffer:
         self.final_obs.pop(i, None)
         if self.truncateds[i]:
             self.final_obs[i] = np.array(next_obs, dtype=self.obs.dtype, copy=True)
+        self._last_next[column] = None if (terminated or truncated) else np.array(next_obs, copy=True)
         self.positions[column] = (j + 1) % self.ring
         self.sizes[column] = min(self.sizes[column] + 1, self.ring)
+
+    def _stacks(self, slots: np.ndarray, column: np.ndarray) -> np.ndarray:
+        """The whole observations of ``slots`` (absolute indices), rebuilt from their frames."""
+        if self.k == 1:
+            return self.obs[slots]
+        k, c = self.k, self.channels
+        out = np.empty((len(slots), *self.obs_shape), self.obs.dtype)
+        cur = slots.copy()
+        out[..., (k - 1) * c:] = self.obs[cur]
+        stopped = self.starts[cur].copy()
+        depth = np.where(stopped, 1, k)  # frames taken from slots when the walk stopped
+        base = column * self.ring
+        for m in range(1, k):
+            prev = base + (cur - base - 1) % self.ring
+            cur = np.where(stopped, cur, prev)
+            out[..., (k - 1 - m) * c:(k - m) * c] = self.obs[cur]  # a start repeats its frame
+            newly = ~stopped & self.starts[cur]
+            depth[newly] = m + 1
+            stopped |= newly
+        for row in np.flatnonzero(stopped & (depth < k)):
+            head = self.heads.get(int(cur[row]))
+            if head is not None:  # an episode that began with different frames: take them
+                d = int(depth[row])
+                out[row, ..., :(k - d) * c] = head[..., (d - 1) * c:(k - 1) * c]
+        return out
 
     def sample(self, batch_size: int, device="cpu") -> ReplaySample:
         """Sample ``batch_size`` transitions uniformly (with replacement).
@@ -235,9 +333,10 @@ class ReplayBuffer:
         if self.size == 0:
             raise ValueError("cannot sample from an empty ReplayBuffer")
         # A full ring's slot `pos` is its oldest transition, but its obs slot already
-        # holds the newest next_obs: skip it.
+        # holds the newest next_obs: skip it, and the k - 1 after it whose stacks reach back there.
         full = self.sizes == self.ring
-        valid = np.where(full, self.ring - 1, self.sizes)
+        skip = self.k  # 1 + (k - 1)
+        valid = np.where(full, self.ring - skip, self.sizes)
         if self.columns == 1:  # the common case, one draw per sample
             column = np.zeros(batch_size, np.int64)
             offset = self.rng.integers(0, int(valid[0]), batch_size)
@@ -246,13 +345,14 @@ class ReplayBuffer:
             ends = np.cumsum(valid)
             column = np.searchsorted(ends, u, side="right")
             offset = u - (ends - valid)[column]
-        offset = np.where(full[column], (offset + 1 + self.positions[column]) % self.ring, offset)
+        offset = np.where(full[column], (offset + skip + self.positions[column]) % self.ring, offset)
         idx = column * self.ring + offset
-        next_obs = self.obs[column * self.ring + (offset + 1) % self.ring]
+        obs = self._stacks(idx, column)
+        next_obs = self._stacks(column * self.ring + (offset + 1) % self.ring, column)
         for row in np.flatnonzero(self.truncateds[idx]):
             next_obs[row] = self.final_obs[int(idx[row])]
         return ReplaySample(
-            obs=obs_to_tensor(self.obs[idx], device),
+            obs=obs_to_tensor(obs, device),
             actions=torch.as_tensor(self.actions[idx], device=device),
             rewards=torch.as_tensor(self.rewards[idx], device=device),
             next_obs=obs_to_tensor(next_obs, device),

@@ -7,7 +7,8 @@ Agents
 Observation (per agent)
     ``Box(0, 255, (S, S, 3), uint8)``: RGB image of a forward camera at the car's
     windshield, ~90 degree field of view, S = ``image_size`` (default 84),
-    rendered by the PyBullet mirror of the SUMO world.
+    rendered by the PyBullet mirror of the SUMO world. ``parallel_env(frame_stack=K)``
+    stacks the last K (``cosim train`` trains on K = 4; docs/task.md, "Observation").
 Action (per agent, mixed in one env)
     ``Discrete(9)``: the paper's (throttle/brake, steer) table (SPEC §2), or
     ``Box(-1, 1, (2,), float32)``: (throttle(+)/brake(-), steer). No reverse.
@@ -356,6 +357,13 @@ def _resolve_action_types(action_types, agents: list[str]) -> dict[str, str]:
     return types
 
 
-def parallel_env(scenario: str | Scenario = "env_3", **kwargs) -> CosimParallelEnv:
-    """The multi-agent environment (PettingZoo ParallelEnv); see :mod:`cosim.env`."""
-    return CosimParallelEnv(scenario, **kwargs)
+def parallel_env(scenario: str | Scenario = "env_3", frame_stack: int = 1, **kwargs):
+    """The multi-agent environment (PettingZoo ParallelEnv); see :mod:`cosim.env`.
+
+    ``frame_stack`` K > 1 gives each AC its last K camera frames (cosim.wrappers.FrameStack),
+    the observation ``cosim train`` uses by default (K = 4; docs/task.md, "Observation").
+    """
+    from cosim.wrappers import check_frame_stack, observation_wrappers
+
+    check_frame_stack(frame_stack)  # before SUMO and PyBullet are set up
+    return observation_wrappers(CosimParallelEnv(scenario, **kwargs), frame_stack=frame_stack)

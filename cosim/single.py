@@ -21,15 +21,22 @@ GYM_IDS = {
 
 
 class SingleAgentEnv(gym.Env):
-    """One learning car (``ac_0``) of a :class:`~cosim.env.CosimParallelEnv`."""
+    """One learning car (``ac_0``) of a :class:`~cosim.env.CosimParallelEnv`.
+
+    ``frame_stack`` K > 1 observes the last K camera frames, as ``cosim train`` does by
+    default (K = 4; docs/task.md, "Observation"); 1 (the default here) the camera itself.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, scenario: str | Scenario = "env_1", action_type: str = "discrete",
-                 render_mode: str | None = None, **kwargs):
-        self._env = CosimParallelEnv(
+                 render_mode: str | None = None, frame_stack: int = 1, **kwargs):
+        from cosim.wrappers import check_frame_stack, observation_wrappers
+
+        check_frame_stack(frame_stack)
+        self._env = observation_wrappers(CosimParallelEnv(
             scenario, num_agents=1, action_types=action_type, render_mode=render_mode, **kwargs
-        )
+        ), frame_stack=frame_stack)
         self.agent = self._env.possible_agents[0]
         self.observation_space = self._env.observation_space(self.agent)
         self.action_space = self._env.action_space(self.agent)
@@ -52,7 +59,8 @@ class SingleAgentEnv(gym.Env):
         self._env.close()
 
     @property
-    def parallel(self) -> CosimParallelEnv:
+    def parallel(self):
+        """The multi-agent env underneath (with its observation wrappers, if any)."""
         return self._env
 
 

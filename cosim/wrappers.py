@@ -97,6 +97,21 @@ class FrameStack(BaseParallelWrapper):
         return {a: self._history[a].push(o) for a, o in obs.items()}
 
 
+def observation_wrappers(env, frame_stack: int = 1):
+    """``env`` with the observation a run trains on: its last ``frame_stack`` camera frames
+    (:class:`FrameStack`; 1 leaves the env as it is). The one place the training, validation
+    and library factories build an AC's observation (docs/task.md, "Observation")."""
+    k = check_frame_stack(frame_stack)
+    return FrameStack(env, k) if k > 1 else env
+
+
+def check_frame_stack(frame_stack) -> int:
+    """``frame_stack`` as an int >= 1, or a ValueError naming it."""
+    if isinstance(frame_stack, bool) or not isinstance(frame_stack, int | np.integer) or frame_stack < 1:
+        raise ValueError(f"frame_stack must be an int >= 1 (1: a single camera frame), got {frame_stack!r}")
+    return int(frame_stack)
+
+
 class BlackDeath(BaseParallelWrapper):
     """Keep finished agents in the outputs until every agent has finished.
 

@@ -142,6 +142,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue (default): as in the test, the episode goes on and each contact "
                         "step is charged; end: a collision ends the AC's training episode (the "
                         "paper's rule; docs/task.md, Training rule)")
+    t.add_argument("--validation-episodes", type=_int_in(0), default=None, metavar="N",
+                   help="held-out episodes under the test's rules at every checkpoint that pick each "
+                        "AC's best.pt (default 2; 0: off, best.pt by training return; docs/task.md)")
+    t.add_argument("--validation-steps", type=_int_in(1), default=None, metavar="STEPS",
+                   help="steps per validation episode (default 300, or the preset's horizon if shorter)")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",

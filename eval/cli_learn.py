@@ -30,7 +30,9 @@ def cmd_train(args) -> int:
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
                         hyper=hyper, envs=args.envs, device=args.device, collisions=args.collisions,
                         torch_threads=args.torch_threads, frame_stack=args.frame_stack,
-                        learner_threads=args.learner_threads)
+                        learner_threads=args.learner_threads,
+                        validation_episodes=args.validation_episodes,
+                        validation_steps=args.validation_steps)
             for a in algos
         ]
     except TrainError as exc:
@@ -50,20 +52,7 @@ def cmd_train(args) -> int:
     pending = list(algos)
     running: dict[str, subprocess.Popen] = {}
     failed = []
-    base = [sys.executable, "-m", "eval.cli", "train", "--env", args.env, "--preset", args.preset,
-            "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
-            "--torch-threads", str(args.torch_threads), "--collisions", args.collisions,
-            "--keep", args.keep]
-    if args.agents is not None:
-        base += ["--agents", str(args.agents)]
-    if args.steps is not None:
-        base += ["--steps", str(args.steps)]
-    if args.agent_preset is not None:
-        base += ["--agent-preset", args.agent_preset]
-    if args.frame_stack is not None:
-        base += ["--frame-stack", str(args.frame_stack)]
-    for item in args.hyper:
-        base += ["--set", item]
+    base = _train_command(args)
     try:
         while pending or running:
             while pending and len(running) < parallel:
@@ -86,6 +75,29 @@ def cmd_train(args) -> int:
     return 1 if failed else 0
 
 
+def _train_command(args) -> list[str]:
+    """The `cosim train` command line of one algorithm of ``--algo all`` (without --algo/--envs)."""
+    base = [sys.executable, "-m", "eval.cli", "train", "--env", args.env, "--preset", args.preset,
+            "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
+            "--torch-threads", str(args.torch_threads), "--collisions", args.collisions,
+            "--keep", args.keep]
+    if args.agents is not None:
+        base += ["--agents", str(args.agents)]
+    if args.steps is not None:
+        base += ["--steps", str(args.steps)]
+    if args.agent_preset is not None:
+        base += ["--agent-preset", args.agent_preset]
+    if args.frame_stack is not None:
+        base += ["--frame-stack", str(args.frame_stack)]
+    for flag, value in (("--validation-episodes", args.validation_episodes),
+                        ("--validation-steps", args.validation_steps)):
+        if value is not None:
+            base += [flag, str(value)]
+    for item in args.hyper:
+        base += ["--set", item]
+    return base
+
+
 def _train_pbt(args) -> int:
     from eval.pbt import run_pbt
     from eval.raysession import ray_available
@@ -104,7 +116,9 @@ def _train_pbt(args) -> int:
                               seed=args.seed, action_type=args.action_type,
                               agent_preset=args.agent_preset, hyper=parse_set(args.hyper),
                               envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
-                              frame_stack=args.frame_stack, collisions=args.collisions)
+                              frame_stack=args.frame_stack, collisions=args.collisions,
+                              validation_episodes=args.validation_episodes,
+                              validation_steps=args.validation_steps)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:

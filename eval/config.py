@@ -32,6 +32,12 @@ collision ends the AC's training episode (the paper's rule); TrainConfig.collisi
 and docs/task.md, "Training rule"."""
 
 
+VALIDATION_EPISODES = 2
+"""Validation episodes per checkpoint unless ``--validation-episodes`` says otherwise."""
+VALIDATION_STEPS = 300
+"""Steps per validation episode (at most the preset's horizon) unless ``--validation-steps``."""
+
+
 class TrainError(CosimError, ValueError):
     """A training request that cannot run; the message says what to change."""
 
@@ -75,6 +81,14 @@ class TrainConfig:
     AC's training episode (the paper's training protocol), which makes crashing worth more than
     waiting when 71 or more steps remain (docs/task.md, "Training rule")."""
 
+    validation_episodes: int = 0
+    """Held-out episodes the run's ACs drive under the test's rules at every checkpoint; each
+    AC's best.pt is its checkpoint with the highest mean validation return (eval/validation.py;
+    docs/task.md, "Checkpoint selection"). 0: no validation, best.pt by training return (also
+    what a config.yaml written before the option reads as). make_config gives 2."""
+    validation_steps: int = 300
+    """Steps per validation episode (default: 300, or the preset's horizon when shorter)."""
+
     @property
     def action_type(self) -> str:
         return "discrete" if self.algo in DISCRETE_ALGOS else "continuous"
@@ -88,13 +102,16 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 image_size: int = 84, agent_preset: str | None = None,
                 hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
                 torch_threads: int = 0, frame_stack: int | None = None,
-                learner_threads: int = 0, collisions: str = "continue") -> TrainConfig:
+                learner_threads: int = 0, collisions: str = "continue",
+                validation_episodes: int | None = None, validation_steps: int | None = None) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
     (``cosim train --set actor_learning_rate=1e-4``). ``envs`` and ``frame_stack``
     default to the preset's (for A3C and IMPALA ``envs`` defaults to the preset's
     ``workers``: A3C runs one learner thread per environment, IMPALA acts in all).
+    ``validation_episodes`` / ``validation_steps``: the held-out episodes that pick each AC's
+    best.pt (TrainConfig.validation_episodes; 0 episodes: by training return).
     ``collisions``: "continue" (the default, the test's rule: the episode goes on and every
     contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
 
@@ -135,6 +152,11 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
         raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
                          f"{envs}, {torch_threads} and {learner_threads}")
+    validation_episodes = VALIDATION_EPISODES if validation_episodes is None else int(validation_episodes)
+    validation_steps = min(VALIDATION_STEPS, p.horizon) if validation_steps is None else int(validation_steps)
+    if validation_episodes < 0 or validation_steps < 1:
+        raise TrainError(f"--validation-episodes must be >= 0 (0: off) and --validation-steps >= 1, got "
+                         f"{validation_episodes} and {validation_steps}")
     if collisions not in COLLISION_RULES:
         raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
@@ -151,7 +173,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
         image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
         torch_threads=int(torch_threads), frame_stack=frame_stack, learner_threads=int(learner_threads),
-        collisions_end_episode=collisions == "end",
+        collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
+        validation_steps=validation_steps,
     )
 
 

@@ -50,6 +50,14 @@ class RunLog:
         self.env_steps = int(state.get("env_steps", 0))
         self.episodes = dict(state.get("episodes", {}))
         self.best = dict(state.get("best", {}))
+        self.best_step = dict(state.get("best_step", {}))
+        self.validation = list(state.get("validation", []))
+        """Every checkpoint's validation scores: [{"env_step", "scores": {ac: score}}]."""
+        self.validator = None
+        if cfg.validation_episodes > 0:
+            from eval.validation import Validator
+
+            self.validator = Validator(cfg)
         self.rows = int(state.get("csv_rows", 0))
         self.elapsed0 = float(state.get("elapsed_s", 0.0))
         self.start = time.monotonic()
@@ -126,22 +134,34 @@ class RunLog:
     def checkpoint(self, agents: dict, env_step: int, extra_time: dict[str, float] | None = None) -> None:
         """Save latest (and best) per AC and the state that makes them resumable.
 
-        Two phases (module docstring): pending files, then state.json, then renames.
+        best.pt: the checkpoint with the highest validation score (held-out episodes under the
+        test's rules, eval/validation.py; docs/task.md, "Checkpoint selection"), or with
+        ``validation_episodes`` 0 the highest mean return of the AC's last 20 training
+        episodes. Two phases (module docstring): pending files, then state.json, then renames.
         """
-        best = dict(self.best)
+        best, best_step = dict(self.best), dict(self.best_step)
+        validation = list(self.validation)
+        scores = None
+        if self.validator is not None:
+            t0 = time.monotonic()
+            scores = self.validator.scores(agents)
+            validation.append({"env_step": env_step, "scores": {a: round(v, 4) if np.isfinite(v) else None
+                                                          for a, v in scores.items()},
+                               "seconds": round(time.monotonic() - t0, 2)})
         staged = []
         for agent_id, agent in agents.items():
             folder = self.run / "checkpoints" / agent_id
             folder.mkdir(parents=True, exist_ok=True)
             names = ["latest.pt"]
             recent = self.recent[agent_id]
-            if len(recent) >= 3:
-                score = float(np.mean(recent))
-                if score > best.get(agent_id, -np.inf):
-                    best[agent_id] = score
-                    names.append("best.pt")
+            score = (scores[agent_id] if scores is not None
+                     else float(np.mean(recent)) if len(recent) >= 3 else np.nan)
+            if score > best.get(agent_id, -np.inf):
+                best[agent_id], best_step[agent_id] = score, env_step
+                names.append("best.pt")
             elif not (folder / "best.pt").exists():
                 names.append("best.pt")
+                best_step[agent_id] = env_step
             for name in names:
                 pending = folder / pending_name(name, env_step)
                 # latest.pt resumes training (everything); best.pt is what the test drives (the
@@ -149,17 +169,37 @@ class RunLog:
                 agent.save(pending, policy_only=name == "best.pt")  # written to a temp name, renamed
                 staged.append((pending, folder / name))
         state = {"env_steps": env_step, "episodes": self.episodes, "best": best,
+                 "best_step": best_step, "validation": validation,
                  "csv_rows": self.rows, "elapsed_s": self.elapsed, "timing": extra_time or {}}
         atomic_write(self.run / "state.json", json.dumps(state, indent=2))  # the commit point
         for pending, final in staged:
             os.replace(pending, final)
-        self.env_steps, self.best = env_step, best
+        self.env_steps, self.best, self.best_step, self.validation = env_step, best, best_step, validation
+        atomic_write(self.run / "selection.json", json.dumps(self.selection_record(), indent=2))
         for name, value in (extra_time or {}).items():
             self.tb.add_scalar(name, value, env_step)
         self.tb.flush()
         if self.on_checkpoint is not None:
             self.on_checkpoint(self.run, env_step, self.mean_recent())
 
+    def selection_record(self) -> dict:
+        """selection.json: how each AC's best.pt was chosen, with the scores behind it."""
+        if self.validator is not None:
+            from eval.validation import RULE
+
+            rule = {"basis": "validation", "rule": RULE, "seeds": self.validator.seeds,
+                    "episodes": self.cfg.validation_episodes, "steps": self.cfg.validation_steps,
+                    "collisions": "continue (the test's rule)"}
+        else:
+            rule = {"basis": "training return", "rule": "per AC, the checkpoint with the highest "
+                    "mean return of its last 20 training episodes (--validation-episodes 0)"}
+        best = {a: {"score": round(float(v), 4), "env_step": self.best_step.get(a)}
+                for a, v in self.best.items() if np.isfinite(v)}
+        representative = max(best, key=lambda a: (best[a]["score"], -int(a.rsplit("_", 1)[1])), default=None)
+        return {**rule, "best": best, "representative": representative, "history": self.validation}
+
     def close(self) -> None:
         self._file.close()
         self.tb.close()
+        if self.validator is not None:
+            self.validator.close()

@@ -5,10 +5,12 @@ slot the run trained an AC in is driven by that AC (eval/protocol.py, slot_check
 the camera has no route command, an AC knows only its own route); every other slot, and
 the report's "checkpoint tested" line, use the AC chosen by this rule:
 
-1. Each AC's ``best.pt`` is saved when the mean return of its last 20 training
-   episodes reaches a new high (eval/train.py, RunLog.checkpoint); ``state.json``
-   keeps that score per AC (``best``). The AC with the highest score represents the
-   run, with its ``best.pt``.
+1. Each AC's ``best.pt`` is saved when its validation score (mean return over held-out
+   episodes under the test's rules, eval/validation.py; docs/task.md, "Checkpoint
+   selection") reaches a new high, or, in runs without validation, the mean return of its
+   last 20 training episodes (eval/runlog.py, RunLog.checkpoint); ``state.json`` keeps
+   that score per AC (``best``) and ``selection.json`` says which basis. The AC with the
+   highest score represents the run, with its ``best.pt``.
 2. A run without those scores (interrupted before its first checkpoint, or older):
    the AC with the highest mean return over its last 20 episodes in ``episodes.csv``.
 3. Neither: ``ac_0``.
@@ -27,7 +29,8 @@ from pathlib import Path
 
 import pandas as pd
 
-RULE = ("highest best-checkpoint score in state.json (mean return of the AC's last 20 "
+RULE = ("highest best-checkpoint score in state.json (the AC's validation score under the "
+        "test's rules when selection.json says basis validation, else the mean return of its last 20 "
         "training episodes when best.pt was saved); else highest mean return over the "
         "last 20 episodes in episodes.csv; else ac_0; ties to the lowest index")
 WINDOW = 20
@@ -70,6 +73,9 @@ def choose(run: Path) -> Selection | None:
         best = json.loads((run / "state.json").read_text()).get("best", {})
         scores = {a: float(best[a]) for a in acs if a in best}
         basis = "state.json best"
+        record = run / "selection.json"
+        if record.exists() and json.loads(record.read_text()).get("basis") == "validation":
+            basis = "state.json best (validation)"
     except (OSError, ValueError, TypeError):
         scores = {}
     if not scores:

@@ -103,6 +103,7 @@ def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, 
 def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space,
                    device: str = "cpu") -> dict:
     import agents as agents_pkg
+    from agents.base import check_frames
     from agents.registry import get_agent_class
 
     cls = get_agent_class(cfg.algo)
@@ -113,6 +114,10 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
         latest = run / "checkpoints" / aid / "latest.pt"
         if resumed and latest.exists():
             out[aid] = agents_pkg.load(latest, device=device)  # saved from any device, loads on any
+            try:  # a config.yaml edited to another --frame-stack than the checkpoints'
+                check_frames(out[aid].observation_space, obs_space.shape, f"checkpoint {latest}")
+            except ValueError as exc:
+                raise TrainError(str(exc)) from None
         else:
             out[aid] = cls.from_spaces(obs_space, act_space, config, seed=cfg.seed + k, device=device)
     return out
@@ -266,7 +271,7 @@ def make_env(cfg_dict: dict, worker_seed: int | None = None):
     with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack);
     collisions end an AC's episode unless ``collisions_end_episode`` is off."""
     from cosim.env import CosimParallelEnv
-    from cosim.wrappers import FrameStack
+    from cosim.wrappers import observation_wrappers
 
     cfg = TrainConfig(**cfg_dict)
     env = CosimParallelEnv(
@@ -274,7 +279,7 @@ def make_env(cfg_dict: dict, worker_seed: int | None = None):
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
         horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
     )
-    return FrameStack(env, cfg.frame_stack) if cfg.frame_stack > 1 else env
+    return observation_wrappers(env, frame_stack=cfg.frame_stack)
 
 
 class _EpisodeTap:

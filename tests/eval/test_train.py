@@ -32,7 +32,7 @@ def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     runs = {p.name.split("__")[1]: p for p in tmp_path.iterdir()}
     assert sorted(runs) == sorted(ALGORITHMS)
-    obs = np.zeros((84, 84, 3), np.uint8)
+    obs = np.zeros((84, 84, 12), np.uint8)  # the presets' 4-frame stack
     for algo, run in runs.items():
         for ac in ("ac_0", "ac_1"):  # --keep best (the default): the finished run keeps the policy
             assert sorted(p.name for p in (run / "checkpoints" / ac).iterdir()) == ["best.pt"]
@@ -42,6 +42,11 @@ def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
             assert agent.action_space.contains(
                 np.asarray(action, dtype=agent.action_space.dtype) if algo in ("ddpg", "td3") else int(action)
             )
+            with pytest.raises(ValueError, match=r"trained on 4 stacked camera frame\(s\) \(84x84x12\) but is "
+                               r"given 1 \(84x84x3\); use --frame-stack 4") as info:
+                agent.act(obs[..., :3], deterministic=True)
+            assert "\n" not in str(info.value)
+        assert json.loads((run / "selection.json").read_text())["basis"] == "validation"
         state = json.loads((run / "state.json").read_text())
         assert state["env_steps"] == 120
         assert (run / "convergence.png").exists() and (run / "manifest.json").exists()

@@ -49,7 +49,8 @@ def test_auto_device_falls_back_to_cpu_without_cuda(monkeypatch):
 def test_frame_stack_is_part_of_the_config_and_shapes_the_training_env():
     from eval.train import make_env
 
-    assert make_config("ppo", "env_1", "smoke").frame_stack == 1  # the paper's single frame
+    assert make_config("ppo", "env_1", "smoke").frame_stack == 4  # the paper's released scripts' stack
+    assert make_config("ppo", "env_1", "smoke", frame_stack=1).frame_stack == 1  # its text's single frame
     cfg = make_config("td3", "env_1", "smoke", frame_stack=3)
     assert cfg.to_dict()["frame_stack"] == 3
     env = make_env(cfg.to_dict())

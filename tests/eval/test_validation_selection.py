@@ -1,0 +1,134 @@
+"""best.pt and the AC that represents a run are chosen on validation episodes under the
+test's rules, not by training return (eval/runlog.py, eval/validation.py; docs/task.md,
+"Checkpoint selection")."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from eval.config import make_config
+
+
+class _Agent:
+    """Stands in for a trained agent: save() writes which checkpoint it is."""
+
+    def __init__(self):
+        self.step = 0
+
+    def save(self, path, policy_only: bool = False) -> None:
+        path.write_text(json.dumps({"step": self.step}))
+
+
+def _runlog(tmp_path, monkeypatch, validation: dict[int, dict[str, float]], episodes=2):
+    import eval.validation
+    from eval.runlog import RunLog
+
+    cfg = make_config("dqn", "env_1", "smoke", agents=2, validation_episodes=episodes)
+    calls = []
+
+    def scores(self, agents):
+        step = next(iter(agents.values())).step
+        calls.append(step)
+        return dict(validation[step])
+
+    monkeypatch.setattr(eval.validation.Validator, "scores", scores)
+    return RunLog(tmp_path, cfg, None), calls
+
+
+def _episode(log, agent, ret, step):
+    log.episode(agent, {"return": ret, "length": 10, "n_collision_vehicle": 0, "n_collision_pedestrian": 0,
+                        "n_collision_object": 0, "n_lane_violation": 0, "DISTANCE": 0.0,
+                        "mean_speed_kmh": 0.0}, step)
+
+
+def test_best_checkpoint_and_representative_ac_follow_validation_not_training_return(tmp_path, monkeypatch):
+    from eval import selection
+
+    # ac_0 trains better and better but validates worse; ac_1 trains worse but validates best
+    validation = {40: {"ac_0": -100.0, "ac_1": -300.0}, 80: {"ac_0": -900.0, "ac_1": -50.0}}
+    log, calls = _runlog(tmp_path, monkeypatch, validation)
+    agents = {"ac_0": _Agent(), "ac_1": _Agent()}
+    try:
+        for step, (r0, r1) in ((40, (10.0, -500.0)), (80, (500.0, -600.0))):
+            for a in agents.values():
+                a.step = step
+            for _ in range(3):
+                _episode(log, "ac_0", r0, step)
+                _episode(log, "ac_1", r1, step)
+            log.checkpoint(agents, step)
+    finally:
+        log.close()
+    assert calls == [40, 80]
+    best = lambda ac: json.loads((tmp_path / "checkpoints" / ac / "best.pt").read_text())["step"]  # noqa: E731
+    assert best("ac_0") == 40  # by training return it would be 80 (return 500 > 10)
+    assert best("ac_1") == 80
+    record = json.loads((tmp_path / "selection.json").read_text())
+    assert record["basis"] == "validation" and "test's rules" in record["rule"]
+    assert record["best"] == {"ac_0": {"score": -100.0, "env_step": 40}, "ac_1": {"score": -50.0, "env_step": 80}}
+    assert record["representative"] == "ac_1"  # ac_0 has by far the higher training return
+    assert [h["scores"] for h in record["history"]] == [validation[40], validation[80]]
+    assert len(record["seeds"]) == 2 and min(record["seeds"]) >= 10**9  # held out from training and test
+    chosen = selection.choose(tmp_path)
+    assert (chosen.ac, chosen.basis) == ("ac_1", "state.json best (validation)")
+
+
+def test_validation_off_keeps_the_training_return_rule(tmp_path, monkeypatch):
+    log, calls = _runlog(tmp_path, monkeypatch, {}, episodes=0)
+    agents = {"ac_0": _Agent(), "ac_1": _Agent()}
+    try:
+        for step, ret in ((40, 10.0), (80, 500.0)):
+            for a in agents.values():
+                a.step = step
+            for _ in range(3):
+                _episode(log, "ac_0", ret, step)
+                _episode(log, "ac_1", ret - 1, step)
+            log.checkpoint(agents, step)
+    finally:
+        log.close()
+    assert calls == []
+    assert json.loads((tmp_path / "checkpoints" / "ac_0" / "best.pt").read_text())["step"] == 80
+    assert json.loads((tmp_path / "selection.json").read_text())["basis"] == "training return"
+
+
+def test_validation_seeds_are_disjoint_from_training_and_test_seeds():
+    from eval.validation import validation_seeds
+
+    seeds = validation_seeds(make_config("ppo", "env_1", "smoke", seed=3, validation_episodes=4))
+    assert len(set(seeds)) == 4 and all(10**9 <= s < 2**31 for s in seeds)
+    assert make_config("ppo", "env_1", "smoke").validation_episodes == 2
+    with pytest.raises(ValueError, match="--validation-episodes must be >= 0"):
+        make_config("ppo", "env_1", "smoke", validation_episodes=-1)
+
+
+def test_validation_drives_the_acs_under_the_test_rules(tmp_path):
+    """A real validation: the run's two ACs drive 2 short held-out episodes of the stacked
+    env (collisions go on) and each gets its mean undiscounted return."""
+    import gymnasium as gym
+    import numpy as np
+
+    from eval.validation import Validator
+
+    cfg = make_config("dqn", "env_1", "smoke", agents=2, validation_episodes=2, validation_steps=5)
+
+    class Brake:
+        algo = "dqn"
+        space = gym.spaces.Discrete(9)
+
+        def __init__(self):
+            self.shapes = set()
+
+        def act(self, obs, deterministic=True):
+            self.shapes.add(obs.shape)
+            return 4  # the paper's table: index 4 brakes
+
+    validator = Validator(cfg)
+    agents = {"ac_0": Brake(), "ac_1": Brake()}
+    try:
+        scores = validator.scores(agents)
+        assert validator._env.unwrapped.scenario.termination.on_collision is False
+    finally:
+        validator.close()
+    assert set(scores) == {"ac_0", "ac_1"} and all(np.isfinite(v) for v in scores.values())
+    assert agents["ac_0"].shapes == {(84, 84, 3 * cfg.frame_stack)}
