@@ -357,13 +357,16 @@ def _resolve_action_types(action_types, agents: list[str]) -> dict[str, str]:
     return types
 
 
-def parallel_env(scenario: str | Scenario = "env_3", frame_stack: int = 1, **kwargs):
+def parallel_env(scenario: str | Scenario = "env_3", frame_stack: int = 1, obs: str = "image", **kwargs):
     """The multi-agent environment (PettingZoo ParallelEnv); see :mod:`cosim.env`.
 
     ``frame_stack`` K > 1 gives each AC its last K camera frames (cosim.wrappers.FrameStack),
-    the observation ``cosim train`` uses by default (K = 4; docs/task.md, "Observation").
+    the observation ``cosim train`` uses by default (K = 4); ``obs="nav"`` adds the
+    measurements vector beside them in a Dict (cosim.wrappers.NavObservation; docs/task.md,
+    "Observation").
     """
-    from cosim.wrappers import check_frame_stack, observation_wrappers
+    from cosim.wrappers import check_frame_stack, check_obs_variant, observation_wrappers
 
     check_frame_stack(frame_stack)  # before SUMO and PyBullet are set up
-    return observation_wrappers(CosimParallelEnv(scenario, **kwargs), frame_stack=frame_stack)
+    check_obs_variant(obs)
+    return observation_wrappers(CosimParallelEnv(scenario, **kwargs), frame_stack=frame_stack, obs=obs)

@@ -25,18 +25,21 @@ class SingleAgentEnv(gym.Env):
 
     ``frame_stack`` K > 1 observes the last K camera frames, as ``cosim train`` does by
     default (K = 4; docs/task.md, "Observation"); 1 (the default here) the camera itself.
+    ``obs="nav"``: a Dict of those frames and the measurements vector
+    (cosim.wrappers.NavObservation).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, scenario: str | Scenario = "env_1", action_type: str = "discrete",
-                 render_mode: str | None = None, frame_stack: int = 1, **kwargs):
-        from cosim.wrappers import check_frame_stack, observation_wrappers
+                 render_mode: str | None = None, frame_stack: int = 1, obs: str = "image", **kwargs):
+        from cosim.wrappers import check_frame_stack, check_obs_variant, observation_wrappers
 
         check_frame_stack(frame_stack)
+        check_obs_variant(obs)
         self._env = observation_wrappers(CosimParallelEnv(
             scenario, num_agents=1, action_types=action_type, render_mode=render_mode, **kwargs
-        ), frame_stack=frame_stack)
+        ), frame_stack=frame_stack, obs=obs)
         self.agent = self._env.possible_agents[0]
         self.observation_space = self._env.observation_space(self.agent)
         self.action_space = self._env.action_space(self.agent)

@@ -1,5 +1,8 @@
-"""ParallelEnv wrappers: frame stacking (:class:`FrameStack`, :class:`FrameHistory`), and
+"""ParallelEnv wrappers: frame stacking (:class:`FrameStack`, :class:`FrameHistory`), the
+``nav`` observation (:class:`NavObservation`: image and measurements), and
 :class:`BlackDeath` for libraries that need every agent present at every step.
+:func:`observation_wrappers` builds an AC's observation from these (docs/task.md,
+"Observation").
 
 A single camera frame has no velocity. :class:`FrameStack` gives each agent its last K
 frames, stacked on the channel axis oldest first (84x84x3 -> 84x84x3K); at a reset the
@@ -97,12 +100,27 @@ class FrameStack(BaseParallelWrapper):
         return {a: self._history[a].push(o) for a, o in obs.items()}
 
 
-def observation_wrappers(env, frame_stack: int = 1):
+OBS_VARIANTS = ("image", "nav")
+"""What an AC observes: its camera frames ("image"), or those beside a measurements vector
+("nav": :class:`NavObservation`)."""
+
+
+def observation_wrappers(env, frame_stack: int = 1, obs: str = "image"):
     """``env`` with the observation a run trains on: its last ``frame_stack`` camera frames
-    (:class:`FrameStack`; 1 leaves the env as it is). The one place the training, validation
-    and library factories build an AC's observation (docs/task.md, "Observation")."""
+    (:class:`FrameStack`; 1 leaves the camera as it is) and, with ``obs="nav"``, the
+    measurements beside them (:class:`NavObservation`). The one place the training,
+    validation and library factories build an AC's observation (docs/task.md, "Observation")."""
     k = check_frame_stack(frame_stack)
-    return FrameStack(env, k) if k > 1 else env
+    check_obs_variant(obs)
+    env = FrameStack(env, k) if k > 1 else env
+    return NavObservation(env) if obs == "nav" else env
+
+
+def check_obs_variant(obs) -> str:
+    """``obs`` if it names an observation variant, else a ValueError listing them."""
+    if obs not in OBS_VARIANTS:
+        raise ValueError(f"obs must be one of {', '.join(OBS_VARIANTS)}, got {obs!r}")
+    return obs
 
 
 def check_frame_stack(frame_stack) -> int:
@@ -110,6 +128,125 @@ def check_frame_stack(frame_stack) -> int:
     if isinstance(frame_stack, bool) or not isinstance(frame_stack, int | np.integer) or frame_stack < 1:
         raise ValueError(f"frame_stack must be an int >= 1 (1: a single camera frame), got {frame_stack!r}")
     return int(frame_stack)
+
+
+NAV_COMMANDS = ("follow", "left", "straight", "right", "u-turn")
+"""The route command of the ``nav`` observation, one-hot in this order. "follow": keep the
+lane (far from the junction, or past it); the others: the route's movement through its
+junction (cosim.roadmap.movement; through a roundabout the heading change between entry and
+exit, so the bundled four-arm roundabout's first, second and third exits read right,
+straight and left: the command names the exit)."""
+NAV_SWITCH_DISTANCE = 50.0
+"""Metres of route before the junction (the end of the first edge: its stop line) from which
+the command names the movement: about 3.6 s at the 13.9 m/s speed limit, enough to pick the
+lane and slow for a turn. The bundled junction scenarios spawn their ACs 25 or 45 m before
+the junction, so each starts with its command; the Merge's ACs (59-103 m) drive up to ~50 m
+under "follow" first (docs/task.md, "Observation")."""
+NAV_SPEED_SCALE = 13.89
+"""m/s that read as 1.0 in the speed measurement (the scenarios' speed limit)."""
+NAV_MAX_SPEED = 25.0
+"""The learning car's top speed (cosim.dynamics.VehicleParams.max_speed): the bound of the
+speed measurement's space, NAV_MAX_SPEED / NAV_SPEED_SCALE."""
+
+
+def nav_command(s: float, entry_s: float, exit_s: float, movement: str,
+                switch_distance: float = NAV_SWITCH_DISTANCE) -> str:
+    """The route command at arc length ``s``: the movement from ``switch_distance`` metres
+    before the junction entry ``entry_s`` until its exit ``exit_s``, "follow" elsewhere (and
+    on a route without a junction, ``entry_s`` >= ``exit_s``)."""
+    if movement not in NAV_COMMANDS or movement == "follow":
+        raise ValueError(f"movement must be one of {', '.join(NAV_COMMANDS[1:])}, got {movement!r}")
+    if entry_s >= exit_s:
+        return "follow"
+    return movement if entry_s - switch_distance <= s < exit_s else "follow"
+
+
+def nav_measurements(speed: float, distance_to_goal: float, route_length: float, command: str) -> np.ndarray:
+    """The ``nav`` measurements vector: forward speed / NAV_SPEED_SCALE, the command one-hot
+    (NAV_COMMANDS order), distance to the goal along the route / the spawn's (0..1)."""
+    onehot = [float(command == c) for c in NAV_COMMANDS]
+    speed = min(max(float(speed), 0.0), NAV_MAX_SPEED) / NAV_SPEED_SCALE
+    remaining = min(max(float(distance_to_goal) / max(float(route_length), 1e-6), 0.0), 1.0)
+    return np.array([speed, *onehot, remaining], np.float32)
+
+
+def nav_space() -> gymnasium.spaces.Box:
+    """The space of :func:`nav_measurements`."""
+    high = np.array([NAV_MAX_SPEED / NAV_SPEED_SCALE, *([1.0] * len(NAV_COMMANDS)), 1.0], np.float32)
+    return gymnasium.spaces.Box(np.zeros_like(high), high, dtype=np.float32)
+
+
+class RouteGuide:
+    """The geometry :func:`nav_command` needs of one AC's route: where its junction starts
+    and ends along the route, its movement and its spawn-to-goal length. Built from a cosim
+    route (:meth:`of_route`) or by hand (tests)."""
+
+    def __init__(self, entry_s: float, exit_s: float, movement: str, route_length: float, goal_s: float):
+        self.entry_s, self.exit_s, self.movement = float(entry_s), float(exit_s), movement
+        self.route_length, self.goal_s = float(route_length), float(goal_s)
+
+    @classmethod
+    def of_route(cls, route, net) -> RouteGuide:
+        """From a cosim.roadmap.Route and the SUMO network it was read from: the junction
+        begins where the first edge ends and ends where the last edge begins."""
+        from cosim.roadmap import movement
+
+        first, last = net.getEdge(route.edges[0]), net.getEdge(route.edges[-1])
+        entry = first.getLength() if len(route.edges) > 1 else route.path.length
+        exit_ = route.path.length - last.getLength() if len(route.edges) > 1 else route.path.length
+        return cls(entry, exit_, movement(net, route.edges), route.goal_s - route.spawn_s, route.goal_s)
+
+    def command(self, distance_to_goal: float) -> str:
+        """The command where the car is, given its distance to the goal along the route."""
+        return nav_command(self.goal_s - float(distance_to_goal), self.entry_s, self.exit_s, self.movement)
+
+    def measurements(self, speed: float, distance_to_goal: float) -> np.ndarray:
+        return nav_measurements(speed, distance_to_goal, self.route_length, self.command(distance_to_goal))
+
+
+class NavObservation(BaseParallelWrapper):
+    """The ``nav`` observation: ``Dict(image=<the camera frames>, measurements=Box(7))``.
+
+    The measurements (:func:`nav_measurements`) are forward speed, the route command one-hot
+    (:data:`NAV_COMMANDS`, switched on :data:`NAV_SWITCH_DISTANCE` metres before the
+    junction) and the remaining distance to the goal, read from the same step's info (speed,
+    distance_to_goal) and the AC's route: what macad-gym's ``send_measurements`` gave and
+    the paper left off (docs/task.md, "Observation").
+    """
+
+    def __init__(self, env):
+        super().__init__(env)
+        self._spaces = {a: gymnasium.spaces.Dict({"image": env.observation_space(a),
+                                                  "measurements": nav_space()})
+                        for a in env.possible_agents}
+        self._guides: dict[str, RouteGuide] | None = None
+
+    @property
+    def agents(self) -> list:
+        return self.env.agents
+
+    @property
+    def possible_agents(self) -> list:
+        return self.env.possible_agents
+
+    def observation_space(self, agent):
+        return self._spaces[agent]
+
+    def reset(self, seed=None, options=None):
+        obs, infos = self.env.reset(seed=seed, options=options)
+        if self._guides is None:
+            world = self.env.unwrapped.world
+            self._guides = {a: RouteGuide.of_route(world.route(a), world.roadmap.net)
+                            for a in self.possible_agents}
+        return self._join(obs, infos), infos
+
+    def step(self, actions):
+        obs, rewards, terms, truncs, infos = self.env.step(actions)
+        return self._join(obs, infos), rewards, terms, truncs, infos
+
+    def _join(self, obs: dict, infos: dict) -> dict:
+        return {a: {"image": o, "measurements": self._guides[a].measurements(
+                    infos[a]["speed"], infos[a]["distance_to_goal"])} for a, o in obs.items()}
 
 
 class BlackDeath(BaseParallelWrapper):
