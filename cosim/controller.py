@@ -294,8 +294,19 @@ class Autopilot:
             # a waiting AC (red light, queue) far from the conflict does not hold us up
             they_approach = -6.0 < to_go < 35.0 and (vj > 1.0 or to_go < 8.0)
             if they_approach and s < my_s - 1.0 and my_s - s < 40.0:
+                if vj < 0.2 and self._waits_for_us(other, sj):
+                    continue  # they stand because our nose is in their way: yielding deadlocks
                 gaps.append(my_s - s - 4.0)
         return gaps
+
+    def _waits_for_us(self, other: str, their_s: float) -> bool:
+        """Whether a corner of our car is on another AC's path in the 45 m ahead of it (within
+        its half width + 0.5 m, as _stops measures), so that it stands waiting for us."""
+        x, y, heading, _ = self.world.ac_state(self.ac)
+        v = self.world.vehicle
+        corners = rect_corners(x, y, heading, v.length, v.width)
+        sc, lat = self.world.route(other).path.project_many(corners)
+        return bool(np.any((sc > their_s) & (sc - their_s < 45.0) & (np.abs(lat) < v.width / 2 + 0.5)))
 
     def _conflict(self, other: str):
         """(our arc length, their arc length) where the two routes first come within 3 m
@@ -397,6 +408,18 @@ class NonTurner(Autopilot):
                  horizon: float = 3.0):
         super().__init__(world, ac, target_speed, horizon)
         self.hold_s = first_turn_stop(world, ac)
+        self._holds: dict[str, float | None] = {}  # other ACs' hold lines (first_turn_stop)
+
+    def _waits_for_us(self, other: str, their_s: float) -> bool:
+        """Also true of an AC that stands at its own hold line: every AC of the reference is a
+        NonTurner, and one holding before its turn never comes (the ramp's ACs of env_5
+        would otherwise hold up the main road's for good)."""
+        if other not in self._holds:
+            self._holds[other] = first_turn_stop(self.world, other)
+        hold = self._holds[other]
+        front = their_s + self.world.vehicle.length / 2
+        return (hold is not None and front > hold - HOLD_MARGIN - 3.0) or super()._waits_for_us(
+            other, their_s)
 
     def _stops(self, x, y, heading, v, path, s):
         gaps = super()._stops(x, y, heading, v, path, s)

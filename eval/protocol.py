@@ -307,8 +307,9 @@ def to_csv(header, rows, path: Path) -> None:
 # -- report ---------------------------------------------------------------------
 def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
                    progress: Callable[[str], None] | None = None) -> pd.DataFrame:
-    """The reference policies of eval.validity (autopilot, random, degenerate) under the
-    plan's Scenario 1 conditions: same environments, AC count, steps and episodes."""
+    """The reference policies of eval.validity (the continuous and discrete autopilots, the
+    safe non-turner, random and the degenerate policies) under the plan's Scenario 1
+    conditions: same environments, AC count, steps and episodes."""
     from eval import validity
 
     frames = []
@@ -326,7 +327,9 @@ def references_markdown(refs: pd.DataFrame) -> str:
 
     parts = ["## Reference rows (Scenario 1 conditions, scripted policies)\n",
              "Fixed policies on the same environments, AC count, steps and episodes "
-             "(docs/scenarios.md): a trained AC should beat every degenerate row.\n"]
+             "(docs/scenarios.md): a trained AC should beat every degenerate row; "
+             "autopilot-discrete is the ceiling of a discrete learner, and a learner that "
+             "beats safe-non-turner learned to turn (docs/task.md, \"Reference policies\").\n"]
     for env, g in refs.groupby("env", sort=False):
         parts.append(f"\n### {env}\n\n" + validity.format_table(g.set_index("policy")) + "\n")
     return "\n".join(parts)

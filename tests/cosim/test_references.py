@@ -108,3 +108,19 @@ def test_the_first_turn_stop_is_the_end_of_the_approach_lane():
         assert stop is not None
         assert math.dist(route.path.point_at(stop), end) < 0.5
         assert route.spawn_s < stop < route.goal_s
+
+
+def test_non_turners_on_the_main_road_do_not_wait_for_the_ramps_holding_ones():
+    """env_5: ac_0 (ramp, a 62 degree turn onto the main road) holds at the ramp's end for good;
+    ac_1 (main road) would give way to it at the merge (lower index first) and wait forever."""
+    with World("env_5", 2, background=False) as w:
+        w.reset(seed=SEED)
+        pilots = {ac: NonTurner(w, ac) for ac in w.ac_ids}
+        assert pilots["ac_0"].hold_s is not None and pilots["ac_1"].hold_s is None
+        goal = dict.fromkeys(w.ac_ids, False)
+        contact = 0
+        while w.active:
+            for ac, r in w.step({ac: tuple(pilots[ac].act()) for ac in w.active}).items():
+                goal[ac] |= r.events.goal_reached
+                contact += r.events.collision
+    assert goal == {"ac_0": False, "ac_1": True} and contact == 0

@@ -5,13 +5,14 @@ import dataclasses
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from cosim.events import detect_all
 from cosim.roadmap import movement, read_net
 from cosim.scenario import SpawnJitter, load_scenario
 from cosim.world import World
-from eval.validity import check_scenario, failures, format_table, summarize
+from eval.validity import POLICIES, REFERENCES, check_scenario, failures, format_table, summarize
 
 ENVS = ["env_1", "env_2", "env_3", "env_4", "env_5"]
 JUNCTIONS = ["env_2", "env_3", "env_4"]
@@ -183,6 +184,35 @@ def test_the_degenerate_policy_suite_passes_on_short_episodes(env):
     rows = check_scenario(env, 3, episodes=2)  # the full horizon: the autopilot waits for people
     table = summarize(rows)
     assert failures(table) == [], format_table(table)
+
+
+def _table(**rows) -> pd.DataFrame:
+    """A summary table: policy -> (goal, return, collision_steps)."""
+    return pd.DataFrame({p: dict(zip(("goal", "return", "collision_steps"), v, strict=True))
+                         for p, v in rows.items()}).T
+
+
+def test_the_discrete_autopilot_is_held_to_the_autopilots_criteria():
+    assert REFERENCES == ("autopilot", "autopilot-discrete", "safe-non-turner")
+    assert POLICIES[:3] == REFERENCES  # they head every table, then the degenerate policies
+    ok = dict(autopilot=(1.0, 2000.0, 0.0), **{"autopilot-discrete": (0.95, 1900.0, 0.0)})
+    assert failures(_table(**ok)) == []
+    weak = failures(_table(**(ok | {"autopilot-discrete": (0.6, 900.0, 0.0)})))
+    assert weak == ["autopilot-discrete reaches 60% of goals (needs >= 90%)"]
+    crash = failures(_table(**(ok | {"autopilot-discrete": (1.0, 900.0, 2.0)})))
+    assert crash == ["autopilot-discrete collides (2.00 collision steps per AC)"]
+
+
+def test_the_safe_non_turner_must_not_collide_but_may_score():
+    ok = {"autopilot": (1.0, 2000.0, 0.0), "always-brake": (0.0, -550.0, 0.0)}
+    # a third of the goals (the straight slots) and 60% of the autopilot's return: a reference
+    # row to beat, not a degenerate policy, so neither limit applies to it
+    assert failures(_table(**ok, **{"safe-non-turner": (0.33, 1200.0, 0.0)})) == []
+    assert failures(_table(**ok, **{"safe-non-turner": (0.0, -200.0, 1.5)})) == [
+        "safe-non-turner collides (1.50 collision steps per AC)"]
+    assert failures(_table(**ok, **{"always-coast": (0.33, 1200.0, 0.0)})) == [
+        "always-coast reaches 33% of goals (allowed <= 20%)",
+        "always-coast earns 1200, more than 50% of the autopilot's 2000"]
 
 
 def test_the_criteria_catch_a_scenario_that_an_open_loop_policy_solves():
