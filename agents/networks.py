@@ -1,8 +1,10 @@
 """Shared PyTorch building blocks for every algorithm in ``agents``.
 
 Encoders turn an observation batch into a feature vector: :class:`NatureCNN`
-(Mnih et al. 2015) for ``(H, W, C)`` images, :class:`MLPEncoder` for flat
-vectors; :func:`make_encoder` picks one from the observation space. The heads
+(Mnih et al. 2015) for ``(H, W, C)`` images, :class:`ImageMeasurementsEncoder` for an
+image with a measurements vector (``Dict(image, measurements)``: the CNN's features joined
+to a small MLP's), :class:`MLPEncoder` for flat vectors; :func:`make_encoder` picks one
+from the observation space. The heads
 built on them are the ones the algorithms need: :class:`ActorCritic` (PPO, A3C,
 IMPALA), :class:`DuelingQNetwork` (DQN), :class:`DeterministicActor` and
 :class:`QCritic` / :class:`QEnsemble` (DDPG, TD3). :func:`polyak_update` is the soft target update.
@@ -13,7 +15,7 @@ invisible to this package.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 import gymnasium
 import numpy as np
@@ -125,8 +127,41 @@ class MLPEncoder(nn.Module):
         return self.net(obs.float().flatten(1))
 
 
-def _is_image_space(observation_space: gymnasium.spaces.Box) -> bool:
-    return len(observation_space.shape) == 3
+NAV_KEYS = ("image", "measurements")
+"""The keys of an image-and-measurements observation (cosim's ``obs="nav"``)."""
+MEASUREMENT_FEATURES = 64
+"""Width of the small MLP on the measurements vector, joined to the CNN's features."""
+
+
+def _is_nav_space(observation_space) -> bool:
+    return (isinstance(observation_space, gymnasium.spaces.Dict)
+            and tuple(sorted(observation_space.spaces)) == NAV_KEYS
+            and len(observation_space["image"].shape) == 3 and len(observation_space["measurements"].shape) == 1)
+
+
+def _is_image_space(observation_space) -> bool:
+    """An image, or an image with measurements: the encoders that start with a Nature CNN."""
+    return _is_nav_space(observation_space) or len(observation_space.shape) == 3
+
+
+class ImageMeasurementsEncoder(nn.Module):
+    """A Nature CNN on the image and a small MLP on the measurements vector, their features
+    concatenated (the conditional-imitation-learning and MetaDrive recipe; docs/task.md,
+    "Observation"). Takes a dict batch ``{"image": (B, H, W, C), "measurements": (B, M)}``.
+
+    Attributes:
+        features_dim: 512 CNN features + :data:`MEASUREMENT_FEATURES`.
+    """
+
+    def __init__(self, image_shape: tuple[int, int, int], measurements_dim: int,
+                 hidden: int = MEASUREMENT_FEATURES):
+        super().__init__()
+        self.cnn = NatureCNN(image_shape)
+        self.mlp = nn.Sequential(layer_init(nn.Linear(int(measurements_dim), hidden)), nn.ReLU())
+        self.features_dim = self.cnn.features_dim + hidden
+
+    def forward(self, obs) -> torch.Tensor:
+        return torch.cat([self.cnn(obs["image"]), self.mlp(obs["measurements"].float())], dim=-1)
 
 
 def make_encoder(
@@ -143,15 +178,19 @@ def make_encoder(
 
     Returns:
         A module with a ``features_dim`` attribute: :class:`NatureCNN` for images,
+        :class:`ImageMeasurementsEncoder` for ``Dict(image, measurements)``,
         :class:`MLPEncoder` otherwise.
 
     Raises:
         ValueError: If the space is not a Box.
     """
+    if _is_nav_space(observation_space):
+        return ImageMeasurementsEncoder(tuple(observation_space["image"].shape),
+                                        observation_space["measurements"].shape[0])
     if not isinstance(observation_space, gymnasium.spaces.Box):
         raise ValueError(
-            f"agents support Box observation spaces only, got {observation_space!r}; "
-            "flatten Dict/Tuple observations with a gymnasium wrapper first"
+            f"agents support Box observation spaces and Dict({', '.join(NAV_KEYS)}) only, got "
+            f"{observation_space!r}; flatten other Dict/Tuple observations with a gymnasium wrapper first"
         )
     if _is_image_space(observation_space):
         return NatureCNN(tuple(observation_space.shape))
@@ -159,7 +198,10 @@ def make_encoder(
 
 
 def encoder_features_dim(observation_space: gymnasium.spaces.Box) -> int:
-    """Width of what :class:`QEnsemble` ``.encode`` returns: 512 for images, the flat size otherwise."""
+    """Width of what :class:`QEnsemble` ``.encode`` returns: 512 for images (+ the measurement
+    features for ``Dict(image, measurements)``), the flat size otherwise."""
+    if _is_nav_space(observation_space):
+        return NATURE_CNN_FEATURES + MEASUREMENT_FEATURES
     if _is_image_space(observation_space):
         return NATURE_CNN_FEATURES
     return int(np.prod(observation_space.shape))
@@ -169,8 +211,11 @@ def obs_to_tensor(obs: np.ndarray, device) -> torch.Tensor:
     """Convert an observation batch to a tensor on ``device``.
 
     uint8 images stay uint8 (4x less to copy; the encoder scales them), every
-    other dtype becomes float32. No batch dimension is added.
+    other dtype becomes float32. No batch dimension is added. A dict (an image with
+    measurements) becomes a dict of tensors.
     """
+    if isinstance(obs, Mapping):
+        return {key: obs_to_tensor(value, device) for key, value in obs.items()}
     array = np.asarray(obs)
     if array.dtype == np.uint8:
         return torch.as_tensor(array, device=device)
@@ -295,7 +340,7 @@ class QEnsemble(nn.Module):
         if n_critics < 1:
             raise ValueError(f"QEnsemble needs n_critics >= 1, got {n_critics}")
         if _is_image_space(observation_space):
-            self.encoder: nn.Module = NatureCNN(tuple(observation_space.shape))
+            self.encoder: nn.Module = make_encoder(observation_space)
             in_dim = self.encoder.features_dim
         else:
             self.encoder = nn.Flatten()
@@ -309,7 +354,9 @@ class QEnsemble(nn.Module):
 
     def encode(self, obs: torch.Tensor) -> torch.Tensor:
         """Observation features shared by the heads (the CNN output for images)."""
-        return self.encoder(obs if isinstance(self.encoder, NatureCNN) else obs.float())
+        if isinstance(self.encoder, NatureCNN | ImageMeasurementsEncoder):
+            return self.encoder(obs)
+        return self.encoder(obs.float())
 
     def q_from_features(self, features: torch.Tensor, action: torch.Tensor, head: int) -> torch.Tensor:
         """``Q_head`` ``(B,)`` from precomputed :meth:`encode` features."""
