@@ -15,6 +15,7 @@ discrete or continuous, is limited by grip (``VehicleParams.max_lateral_accel``)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -109,12 +110,21 @@ def discrete_controls(params: VehicleParams | None = None) -> np.ndarray:
 
     Steer fractions of the table are of ``params.discrete_steer_reference`` (docs/task.md,
     "Actions and steering"); with the defaults: left/right -1/+1, forward-left/right -0.1/+0.1.
+    The array is read-only (one per ``params``, cached).
     """
-    params = params or VehicleParams()
+    return _discrete_controls(params or _DEFAULT_PARAMS)
+
+
+@functools.lru_cache(maxsize=16)
+def _discrete_controls(params: VehicleParams) -> np.ndarray:
     table = DISCRETE_ACTIONS.copy()
     scale = params.discrete_steer_reference / params.max_steer
     table[:, 1] = np.clip(table[:, 1] * scale, -1.0, 1.0)
+    table.flags.writeable = False
     return table
+
+
+_DEFAULT_PARAMS = VehicleParams()
 
 
 def action_to_control(action, discrete: bool, agent: str,
