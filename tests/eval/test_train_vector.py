@@ -54,7 +54,7 @@ def test_ppo_smoke_with_two_env_processes_via_the_cli(tmp_path):
     assert rows and len(rows) == state["csv_rows"]
     for ac in ("ac_0", "ac_1"):
         assert [int(r["episode"]) for r in rows if r["agent"] == ac] == list(range(sum(r["agent"] == ac for r in rows)))
-        agent = agents.load(run / "checkpoints" / ac / "latest.pt", device="cpu")
+        agent = agents.load(run / "checkpoints" / ac / "best.pt", device="cpu")  # --keep best
         assert agent.algo == "ppo" and agent.steps > 0
 
 
