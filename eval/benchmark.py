@@ -88,9 +88,10 @@ class BenchmarkPlan:
     """Environment steps per trial (default: the preset's, per algorithm)."""
     agents: int | None = None
     """ACs each trial trains (default: the preset's)."""
-    collisions: str | None = None
-    """Training episodes at a collision: None ("end", the paper's) or "continue" (the test's
-    rule; eval/config.py TrainConfig.collisions_end_episode)."""
+    collisions: str | None = "continue"
+    """Training episodes at a collision: "continue" (the test's rule, the default since
+    2026-11-24; docs/task.md, Training rule) or "end" (the paper's). None is what a plan
+    saved before then holds (no key): it meant, and still means, "end"."""
 
     def __post_init__(self):
         unknown = sorted(set(self.algos) - set(ALGORITHMS))
@@ -102,23 +103,28 @@ class BenchmarkPlan:
             raise BenchmarkError("--envs: name at least one environment")
         if self.agents is not None and self.agents < 1:
             raise BenchmarkError(f"--agents must be >= 1, got {self.agents}")
-        if self.collisions is not None and self.collisions not in COLLISION_RULES:
+        if self.collisions is None:  # a plan saved before the default changed
+            object.__setattr__(self, "collisions", "end")
+        if self.collisions not in COLLISION_RULES:
             raise BenchmarkError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {self.collisions!r}")
-        if self.collisions == "end":  # the default, stored as unset so that saved plans match
-            object.__setattr__(self, "collisions", None)
 
     def cells(self) -> list[TrainConfig]:
         """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
         return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, agents=self.agents,
-                            torch_threads=1, collisions=self.collisions or "end")
+                            torch_threads=1, collisions=self.collisions)
                 for env in self.envs for algo in self.algos for seed in range(self.seeds)]
 
     def to_dict(self) -> dict[str, Any]:
         plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
-                "seeds": self.seeds, "steps": self.steps}
-        # only when set: a plan saved before --agents / --collisions existed still reads back as equal
-        extra = {k: v for k, v in (("agents", self.agents), ("collisions", self.collisions)) if v is not None}
-        return {**plan, **extra}
+                "seeds": self.seeds, "steps": self.steps, "collisions": self.collisions}
+        # only when set: a plan saved before --agents existed still reads back as equal
+        return {**plan, **({"agents": self.agents} if self.agents is not None else {})}
+
+
+def saved_plan(path: Path) -> dict[str, Any]:
+    """A benchmark.json as :meth:`BenchmarkPlan.to_dict` writes it today: a plan saved
+    before collisions were recorded trained under the paper's rule ("end")."""
+    return {"collisions": "end", **json.loads(Path(path).read_text())}
 
 
 def cell_name(cfg: TrainConfig | dict) -> str:
@@ -238,7 +244,7 @@ def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> bool:
         if not saved.exists():
             raise BenchmarkError(f"--resume: {out} holds no benchmark (no benchmark.json); "
                                  "start one without --resume")
-        old = json.loads(saved.read_text())
+        old = saved_plan(saved)
         more_seeds = adds_seeds(old, plan)
         if old != plan.to_dict() and not more_seeds:
             raise BenchmarkError(f"--resume: {saved} was started with {old}; repeat those options "

@@ -242,8 +242,9 @@ def _benchmark_parser(sub) -> None:
                    help="environment steps per trial (default: the preset's)")
     b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
                    help="ACs each trial trains (default: the preset's, 6 for quick/standard/paper)")
-    b.add_argument("--collisions", choices=COLLISION_RULES, default=None,
-                   help="training episodes at a collision (as `cosim train --collisions`; default end)")
+    b.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
+                   help="training episodes at a collision (as `cosim train --collisions`; default "
+                        "continue: the test's rule, docs/task.md)")
     b.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
     b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",

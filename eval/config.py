@@ -152,8 +152,10 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
         raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
                          f"{envs}, {torch_threads} and {learner_threads}")
-    validation_episodes = VALIDATION_EPISODES if validation_episodes is None else int(validation_episodes)
+    if validation_episodes is None:
+        validation_episodes = VALIDATION_EPISODES if p.validation_episodes is None else p.validation_episodes
     validation_steps = min(VALIDATION_STEPS, p.horizon) if validation_steps is None else int(validation_steps)
+    validation_episodes = int(validation_episodes)
     if validation_episodes < 0 or validation_steps < 1:
         raise TrainError(f"--validation-episodes must be >= 0 (0: off) and --validation-steps >= 1, got "
                          f"{validation_episodes} and {validation_steps}")

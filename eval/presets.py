@@ -53,6 +53,9 @@ class TrainPreset:
     frame_stack: int = 1
     """Camera frames per observation (1: the paper's single frame); ``--frame-stack``
     overrides it (eval/config.py TrainConfig.frame_stack)."""
+    validation_episodes: int | None = None
+    """Held-out validation episodes per checkpoint that pick best.pt (None: the library's
+    default, eval/config.py VALIDATION_EPISODES); ``--validation-episodes`` overrides it."""
     reward_scale: float = 0.01
     """Every algorithm learns on reward x this: the driving reward is worth up to ~24
     per step and -50 per collision, so unscaled returns run to thousands and the value

@@ -52,7 +52,14 @@ import pandas as pd  # noqa: E402
 from agents.errors import AgentError  # noqa: E402
 from cosim.errors import CosimError  # noqa: E402
 from eval import science  # noqa: E402
-from eval.benchmark import TEST_SETTINGS, BenchmarkPlan, adds_seeds, cell_name, finished_runs  # noqa: E402
+from eval.benchmark import (  # noqa: E402
+    TEST_SETTINGS,
+    BenchmarkPlan,
+    adds_seeds,
+    cell_name,
+    finished_runs,
+    saved_plan,
+)
 from eval.config import COLLISION_RULES  # noqa: E402
 from eval.presets import load_presets  # noqa: E402
 from eval.protocol import ProtocolPlan, rules  # noqa: E402
@@ -89,8 +96,8 @@ def parse(argv=None) -> argparse.Namespace:
                    help="ACs each training run drives (default: the preset's; the test always "
                         "drives one AC per algorithm)")
     p.add_argument("--collisions", choices=COLLISION_RULES, default=None,
-                   help="training episodes at a collision: end (default, the paper's) or continue "
-                        "(the test's rule); the test never ends them")
+                   help="training episodes at a collision: continue (default, the test's rule) or "
+                        "end (the paper's); the test never ends them")
     p.add_argument("--episodes", type=int, default=None,
                    help="test episodes per environment and seed (default: the preset's test)")
     p.add_argument("--test-steps", type=int, default=None, help="steps per test episode")
@@ -158,6 +165,7 @@ def check_plan(out: Path, study: dict) -> None:
     saved = out / "science.json"
     if saved.exists():
         old = json.loads(saved.read_text())
+        old["benchmark"] = {"collisions": "end", **old["benchmark"]}  # saved before it was recorded
         kept = {k: old.get(k) for k in study}
         if kept == study:
             return
@@ -174,7 +182,7 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
     """`cosim benchmark --train-only` (with --resume once started); skipped when done."""
     cells = [cell_name(c) for c in plan.cells()]
     saved = bench / "benchmark.json"
-    if saved.exists() and json.loads(saved.read_text()) == plan.to_dict() and len(
+    if saved.exists() and saved_plan(saved) == plan.to_dict() and len(
             finished_runs(plan, bench)) == len(cells):
         say(f"training: all {len(cells)} runs finished in {bench / 'runs'}")
         return
@@ -240,7 +248,7 @@ def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
             continue
         link.symlink_to(src)
     saved = bench / "benchmark.json"
-    old = json.loads(saved.read_text()) if saved.exists() else None
+    old = saved_plan(saved) if saved.exists() else None
     if old is not None and old != plan.to_dict() and not adds_seeds(old, plan):
         raise ScienceError(f"{saved} holds another plan; choose another --out")
     saved.write_text(json.dumps(plan.to_dict()))
@@ -333,7 +341,9 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
         if not saved.is_file():
             raise ScienceError(f"--combine {src}: no science.json there; give the --out folder "
                                "of a studies/science.py study")
-        studies.append((src, json.loads(saved.read_text())))
+        study = json.loads(saved.read_text())
+        study["benchmark"] = {"collisions": "end", **study["benchmark"]}  # saved before it was recorded
+        studies.append((src, study))
     (src0, first), b0 = studies[0], studies[0][1]["benchmark"]
     seeds_of: dict[str, int] = {}
     for src, st in studies:
@@ -487,7 +497,7 @@ def main(argv=None) -> int:
         else:
             plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs),
                                  algos=tuple(args.algos), seeds=args.seeds, steps=args.steps,
-                                 agents=args.agents, collisions=args.collisions)
+                                 agents=args.agents, collisions=args.collisions or "continue")
             plan.cells()  # an unknown preset or environment fails here, before any work
             study = study_plan(args, plan)
             check_plan(out, study)

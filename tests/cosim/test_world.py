@@ -58,13 +58,16 @@ def _straight_world(**kw) -> World:
 
 
 def test_driving_into_a_background_car_and_passing_beside_it():
-    with _straight_world() as w:
+    base = load_scenario("env_1")
+    paper_rule = dataclasses.replace(base, spawn_jitter=SpawnJitter(),
+                                     termination=dataclasses.replace(base.termination, on_collision=True))
+    with World(paper_rule, 1, background=False) as w:  # --collisions end: a collision ends it
         w.reset(seed=0)
         x, y, h, _ = w.ac_state("ac_0")
         w.bridge.place_car("stopped", x + 30, y, h, "st_e")
         hits = [w.step({"ac_0": (1.0, 0.0)})["ac_0"] for _ in range(60) if w.active]
         assert hits[-1].events.collision_vehicle and hits[-1].events.hit == "stopped"
-        assert hits[-1].terminated and not w.active  # training default: collision ends it
+        assert hits[-1].terminated and not w.active
     with _straight_world() as w:
         w.reset(seed=0)
         x, y, h, _ = w.ac_state("ac_0")

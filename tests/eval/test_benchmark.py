@@ -120,12 +120,13 @@ def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
     from eval.benchmark import BenchmarkError, BenchmarkPlan
 
     grid = {"preset": "quick", "envs": ("env_4",), "algos": ("dqn", "td3"), "seeds": 2}
-    base, cont = BenchmarkPlan(**grid), BenchmarkPlan(**grid, collisions="continue")
-    assert {c.collisions_end_episode for c in base.cells()} == {True}
+    end, cont = BenchmarkPlan(**grid, collisions="end"), BenchmarkPlan(**grid)
+    assert {c.collisions_end_episode for c in end.cells()} == {True}
     assert {c.collisions_end_episode for c in cont.cells()} == {False} and len(cont.cells()) == 4
-    assert BenchmarkPlan(**grid, collisions="end") == base  # the default, also when named
-    assert "collisions" not in base.to_dict()
-    assert cont.to_dict() == {**base.to_dict(), "collisions": "continue"}
+    assert BenchmarkPlan(**grid, collisions="continue") == cont  # the default, also when named
+    assert cont.to_dict() == {**end.to_dict(), "collisions": "continue"}
+    # a plan saved before the rule was recorded (no key) trained under "end", and reads so
+    assert BenchmarkPlan(**grid, collisions=None) == end
     with pytest.raises(BenchmarkError, match="--collisions must be continue or end"):
         BenchmarkPlan(collisions="stop")
 
@@ -276,7 +277,7 @@ def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperpar
 
     done = cosim(["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps",
                   str(PBT_STEPS), "--pbt", "4", "--pbt-interval", str(PBT_INTERVAL), "--out",
-                  str(tmp_path)], ray_tmp, timeout=400)
+                  str(tmp_path)], ray_tmp, timeout=900)  # a hang fails; a loaded machine does not
     assert done.returncode == 0, done.stderr[-3000:]
     (folder,) = tmp_path.glob("env_1__ppo__0__pbt4-*")
     lineage = pd.read_csv(folder / "lineage.csv")
