@@ -20,8 +20,8 @@ optimizer state and counter, all that resuming training needs; a *policy*
 checkpoint (``save_checkpoint(..., policy_only=True)``) holds only the networks
 that choose actions (``agents.registry.POLICY_NETWORKS``: no optimizer moments,
 no target networks, no critic of DDPG/TD3) and the counters, 1/3 to 1/20 of the
-size. A policy checkpoint loads into an agent that acts exactly as the full one
-would; its ``policy_only`` attribute is True and training it is refused where a
+size (its weights byte-shuffled and zlib'ed, lossless: ~85% of float32). A policy
+checkpoint loads into an agent that acts exactly as the full one would; its ``policy_only`` attribute is True and training it is refused where a
 loader asks for a full checkpoint (``require_full=True``). Weights are stored
 as float32 either way: nothing is rounded.
 """
@@ -31,6 +31,7 @@ from __future__ import annotations
 import importlib.metadata
 import logging
 import os
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -108,13 +109,33 @@ def space_from_dict(data: dict[str, Any]) -> gymnasium.Space:
     raise ValueError(f"unknown space type {data['type']!r}")
 
 
+def pack_tensor(tensor: torch.Tensor) -> dict[str, Any]:
+    """A tensor compressed losslessly: its bytes grouped by significance (byte shuffle, as
+    Blosc and HDF5 do: the exponent bytes of float weights are alike) and zlib'ed.
+    Trained float32 weights shrink to ~85%; :func:`unpack_tensor` gives the same bits back."""
+    array = tensor.detach().cpu().contiguous().numpy()
+    shuffled = array.reshape(-1).view(np.uint8).reshape(-1, array.itemsize).T.tobytes()
+    data = torch.frombuffer(bytearray(zlib.compress(shuffled, 6)), dtype=torch.uint8)
+    return {"packed": "shuffle-zlib", "dtype": array.dtype.str, "shape": list(array.shape), "data": data}
+
+
+def unpack_tensor(packed: dict[str, Any]) -> torch.Tensor:
+    """The tensor :func:`pack_tensor` packed, bit for bit."""
+    dtype = np.dtype(packed["dtype"])
+    raw = np.frombuffer(zlib.decompress(packed["data"].numpy().tobytes()), dtype=np.uint8)
+    array = raw.reshape(dtype.itemsize, -1).T.copy().view(dtype).reshape(packed["shape"])
+    return torch.from_numpy(array)
+
+
 def policy_state(agent) -> dict[str, Any]:
-    """The part of ``agent.state_dict()`` that acting needs: the policy networks and counters."""
+    """The part of ``agent.state_dict()`` that acting needs: the policy networks (packed
+    losslessly, :func:`pack_tensor`) and counters."""
     from agents.registry import POLICY_NETWORKS
 
     state = agent.state_dict()
     keep = POLICY_NETWORKS[agent.algo]
-    return {"networks": {k: v for k, v in state["networks"].items() if k in keep},
+    return {"networks": {k: {name: pack_tensor(t) for name, t in v.items()}
+                         for k, v in state["networks"].items() if k in keep},
             "optimizers": {}, "extra": state.get("extra", {})}
 
 
@@ -237,7 +258,8 @@ def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None,
             if missing:
                 raise KeyError(f"policy checkpoint has no weights for network(s) {missing}")
             for name in POLICY_NETWORKS[algo]:
-                agent.networks[name].load_state_dict(state["networks"][name])
+                agent.networks[name].load_state_dict(
+                    {k: unpack_tensor(v) if isinstance(v, dict) else v for k, v in state["networks"][name].items()})
             agent._load_extra_state(state.get("extra", {}))
         else:
             agent.load_state_dict(payload["state"])

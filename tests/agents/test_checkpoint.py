@@ -76,6 +76,19 @@ def test_every_policy_network_is_an_agent_network_and_the_camera_policy_fits_the
     assert (tmp_path / "best.pt").stat().st_size <= 10e6
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.uint8])
+def test_packed_tensors_come_back_bit_for_bit(dtype):
+    from agents.checkpoint import pack_tensor, unpack_tensor
+
+    gen = torch.Generator().manual_seed(0)
+    for shape in [(3136, 512), (32, 12, 8, 8), (7,), (), (0, 4)]:
+        t = (torch.randn(shape, generator=gen) * 100).to(dtype)
+        back = unpack_tensor(pack_tensor(t))
+        assert back.dtype == t.dtype and back.shape == t.shape and torch.equal(back, t)
+    weights = torch.randn(3136, 512, generator=gen) * 0.02  # float weights: exponents compress
+    assert pack_tensor(weights)["data"].numel() < 0.95 * weights.numel() * 4
+
+
 def test_image_round_trip_and_compact_space(tmp_path):
     env = ColourBar()
     agent = PPO.from_spaces(env.observation_space, env.action_space, FAST["ppo"])
