@@ -66,12 +66,15 @@ class TestSettings:
     """Reference rows (eval/validity.py POLICIES) added to the report."""
 
 
+QUICK_REFERENCES = ("autopilot", "autopilot-discrete", "safe-non-turner", "random")
 TEST_SETTINGS = {
     "smoke": TestSettings(episodes=1, steps=60),
-    "quick": TestSettings(episodes=3, steps=500, references=("autopilot", "random")),
+    # the two autopilots (the discrete one is a discrete learner's ceiling), the safe
+    # non-turner (did it learn to turn?) and random (docs/task.md, "Reference policies")
+    "quick": TestSettings(episodes=3, steps=500, references=QUICK_REFERENCES),
     # the scenarios' 600-step horizon and the whole reference suite of `cosim check-scenarios`
     "standard": TestSettings(episodes=5, steps=600, references=POLICIES),
-    "paper": TestSettings(episodes=3, steps=500, references=("autopilot", "random")),
+    "paper": TestSettings(episodes=3, steps=500, references=QUICK_REFERENCES),
 }
 
 
