@@ -271,7 +271,7 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
     # collision rule, or study options: refused
     _as_env(study, tmp_path / "s3", "env_3", seeds=1)
     plan3 = json.loads((tmp_path / "s3" / "science.json").read_text())
-    plan3["benchmark"]["collisions"] = "continue"
+    plan3["benchmark"]["collisions"] = "end"  # the smoke study trained under the default, continue
     (tmp_path / "s3" / "science.json").write_text(json.dumps(plan3))
     for extra, words in (([str(study), str(study)], "env_1 is in two"),
                          ([str(study), str(tmp_path / "s3")], "in collisions;"),
@@ -346,7 +346,7 @@ def test_runs_trained_elsewhere_are_linked_instead_of_trained(smoke, tmp_path):
     # a run missing from the folders, or trained under another rule: refused, naming it
     for extra, words in ((["--runs", str(tmp_path / "ppo")], "env_1__dqn__0__bench is in none of"),
                          (["--runs", str(tmp_path / "ppo"), str(tmp_path / "dqn"), "--collisions",
-                           "continue"], "with another collisions_end_episode")):
+                           "end"], "with another collisions_end_episode")):
         bad = _run(tmp_path / "bad", *extra)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr[-2000:]
         shutil.rmtree(tmp_path / "bad")

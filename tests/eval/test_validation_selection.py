@@ -97,7 +97,8 @@ def test_validation_seeds_are_disjoint_from_training_and_test_seeds():
 
     seeds = validation_seeds(make_config("ppo", "env_1", "smoke", seed=3, validation_episodes=4))
     assert len(set(seeds)) == 4 and all(10**9 <= s < 2**31 for s in seeds)
-    assert make_config("ppo", "env_1", "smoke").validation_episodes == 2
+    assert make_config("ppo", "env_1", "quick").validation_episodes == 2
+    assert make_config("ppo", "env_1", "smoke").validation_episodes == 1  # the preset's own
     with pytest.raises(ValueError, match="--validation-episodes must be >= 0"):
         make_config("ppo", "env_1", "smoke", validation_episodes=-1)
 
