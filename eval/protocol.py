@@ -1,4 +1,5 @@
-"""The test protocol (SPEC §6) and its report (SPEC §7).
+"""The test protocol (SPEC §6): it runs the episodes and records every step; the report
+(SPEC §7) is written from those records by :mod:`eval.report`.
 
 Scenario 1 (multi-agent): the trained ACs, one per algorithm, drive together in
 each environment among background cars (and pedestrians in env_2/env_3);
@@ -24,14 +25,12 @@ from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from agents import registry
 from cosim.errors import CosimError
 from eval import selection
-from eval.metrics import METRICS, episode_metrics, speed_curve, success_rates, summarize
-from eval.records import save
+from eval.metrics import METRICS, episode_metrics, success_rates, summarize
 from eval.rollout import AutopilotPolicy, RandomPolicy, SampledPolicy, StackedPolicy, run_episodes
 
 log = logging.getLogger(__name__)
@@ -264,47 +263,7 @@ def metrics_table(records: pd.DataFrame, dt: float = 0.1) -> pd.DataFrame:
     return success_rates(out)
 
 
-# -- tables ---------------------------------------------------------------------
-def _fmt(value: float, metric: str) -> str:
-    if value is None or (isinstance(value, float) and np.isnan(value)):
-        return "--" if metric == "TTFC" else "-"
-    return f"{value:.2f}" if metric in ("TTFC", "SPEED", "DISTANCE") else f"{value:.3f}"
-
-
-def rq1_table(table: pd.DataFrame, scenario: int, metrics: Sequence[str] = ("CV", "CO", "CP", "OS", "TTFC")):
-    """Rows: (environment, metric); columns: algorithms. The paper's Table RQ1."""
-    sub = table[table["scenario"] == scenario]
-    algos = [a for a in ALGO_ORDER if a in set(sub["algorithm"])] + sorted(
-        set(sub["algorithm"]) - set(ALGO_ORDER))
-    rows = []
-    for env in sorted(set(sub["env"])):
-        e = sub[sub["env"] == env].set_index("algorithm")
-        for m in metrics:
-            rows.append([env, m] + [_fmt(e.loc[a, m] if a in e.index else np.nan, m) for a in algos])
-    return ["environment", "metric", *algos], rows
-
-
-def to_markdown(header, rows) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
-
-
-def to_latex(header, rows, caption: str) -> str:
-    esc = [h.replace("_", r"\_") for h in header]
-    lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{caption}}}",
-             r"\begin{tabular}{ll" + "r" * (len(header) - 2) + "}", r"\toprule",
-             " & ".join(esc) + r" \\", r"\midrule"]
-    lines += [" & ".join(str(c).replace("_", r"\_") for c in r) + r" \\" for r in rows]
-    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
-    return "\n".join(lines) + "\n"
-
-
-def to_csv(header, rows, path: Path) -> None:
-    pd.DataFrame(rows, columns=header).to_csv(path, index=False)
-
-
-# -- report ---------------------------------------------------------------------
+# -- what the report (eval/report.py) reads -------------------------------------
 def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
                    progress: Callable[[str], None] | None = None) -> pd.DataFrame:
     """The reference policies of eval.validity (the continuous and discrete autopilots, the
@@ -335,83 +294,6 @@ def references_markdown(refs: pd.DataFrame) -> str:
     return "\n".join(parts)
 
 
-def write_report(records: pd.DataFrame, out: Path, dt: float = 0.1,
-                 references: pd.DataFrame | None = None) -> list[Path]:
-    """Records (Parquet), metric tables (Markdown, CSV, LaTeX) and figures in one folder."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    written = [save(records, out / "records.parquet")]
-    table = metrics_table(records, dt)
-    table.to_csv(out / "metrics.csv", index=False)
-    written.append(out / "metrics.csv")
-    md = ["# cosim test report\n"]
-    for scenario in sorted(set(table["scenario"])):
-        header, rows = rq1_table(table, scenario)
-        name = f"rq1_scenario{scenario}"
-        to_csv(header, rows, out / f"{name}.csv")
-        (out / f"{name}.tex").write_text(to_latex(
-            header, rows, f"Driving errors, Scenario {scenario} "
-            f"({'multi-agent' if scenario == 1 else 'single-agent'})"))
-        md.append(f"## Scenario {scenario} ({'multi-agent' if scenario == 1 else 'single-agent'})\n")
-        md.append(to_markdown(header, rows))
-        written += [out / f"{name}.csv", out / f"{name}.tex"]
-        eff_header, eff_rows = rq1_table(table, scenario, metrics=("SPEED", "DISTANCE"))
-        md.append("\nEfficiency (SPEED km/h, DISTANCE m):\n\n" + to_markdown(eff_header, eff_rows))
-    if references is not None and not references.empty:
-        references.to_csv(out / "references.csv", index=False)
-        written.append(out / "references.csv")
-        md.append(references_markdown(references))
-    (out / "report.md").write_text("\n".join(md))
-    written.append(out / "report.md")
-    written += _plots(records, table, out)
-    return written
-
-
-def _plots(records: pd.DataFrame, table: pd.DataFrame, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    written = []
-    for scenario in sorted(set(records["scenario"])):
-        rec = records[records["scenario"] == scenario]
-        envs = sorted(set(rec["env"]))
-        fig, axes = plt.subplots(1, len(envs), figsize=(4 * len(envs), 3.2), squeeze=False)
-        for ax, env in zip(axes[0], envs, strict=True):
-            curve = speed_curve(rec[rec["env"] == env])
-            for algo, g in curve.groupby("algorithm"):
-                ax.plot(g["step"] * 0.1, g["speed_kmh"], label=algo, lw=1)
-            ax.set_title(env)
-            ax.set_xlabel("time (s)")
-        axes[0][0].set_ylabel("speed (km/h)")
-        axes[0][-1].legend(fontsize=7)
-        written.append(_save(fig, f"SPEED per timestep, scenario {scenario}",
-                             out / f"speed_scenario{scenario}.png"))
-
-        sub = table[table["scenario"] == scenario]
-        fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
-        for ax, (col, title) in zip(axes, [("safety", "Safety (1 - mean CV, CO, CP)"),
-                                           ("lane_keeping", "Lane keeping (1 - OS)"),
-                                           ("DISTANCE", "DISTANCE (m)")], strict=True):
-            pivot = sub.pivot(index="env", columns="algorithm", values=col)
-            pivot.plot.bar(ax=ax, rot=0, legend=False, width=0.8)
-            ax.set_title(title)
-            ax.set_xlabel("")
-        axes[-1].legend(fontsize=7, loc="best")
-        written.append(_save(fig, f"Scenario {scenario}", out / f"success_scenario{scenario}.png"))
-    return written
-
-
-def _save(fig, title: str, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
-
-
-__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "metrics_table", "policy_factory",
-           "rq1_table", "rules", "run_protocol", "slot_checkpoint", "slot_order", "write_report"]
+__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "load_for_slot",
+           "metrics_table", "policy_factory", "reference_rows", "references_markdown", "rules", "run_protocol",
+           "slot_checkpoint", "slot_order"]

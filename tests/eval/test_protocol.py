@@ -1,4 +1,5 @@
-"""The test protocol: Scenario 1 and 2 on the real simulator, the report, checkpoint lookup."""
+"""The test protocol: Scenario 1 and 2 on the real simulator, its metric table, checkpoint lookup
+(the report written from the records: tests/eval/test_report.py)."""
 
 import json
 
@@ -13,15 +14,14 @@ from eval.protocol import (
     ProtocolError,
     ProtocolPlan,
     find_checkpoints,
+    metrics_table,
     policy_factory,
-    rq1_table,
     run_protocol,
     slot_order,
-    write_report,
 )
 
 
-def test_both_scenarios_and_the_report(tmp_path):
+def test_both_scenarios_and_their_metric_table():
     plan = ProtocolPlan(envs=("env_3",), scenarios=(1, 2), episodes=1, steps=40, agents=3)
     records = run_protocol(plan, policy_factory("autopilot"), ["ppo", "a3c", "ddpg"])
     s1 = records[records.scenario == 1]
@@ -31,17 +31,11 @@ def test_both_scenarios_and_the_report(tmp_path):
     assert (s1.n_vehicles > 0).all()
     # alone: no other vehicle and no pedestrian, so CV and CP do not apply
     assert (s2.n_vehicles == 0).all() and (s2.n_pedestrians == 0).all()
-    written = write_report(records, tmp_path)
-    names = {p.name for p in written}
-    assert {"records.parquet", "metrics.csv", "rq1_scenario1.tex", "rq1_scenario2.csv",
-            "report.md", "speed_scenario1.png", "success_scenario2.png"} <= names
-    table = pd.read_csv(tmp_path / "metrics.csv")
-    header, rows = rq1_table(table, 2)
-    assert header == ["environment", "metric", "ppo", "a3c", "ddpg"]
-    cv = next(r for r in rows if r[1] == "CV")
-    assert cv[2:] == ["-", "-", "-"]
-    assert "\\begin{tabular}" in (tmp_path / "rq1_scenario1.tex").read_text()
-    assert len(pd.read_parquet(tmp_path / "records.parquet")) == len(records)
+    table = metrics_table(records)
+    assert len(table) == 6 and set(table.algorithm) == {"ppo", "a3c", "ddpg"}
+    alone = table[table.scenario == 2]
+    assert alone["CV"].isna().all() and alone["CP"].isna().all()
+    assert table["safety"].between(0, 1).all() and table["lane_keeping"].between(0, 1).all()
 
 
 def test_trained_checkpoints_are_found_and_act(tmp_path):
