@@ -24,9 +24,6 @@ from __future__ import annotations
 import hashlib
 import html
 import json
-import platform
-import subprocess
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -199,30 +196,15 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def git_commit() -> dict | None:
-    root = Path(__file__).resolve().parent.parent
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
-                                text=True, check=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, check=True, timeout=10).stdout.strip()
-        return {"commit": commit, "dirty": bool(dirty)}
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
 def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping | None = None,
                selections: Mapping | None = None, command: Sequence[str] | None = None) -> dict:
-    """What was tested and how: checkpoints with SHA-256 and the AC rule, versions, seeds."""
-    from importlib import metadata
-
+    """What was tested and how: checkpoints with SHA-256 and the AC rule, seeds, and what ran it
+    (eval.runfolder.software, as a run's manifest.json: command, versions, git commit)."""
     from eval import selection
     from eval.protocol import rules
+    from eval.runfolder import software
 
-    try:
-        version = metadata.version("cosim")
-    except metadata.PackageNotFoundError:
-        version = None
+    ran = software(" ".join(["cosim", *command]) if command is not None else None)
     tested = []
     for algo in algos:
         entry = {"algorithm": algo, "label": slot_label(policy, algo)}
@@ -238,10 +220,8 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
         "policy": policy,
         "tested": tested,
         "ac_rule": selection.RULE,
-        "cosim_version": version,
-        "git": git_commit(),
-        "python": platform.python_version(),
-        "command": " ".join(["cosim", *command]) if command is not None else " ".join(sys.argv),
+        "cosim_version": ran["versions"]["cosim"],
+        **ran,
         "plan": {"envs": list(plan.envs), "scenarios": list(plan.scenarios),
                  "episodes": plan.episodes, "steps": plan.steps, "agents": plan.agents,
                  "seed": plan.seed, "episode_seeds": [plan.seed + e for e in range(plan.episodes)],

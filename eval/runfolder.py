@@ -183,39 +183,54 @@ class RunLock:
 
 def manifest(cfg: TrainConfig) -> dict[str, Any]:
     """Reproducibility record: versions, git commit, seeds, hashes of the inputs."""
-    from importlib import metadata
-
     from cosim.scenario import load_scenario
 
     sc = load_scenario(cfg.env)
     files = [sc.source, sc.net, *sc.demand, *sc.pedestrian_demand, *sc.additional]
-    versions = {}
-    for pkg in ("cosim", "torch", "numpy", "eclipse-sumo", "libsumo", "pybullet", "gymnasium",
-                "pettingzoo", "pandas"):
-        try:
-            versions[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            versions[pkg] = None
     return {
         "created": dt.datetime.now(dt.UTC).isoformat(),
-        "command": " ".join(sys.argv),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "versions": versions,
-        "git": _git_commit(),
+        **software(),
         "seeds": {"run": cfg.seed, "agents": {f"ac_{k}": cfg.seed + k for k in range(cfg.agents)}},
         "files_sha256": {str(p.name): hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in files},
     }
 
 
-def _git_commit() -> dict[str, Any] | None:
+PACKAGES = ("cosim", "torch", "numpy", "eclipse-sumo", "libsumo", "pybullet", "gymnasium",
+            "pettingzoo", "pandas")
+"""The distributions whose versions a run's manifest and a report's provenance record."""
+
+
+def software(command: str | None = None) -> dict[str, Any]:
+    """What ran: the command line (default: this process's), Python, the platform, the
+    versions of :data:`PACKAGES` (None: not installed) and :func:`git_commit`. The one
+    builder of this part of a run's ``manifest.json`` and a report's ``provenance.json``."""
+    from importlib import metadata
+
+    versions = {}
+    for pkg in PACKAGES:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return {
+        "command": command if command is not None else " ".join(sys.argv),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "versions": versions,
+        "git": git_commit(),
+    }
+
+
+def git_commit() -> dict[str, Any] | None:
+    """The checkout's commit, and whether a tracked file differs from it (``dirty``; untracked
+    files such as run folders do not count); None outside a git checkout."""
     root = Path(__file__).resolve().parent.parent
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                                 text=True, check=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True,
-                               text=True, check=True, timeout=10).stdout.strip() != ""
-        return {"commit": commit, "dirty": dirty}
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, check=True, timeout=10).stdout.strip()
+        return {"commit": commit, "dirty": bool(dirty)}
     except (OSError, subprocess.SubprocessError):
         return None
 

@@ -279,3 +279,22 @@ def test_sweep_levels_are_checked_and_perturbations_are_seeded():
             assert not (runs[0][5] == frames[5]).all()
         else:  # some frames lost: the policy saw an earlier frame again
             assert any((s == frames[k - 1]).all() for k, s in enumerate(runs[0]) if k)
+
+
+def test_provenance_and_a_run_manifest_record_what_ran_alike():
+    """One builder (eval.runfolder.software) for the command, Python, platform, versions and git
+    commit of a report's provenance.json and a run's manifest.json."""
+    from eval import runfolder
+    from eval.config import TrainConfig
+
+    prov = provenance(policy="autopilot", plan=ProtocolPlan(envs=("env_1",)), algos=["ppo"],
+                      command=["test", "--agents", "1"])
+    manifest = runfolder.manifest(TrainConfig(algo="ppo", agents=1))
+    ran = set(runfolder.software())
+    assert ran == {"command", "python", "platform", "versions", "git"}
+    assert ran <= set(prov) and ran <= set(manifest)
+    assert prov["command"] == "cosim test --agents 1"
+    assert prov["cosim_version"] == prov["versions"]["cosim"]
+    assert set(prov["versions"]) == set(manifest["versions"]) == set(runfolder.PACKAGES)
+    git = runfolder.git_commit()
+    assert git is None or (set(git) == {"commit", "dirty"} and isinstance(git["dirty"], bool))
