@@ -31,8 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     from cosim.errors import CosimError
 
     try:
-        # inside the try: building the parser reads the preset YAMLs (eval/presets.py), and a
-        # bad one must be one line naming the file, not a traceback, for every command
+        # inside the try, though a bad preset YAML does not stop it: the commands that read the
+        # presets (train, benchmark) raise its error when run, the others work (_preset_names)
         parser = build_parser()
         args = parser.parse_args(argv)
         logging.basicConfig(level=logging.WARNING if not args.verbose else logging.INFO,
@@ -112,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from agents.registry import ALGORITHMS, DISCRETE  # the catalogue (no algorithm imported)
     from eval.config import COLLISION_RULES
-    from eval.presets import preset_names
     from eval.runfolder import KEEP_POLICIES
+
+    presets, preset_error = _preset_names()
 
     t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
     t.add_argument("--algo", default="ppo",
@@ -122,8 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
     t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--preset", default="quick", choices=preset_names(),
-                   help=f"run preset, from eval/hyperparams/runs.yaml: {', '.join(preset_names())}")
+    t.add_argument("--preset", default="quick", choices=presets or None,
+                   help=f"run preset, from eval/hyperparams/runs.yaml: {', '.join(presets)}")
     t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
                    help=f"must match the algorithm (discrete: {' '.join(DISCRETE)})")
     t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
@@ -165,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what a finished run folder keeps: best = each AC's best.pt (the policy the "
                         "test drives), all = latest.pt too, to train it further (default: best)")
     t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
-    t.set_defaults(func=cli_learn.cmd_train)
+    t.set_defaults(func=_refuse(preset_error) if preset_error else cli_learn.cmd_train)
     e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
     e.add_argument("--agents", type=int, default=6,
                    help="ACs in Scenario 1, one per algorithm in the order ppo a3c impala dqn ddpg td3")
@@ -205,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--quiet", action="store_true")
     e.set_defaults(func=cli_learn.cmd_test)
 
-    _benchmark_parser(sub)
+    _benchmark_parser(sub, presets, preset_error)
 
     rp = sub.add_parser("replay", help="reopen a failure replay's SUMO state (from a cosim test report)")
     rp.add_argument("state", type=Path, help="replays/<...>/state.json (or state.xml) of a report")
@@ -225,15 +226,34 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _benchmark_parser(sub) -> None:
+def _preset_names():
+    """The run presets' names (what ``--preset`` accepts) and None, or () and the
+    :class:`~eval.presets.PresetError` of a preset YAML that does not load: then only the
+    commands that read the presets fail, with that one-line error (:func:`_refuse`)."""
+    from eval.presets import PresetError, preset_names
+
+    try:
+        return preset_names(), None
+    except PresetError as exc:
+        return (), exc
+
+
+def _refuse(error: Exception):
+    """A command function that raises ``error`` (a command that cannot run, e.g. without presets)."""
+    def refuse(args):
+        raise error
+
+    return refuse
+
+
+def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | None) -> None:
     from agents.registry import ALGORITHMS
     from eval.config import COLLISION_RULES
-    from eval.presets import preset_names
     from eval.runfolder import KEEP_POLICIES
 
     b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
                                          "trial, then test them and write the report")
-    b.add_argument("--preset", choices=preset_names(), default="standard",
+    b.add_argument("--preset", choices=presets or None, default="standard",
                    help="run preset (eval/hyperparams/runs.yaml); standard: ~15 min per trial here")
     b.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
     b.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
@@ -261,7 +281,7 @@ def _benchmark_parser(sub) -> None:
                    help="continue an interrupted benchmark in --out without redoing finished trials; "
                         "with a larger --seeds, add those seeds to a finished one")
     b.add_argument("--quiet", action="store_true")
-    b.set_defaults(func=cli_learn.cmd_benchmark)
+    b.set_defaults(func=_refuse(preset_error) if preset_error else cli_learn.cmd_benchmark)
 
 
 def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:

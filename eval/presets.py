@@ -67,8 +67,9 @@ _ALGO_KEYS = ("steps", "hyperparameters")
 
 class PresetError(CosimError, ValueError):
     """A preset YAML in ``eval/hyperparams/`` is missing, not YAML, or holds an unknown key or
-    value; the message names the file and the fix. Every command builds its parser from these
-    files, so the CLI reports this as one line for every command (docs/reference.md#presets)."""
+    value; the message names the file and the fix. The CLI reports it as one line (exit 2) for
+    the commands that read the presets, train and benchmark; the others work
+    (docs/reference.md#exit-codes-and-errors)."""
 
     def __init__(self, path: Path, problem: str):
         path = Path(path)

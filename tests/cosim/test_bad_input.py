@@ -227,36 +227,48 @@ def test_every_deliberate_error_has_its_package_root():
         assert issubclass(cls, AgentError) and not issubclass(cls, CosimError), cls
 
 
-@pytest.mark.parametrize("command", [["scenarios"], ["train", "--algo", "ppo"], ["drive", "env_1"]])
-def test_a_bad_preset_yaml_is_one_line_naming_the_file_for_every_command(command, tmp_path, capfd,
-                                                                         monkeypatch):
-    """The parser of every command is built from eval/hyperparams/*.yaml: a typo there is one
-    line naming the file and the fix (exit 2), never a traceback, even for `cosim scenarios`."""
+def _bad_presets(tmp_path, monkeypatch, edit) -> None:
+    """eval/hyperparams/ copied to ``tmp_path``, changed by ``edit(folder)``, and read from there."""
     import eval.presets as presets
 
     for path in presets.HYPERPARAMS.glob("*.yaml"):
         (tmp_path / path.name).write_text(path.read_text())
-    (tmp_path / "td3.yaml").write_text("quick: {steps: 10\n")  # unclosed mapping
+    edit(tmp_path)
     load = presets.load_presets
     monkeypatch.setattr(presets, "load_presets", lambda folder=tmp_path: load(folder))
+
+
+@pytest.mark.parametrize("command", [["train", "--algo", "ppo"], ["benchmark", "--no-ray"]])
+def test_a_bad_preset_yaml_is_one_line_naming_the_file_for_the_commands_that_read_it(
+        command, tmp_path, capfd, monkeypatch):
+    """train and benchmark read eval/hyperparams/*.yaml: a typo there is one line naming the
+    file and the fix (exit 2), never a traceback."""
+    _bad_presets(tmp_path, monkeypatch,
+                 lambda folder: (folder / "td3.yaml").write_text("quick: {steps: 10\n"))  # unclosed
     code, err = run_cli(command, capfd)
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
     assert err.startswith("cosim: error: ") and "td3.yaml: not valid YAML at line 2" in err, err
     assert "fix that file" in err and "docs/reference.md#presets" in err
 
 
+@pytest.mark.parametrize("command", [["scenarios"], ["train", "--help"], ["test", "--help"]])
+def test_a_bad_preset_yaml_leaves_the_commands_that_do_not_read_it_working(command, tmp_path, capfd,
+                                                                           monkeypatch):
+    _bad_presets(tmp_path, monkeypatch,
+                 lambda folder: (folder / "td3.yaml").write_text("quick: {steps: 10\n"))
+    code, err = run_cli(command, capfd)
+    assert code == 0 and err == "", err
+
+
 def test_a_preset_yaml_with_an_unknown_key_names_the_key_and_the_valid_ones(tmp_path, capfd,
                                                                            monkeypatch):
-    import eval.presets as presets
+    def misspell(folder):
+        runs = yaml.safe_load((folder / "runs.yaml").read_text())
+        runs["quick"]["horizn"] = 10
+        (folder / "runs.yaml").write_text(yaml.safe_dump(runs))
 
-    for path in presets.HYPERPARAMS.glob("*.yaml"):
-        (tmp_path / path.name).write_text(path.read_text())
-    runs = yaml.safe_load((tmp_path / "runs.yaml").read_text())
-    runs["quick"]["horizn"] = 10
-    (tmp_path / "runs.yaml").write_text(yaml.safe_dump(runs))
-    load = presets.load_presets
-    monkeypatch.setattr(presets, "load_presets", lambda folder=tmp_path: load(folder))
-    code, err = run_cli(["scenarios"], capfd)
+    _bad_presets(tmp_path, monkeypatch, misspell)
+    code, err = run_cli(["train", "--algo", "dqn"], capfd)
     assert code == 2 and err.count("\n") == 1, err
     assert "runs.yaml: quick: unknown key(s) ['horizn']; valid keys: " in err and "'horizon'" in err
 
