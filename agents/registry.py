@@ -1,9 +1,11 @@
-"""The algorithm catalogue: every algorithm's name, class, action kind and training loop.
+"""The algorithm catalogue: every algorithm's name, class, action kind, training loop and
+the kind of policy it learns.
 
-This is the one place an algorithm is listed; the training layer (``eval/``), the
-test protocol and a checkpoint's loader read it from here. Classes are given as
-``"module:Class"`` strings imported on first use, so importing the catalogue does
-not import every algorithm (and cannot create import cycles).
+This is the one place an algorithm and its facts are listed; the training layer
+(``eval/``), the test protocol and a checkpoint's loader read them from here (the report's
+presentation of an algorithm, its colour, is eval's: ``eval/labels.py``). Classes and
+functions are given as ``"module:name"`` strings imported on first use, so importing the
+catalogue does not import every algorithm (and cannot create import cycles).
 """
 
 from __future__ import annotations
@@ -11,8 +13,8 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-__all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DISCRETE", "POLICY_NETWORKS", "Algorithm",
-           "available", "get_agent_class"]
+__all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DETERMINISTIC", "DISCRETE", "POLICY_NETWORKS", "STOCHASTIC",
+           "Algorithm", "available", "get", "get_agent_class", "get_async_trainer"]
 
 
 @dataclass(frozen=True)
@@ -31,17 +33,30 @@ class Algorithm:
     policy: tuple[str, ...]
     """The networks (keys of ``agent.networks``) that choose actions: all a policy
     checkpoint keeps (agents/checkpoint.py; run folders' ``best.pt``)."""
+    stochastic: bool
+    """True: the learned policy is a distribution (actor-critic), its training maximised the
+    return of its samples, so an evaluation samples it (``act(obs)``; eval.protocol.SAMPLED);
+    False: a deterministic policy (greedy in Q, or a deterministic actor) whose exploration
+    (epsilon, action noise) is training-only, so an evaluation acts greedily."""
+    async_trainer: str = ""
+    """``loop == "async"``: the training function, ``"module:function"``, that runs its
+    worker processes (``agents.a3c:train_a3c``)."""
+    thread_per_env: bool = False
+    """``loop == "async"``: one learner thread per environment updates shared weights (A3C),
+    so each thread takes one torch thread; False: one learner (IMPALA)."""
 
 
 # ---------------------------------------------------------------------------------------
 # THE CATALOGUE: one line per algorithm, in the paper's order (SPEC §5 tables).
 CATALOGUE: tuple[Algorithm, ...] = (
-    Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync", ("net",)),
-    Algorithm("a3c", "agents.a3c:A3C", "discrete", "async", ("actor_critic",)),
-    Algorithm("impala", "agents.impala:IMPALA", "discrete", "async", ("actor_critic",)),
-    Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",)),
-    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor",)),
-    Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor",)),
+    Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync", ("net",), stochastic=True),
+    Algorithm("a3c", "agents.a3c:A3C", "discrete", "async", ("actor_critic",), stochastic=True,
+              async_trainer="agents.a3c:train_a3c", thread_per_env=True),
+    Algorithm("impala", "agents.impala:IMPALA", "discrete", "async", ("actor_critic",), stochastic=True,
+              async_trainer="agents.impala:train_impala"),
+    Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",), stochastic=False),
+    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor",), stochastic=False),
+    Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor",), stochastic=False),
 )
 # ---------------------------------------------------------------------------------------
 
@@ -50,6 +65,10 @@ ALGORITHMS: dict[str, str] = {a.name: a.target for a in CATALOGUE}
 DISCRETE: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.action == "discrete")
 CONTINUOUS: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.action == "continuous")
 ASYNC: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.loop == "async")
+STOCHASTIC: tuple[str, ...] = tuple(a.name for a in CATALOGUE if a.stochastic)
+"""The algorithms whose policy is a distribution (:attr:`Algorithm.stochastic`)."""
+DETERMINISTIC: tuple[str, ...] = tuple(a.name for a in CATALOGUE if not a.stochastic)
+"""The algorithms whose policy is deterministic (exploration only in training)."""
 POLICY_NETWORKS: dict[str, tuple[str, ...]] = {a.name: a.policy for a in CATALOGUE}
 """name -> the networks a policy checkpoint keeps."""
 
@@ -59,15 +78,39 @@ def available() -> list[str]:
     return sorted(ALGORITHMS)
 
 
+def get(name: str) -> Algorithm:
+    """The catalogue entry of ``name``.
+
+    Raises:
+        KeyError: If no algorithm has that name (the message lists the valid ones).
+    """
+    for entry in CATALOGUE:
+        if entry.name == name:
+            return entry
+    raise KeyError(f"unknown algorithm {name!r}; registered algorithms: {available()}")
+
+
+def _load(target: str):
+    module_name, attr = target.split(":")
+    return getattr(importlib.import_module(module_name), attr)
+
+
 def get_agent_class(name: str):
     """Return the agent class registered under ``name``.
 
     Raises:
         KeyError: If no algorithm has that name (the message lists the valid ones).
     """
-    try:
-        target = ALGORITHMS[name]
-    except KeyError:
-        raise KeyError(f"unknown algorithm {name!r}; registered algorithms: {available()}") from None
-    module_name, class_name = target.split(":")
-    return getattr(importlib.import_module(module_name), class_name)
+    return _load(get(name).target)
+
+
+def get_async_trainer(name: str):
+    """The training function of an ``async`` algorithm (:attr:`Algorithm.async_trainer`).
+
+    Raises:
+        KeyError: If no algorithm has that name, or it trains in the sync loop.
+    """
+    entry = get(name)
+    if not entry.async_trainer:
+        raise KeyError(f"{name} trains in the sync loop (agents.loop); async algorithms: {list(ASYNC)}")
+    return _load(entry.async_trainer)

@@ -19,6 +19,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from agents.registry import ALGORITHMS
+from cosim.scenario import available_scenarios
+
 
 def timed(args: list[str]) -> float:
     start = time.perf_counter()
@@ -29,8 +32,8 @@ def timed(args: list[str]) -> float:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
-    p.add_argument("--algos", nargs="+", default=["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
+    p.add_argument("--envs", nargs="+", default=available_scenarios())
+    p.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
     p.add_argument("--report", action="store_true", help="also time the test protocol and report")
     p.add_argument("--out", type=Path, default=None, help="also write the figures as JSON")
     args = p.parse_args()

@@ -42,12 +42,12 @@ import numpy as np
 
 from cosim.errors import CosimError
 from eval.config import COLLISION_RULES
+from eval.labels import ENVS
 from eval.train import ALGORITHMS, TrainConfig, make_config, train
 from eval.validity import POLICIES
 
 log = logging.getLogger(__name__)
 
-ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
 
 
 class BenchmarkError(CosimError, ValueError):

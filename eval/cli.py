@@ -110,8 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a netconvert .netccfg (default: every bundled network)")
     n.set_defaults(func=cli_sim.cmd_nets)
 
-    from agents.registry import ALGORITHMS, DISCRETE  # the catalogue (no algorithm imported)
+    # the catalogue (no algorithm imported) and the environments (the scenario files)
+    from agents.registry import ALGORITHMS, DETERMINISTIC, DISCRETE, STOCHASTIC
     from eval.config import COLLISION_RULES
+    from eval.labels import ENVS
     from eval.runfolder import KEEP_POLICIES
 
     presets, preset_error = _preset_names()
@@ -119,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
     t.add_argument("--algo", default="ppo",
                    help=f"{', '.join(ALGORITHMS)}, or all (every one, in parallel where CPUs allow)")
-    t.add_argument("--env", default="env_1", help="env_1..env_5 or a scenario .yaml")
+    t.add_argument("--env", default="env_1", help=f"{_names(ENVS)} or a scenario .yaml")
     t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
     t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
     t.add_argument("--seed", type=int, default=0)
@@ -169,10 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=_refuse(preset_error) if preset_error else cli_learn.cmd_train)
     e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
     e.add_argument("--agents", type=int, default=6,
-                   help="ACs in Scenario 1, one per algorithm in the order ppo a3c impala dqn ddpg td3")
+                   help=f"ACs in Scenario 1, one per algorithm in the order {' '.join(ALGORITHMS)}")
     e.add_argument("--algos", nargs="+", default=None, choices=list(ALGORITHMS), metavar="ALGO",
                    help="the algorithms tested, one AC each (instead of the first --agents of that order)")
-    e.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
+    e.add_argument("--envs", nargs="+", default=list(ENVS), help=f"default: {_names(ENVS)}")
     e.add_argument("--scenario", choices=["1", "2", "both"], default="both")
     e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
     e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
@@ -181,8 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
                         "turns at the spawn slots, one step per episode)")
     e.add_argument("--greedy", action="store_true",
-                   help="PPO, A3C and IMPALA take their policy's mode (default: they sample it; "
-                        "DQN, DDPG and TD3 always act greedily)")
+                   help=f"{', '.join(STOCHASTIC)} take their policy's mode (default: they sample "
+                        f"it; {', '.join(DETERMINISTIC)} always act greedily)")
     e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
                    help="trained checkpoints from --runs, or a reference driver")
     e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")
@@ -216,8 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("check-scenarios",
                        help="run the degenerate-policy suite: does a scenario measure driving?")
-    c.add_argument("scenarios", nargs="*", default=["env_1", "env_2", "env_3", "env_4", "env_5"],
-                   help="env_1..env_5 or scenario .yaml files (default: the five)")
+    c.add_argument("scenarios", nargs="*", default=list(ENVS),
+                   help=f"{_names(ENVS)} or scenario .yaml files (default: all of them)")
     c.add_argument("--agents", type=int, nargs="+", default=[3, 6], help="AC counts to check")
     c.add_argument("--episodes", type=int, default=5, help="held-out episodes per policy")
     c.add_argument("--steps", type=int, default=None, help="steps per episode (default: horizon)")
@@ -249,13 +251,14 @@ def _refuse(error: Exception):
 def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | None) -> None:
     from agents.registry import ALGORITHMS
     from eval.config import COLLISION_RULES
+    from eval.labels import ENVS
     from eval.runfolder import KEEP_POLICIES
 
     b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
                                          "trial, then test them and write the report")
     b.add_argument("--preset", choices=presets or None, default="standard",
                    help="run preset (eval/hyperparams/runs.yaml); standard: ~15 min per trial here")
-    b.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
+    b.add_argument("--envs", nargs="+", default=list(ENVS), help=f"default: {_names(ENVS)}")
     b.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
     b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")
     b.add_argument("--steps", type=_int_in(1), default=None,
@@ -285,13 +288,20 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
 
 
 def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
-    p.add_argument("scenario", nargs="?", default="env_3", help="env_1..env_5 or a scenario .yaml")
+    from eval.labels import ENVS
+
+    p.add_argument("scenario", nargs="?", default="env_3", help=f"{_names(ENVS)} or a scenario .yaml")
     p.add_argument("--agents", type=_int_in(1, 6), default=None,
                    help="learning cars (default: every spawn point of the scenario)")
     p.add_argument("--steps", type=_int_in(1), default=steps)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-background", action="store_true", help="no background cars")
     p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
+
+
+def _names(envs) -> str:
+    """``env_1..env_5`` for the bundled environments (a run of names), else the names listed."""
+    return f"{envs[0]}..{envs[-1]}" if len(envs) > 2 else ", ".join(envs)
 
 
 def _int_in(low: int, high: int | None = None):

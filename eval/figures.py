@@ -1,7 +1,7 @@
 """Figures of the cosim test report (issue 13): RQ2 success rates, SPEED per timestep,
 TTFC survival. Each is written as PDF and PNG, sized for a paper column (3.5 in) or
 the page width (7 in), with the environments' titles, the paper's algorithm order and
-one colour per algorithm in every figure (:data:`COLOURS`, Okabe-Ito, colour-blind safe).
+one colour per algorithm in every figure (:data:`eval.labels.COLOURS`, Okabe-Ito, colour-blind safe).
 """
 
 from __future__ import annotations
@@ -12,19 +12,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from eval.labels import ALGO_ORDER, SCENARIO_NAMES, algo_order, env_title
+from eval.labels import ALGO_ORDER, COLOURS, SCENARIO_NAMES, algo_order, colour, env_title  # noqa: F401 - re-exported
+from eval.metrics import scenario_dt
 
-COLOURS = {"ppo": "#0072B2", "a3c": "#E69F00", "impala": "#009E73", "dqn": "#CC79A7",
-           "ddpg": "#D55E00", "td3": "#56B4E9"}
-EXTRA = ("#000000", "#999999", "#F0E442")
 COLUMN_IN = 3.5
 PAGE_IN = 7.0
-
-
-def colour(algo: str) -> str:
-    if algo in COLOURS:
-        return COLOURS[algo]
-    return EXTRA[sum(map(ord, algo)) % len(EXTRA)]
 
 
 def _plt():
@@ -99,9 +91,11 @@ def bar_figure(long: pd.DataFrame, metrics: list[tuple[str, str]], out: Path, st
     return _save(fig, out, stem)
 
 
-def speed_grid(records: pd.DataFrame, out: Path, labels: Mapping[str, str], dt: float = 0.1) -> list[Path]:
+def speed_grid(records: pd.DataFrame, out: Path, labels: Mapping[str, str],
+               dt: float | None = None) -> list[Path]:
     """SPEED per timestep: environments as rows, scenarios as columns; the line is the mean
-    over episodes, the band its spread (min to max over episodes)."""
+    over episodes, the band its spread (min to max over episodes). ``dt``: seconds per step
+    (None: each environment's scenario's, eval.metrics.scenario_dt)."""
     plt = _plt()
     scenarios = sorted(records["scenario"].unique())
     envs = sorted(records["env"].unique())
@@ -118,7 +112,7 @@ def speed_grid(records: pd.DataFrame, out: Path, labels: Mapping[str, str], dt: 
                 if g.empty:
                     continue
                 per = g.assign(kmh=g["speed"] * 3.6).groupby(["step", "episode"])["kmh"].mean().unstack()
-                t = per.index.to_numpy() * dt
+                t = per.index.to_numpy() * (scenario_dt(env) if dt is None else dt)
                 ax.plot(t, per.mean(axis=1), color=colour(a), lw=0.9)
                 if per.shape[1] > 1:
                     ax.fill_between(t, per.min(axis=1), per.max(axis=1), color=colour(a),
@@ -174,9 +168,10 @@ def survival(per: pd.DataFrame, out: Path, labels: Mapping[str, str], steps_s: f
 
 
 def write_all(records: pd.DataFrame, per: pd.DataFrame, long: pd.DataFrame, out: Path,
-              labels: Mapping[str, str], dt: float = 0.1) -> list[Path]:
+              labels: Mapping[str, str], dt: float | None = None) -> list[Path]:
     out = Path(out)
-    horizon_s = float(records["step"].max()) * dt if not records.empty else 0.0
+    horizon_s = max((float(g["step"].max()) * (scenario_dt(env) if dt is None else dt)
+                     for env, g in records.groupby("env")), default=0.0)
     written = []
     written += bar_figure(long, [("safety", "Safety (collision-free\nepisodes)")], out,
                           "rq2_safety", labels, ylim01=True)

@@ -19,6 +19,8 @@ Efficiency = SPEED and DISTANCE; Lane keeping = OS.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pandas as pd
 
@@ -26,8 +28,18 @@ METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
 KEYS = ["episode", "agent", "algorithm"]
 
 
+@functools.cache
+def scenario_dt(env: str) -> float:
+    """Seconds per step of the environment ``env`` (a scenario name or YAML path): its
+    scenario's ``dt``, what turns the records' step counts into seconds (TTFC, time axes)."""
+    from cosim.scenario import load_scenario
+
+    return float(load_scenario(env).dt)
+
+
 def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
-    """One row per (episode, agent) with the SPEC §4 metrics, return and length."""
+    """One row per (episode, agent) with the SPEC §4 metrics, return and length; ``dt``: the
+    seconds per step of the environment the records are from (:func:`scenario_dt`)."""
     if records.empty:
         return pd.DataFrame(columns=[*KEYS, *METRICS, "return", "steps"])
     rows = []

@@ -30,18 +30,18 @@ import pandas as pd
 from agents import registry
 from cosim.errors import CosimError
 from eval import selection
-from eval.metrics import METRICS, episode_metrics, success_rates, summarize
+from eval.labels import ENVS
+from eval.metrics import METRICS, episode_metrics, scenario_dt, success_rates, summarize
 from eval.rollout import AutopilotPolicy, RandomPolicy, SampledPolicy, StackedPolicy, run_episodes
 
 log = logging.getLogger(__name__)
 
 ALGO_ORDER = tuple(registry.ALGORITHMS)  # the catalogue's order (agents/registry.py)
 CONTINUOUS = registry.CONTINUOUS
-ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
-SAMPLED = ("ppo", "a3c", "impala")
-"""Algorithms whose learned policy is a distribution: the test samples it (their training
-maximised the return of the sampled policy; its mode is a different policy: two IMPALA
-modes crawled at 8-14 km/h and reached no goal where their samples drove;
+SAMPLED = registry.STOCHASTIC
+"""Algorithms whose learned policy is a distribution (the catalogue's ``stochastic``: PPO,
+A3C, IMPALA): the test samples it (their training maximised the return of the sampled
+policy; its mode is a different policy: two IMPALA modes crawled at 8-14 km/h and reached no goal where their samples drove;
 docs/results/2026-11-23-greedy-vs-sampled/README.md). DQN, DDPG and TD3 learn a
 deterministic policy and act greedily (no epsilon, no action noise). ``cosim test
 --greedy`` takes every policy's mode."""
@@ -71,7 +71,8 @@ def rules(plan: ProtocolPlan) -> dict[str, str]:
         "slot_checkpoints": "a run's AC trained in a slot drives that slot; other slots the "
                             "checkpoint listed (eval.protocol.slot_checkpoint)",
         "actions": ("every policy's mode (--greedy)" if plan.greedy else
-                    "ppo, a3c, impala sample their policy; dqn, ddpg, td3 greedy (eval.protocol.SAMPLED)"),
+                    f"{', '.join(SAMPLED)} sample their policy; {', '.join(registry.DETERMINISTIC)} "
+                    "greedy (eval.protocol.SAMPLED)"),
     }
 
 
@@ -252,11 +253,12 @@ def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
-def metrics_table(records: pd.DataFrame, dt: float = 0.1) -> pd.DataFrame:
-    """Per (scenario, env, algorithm): mean over episodes of every SPEC §4 metric."""
+def metrics_table(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
+    """Per (scenario, env, algorithm): mean over episodes of every SPEC §4 metric (``dt``:
+    seconds per step; None: each environment's scenario's, eval.metrics.scenario_dt)."""
     parts = []
     for (scenario, env), g in records.groupby(["scenario", "env"], sort=True):
-        per = episode_metrics(g, dt)
+        per = episode_metrics(g, scenario_dt(env) if dt is None else dt)
         s = summarize(per, by=["algorithm"])
         parts.append(s.assign(scenario=scenario, env=env))
     out = pd.concat(parts, ignore_index=True)

@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 from eval.labels import ALGO_ORDER, SCENARIO_NAMES, algo_order, env_title  # noqa: F401 - re-exported
-from eval.metrics import episode_metrics
+from eval.metrics import episode_metrics, scenario_dt
 
 TABLE_METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
 BOOTSTRAP = 2000
@@ -58,11 +58,13 @@ def bootstrap_ci(values, resamples: int = BOOTSTRAP, seed: int = CI_SEED) -> tup
     return mean, float(lo), float(hi), n
 
 
-def per_episode(records: pd.DataFrame, dt: float = 0.1) -> pd.DataFrame:
-    """One row per (scenario, env, episode, AC): the metrics and the RQ2 success indicators."""
+def per_episode(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
+    """One row per (scenario, env, episode, AC): the metrics and the RQ2 success indicators
+    (``dt``: seconds per step; None: each environment's scenario's, eval.metrics.scenario_dt)."""
     parts = []
     for (scenario, env), g in records.groupby(["scenario", "env"], sort=True):
-        parts.append(episode_metrics(g, dt).assign(scenario=int(scenario), env=env))
+        step_s = scenario_dt(env) if dt is None else dt
+        parts.append(episode_metrics(g, step_s).assign(scenario=int(scenario), env=env))
     out = pd.concat(parts, ignore_index=True)
     crashes = out[["CV", "CO", "CP"]].fillna(0.0)
     out["safety"] = (crashes.sum(axis=1) == 0).astype(float)   # a collision-free episode
@@ -237,7 +239,7 @@ def slot_label(policy: str, algo: str) -> str:
 
 def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = None,
                        references: pd.DataFrame | None = None, replays: Sequence[dict] = (),
-                       dt: float = 0.1, figures: bool = True, extra_md: str = "") -> list[Path]:
+                       dt: float | None = None, figures: bool = True, extra_md: str = "") -> list[Path]:
     """The combined Table RQ1 (md, csv long/wide, tex), figures, index.md/html, provenance."""
     from eval import figures as figs
     from eval.protocol import metrics_table
@@ -263,7 +265,7 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
     (out / "provenance.json").write_text(json.dumps(prov, indent=2, default=str))
     written = [out / n for n in ("records.parquet", "metrics.csv", "episodes.csv", "rq1_long.csv", "rq1_wide.csv", "rq1.md",
                                  "rq1.tex", "provenance.json")]
-    figures_written = figs.write_all(records, per, long, out, labels) if figures else []
+    figures_written = figs.write_all(records, per, long, out, labels, dt) if figures else []
     written += figures_written
     index_md = rq1_markdown(*with_replay_links(header, rows, groups, scenarios, algos, long, replays))
     written += write_index(out, index_md, prov, figures_written, references, replays, extra_md)

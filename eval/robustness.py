@@ -136,7 +136,7 @@ def run_cross_play(plan, make_policy: Callable, algos: Sequence[str], group: int
     return pd.concat(frames, ignore_index=True)
 
 
-def cross_play_table(records: pd.DataFrame, dt: float = 0.1) -> pd.DataFrame:
+def cross_play_table(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
     """Per (env or 'all', ego, partner): the ego's collision and goal rates with 95% CIs."""
     ego = records[records["agent"] == "ac_0"]
     rows = []
@@ -231,7 +231,7 @@ def run_sweep(plan, make_policy: Callable, algos: Sequence[str], kind: str, leve
     return pd.concat(frames, ignore_index=True)
 
 
-def sweep_table(records: pd.DataFrame, dt: float = 0.1) -> pd.DataFrame:
+def sweep_table(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
     """Per (level, algorithm, metric), pooled over environments: mean, 95% CI, n."""
     rows = []
     for level, g in records.groupby("level", sort=True):

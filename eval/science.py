@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from eval.labels import ENVS, env_colour  # noqa: F401 - ENVS re-exported (studies/science.py)
 from eval.report import BOOTSTRAP, CI_SEED, algo_order, bootstrap_ci, env_title
 from eval.validity import DEGENERATE, POLICIES
 
@@ -54,10 +55,6 @@ NORM_LOW, NORM_HIGH = "random", "autopilot"
 """The IQM's normalisation: uniform random over Discrete(9) scores 0, the autopilot 1."""
 WINDOW = 20
 """Convergence: the mean return of the most recent episodes (any AC) finished by a step."""
-ENVS = ("env_1", "env_2", "env_3", "env_4", "env_5")
-ENV_COLOURS = dict(zip(ENVS, ("#0072B2", "#E69F00", "#009E73", "#CC79A7", "#D55E00"),
-                       strict=True))
-"""One colour per environment: the Okabe-Ito palette of eval/figures.py, in that order."""
 
 
 # -- per seed ----------------------------------------------------------------------------
@@ -305,7 +302,7 @@ def convergence_figure(curves: pd.DataFrame, out: Path, stem: str = "convergence
             b = bands[(bands["algorithm"] == algo) & (bands["env"] == env)]
             if b.empty:
                 continue
-            c = ENV_COLOURS.get(env, "#000000")
+            c = env_colour(env)
             lone = int(np.isfinite(b["mean"]).sum()) == 1  # a single point draws no line
             ax.plot(b["env_step"], b["mean"], color=c, lw=0.9, marker="o" if lone else None, ms=2)
             if seeds.get((algo, env), 1) > 1:
@@ -318,7 +315,7 @@ def convergence_figure(curves: pd.DataFrame, out: Path, stem: str = "convergence
         axes[r][0].set_ylabel("training return")
     from matplotlib.lines import Line2D
 
-    handles = [Line2D([], [], color=ENV_COLOURS.get(e, "#000000"), label=env_title(e)) for e in envs]
+    handles = [Line2D([], [], color=env_colour(e), label=env_title(e)) for e in envs]
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.legend(handles=handles, loc="lower center", ncol=len(envs), frameon=False,
                bbox_to_anchor=(0.5, -0.01))

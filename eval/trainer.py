@@ -206,20 +206,20 @@ def _set_torch_threads(cfg: TrainConfig) -> None:
     parallel ops, use the cores here."""
     import torch
 
+    from agents import registry
+
     spare = max(1, _cpus() - cfg.envs) if cfg.envs > 1 else _cpus()
-    threads = cfg.torch_threads or (1 if cfg.algo == "a3c" else max(1, spare // _learner_threads(cfg)))
+    threads = cfg.torch_threads or (1 if registry.get(cfg.algo).thread_per_env
+                                    else max(1, spare // _learner_threads(cfg)))
     torch.set_num_threads(threads)
 
 
 def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
     """A3C, IMPALA on one vector env of ``cfg.envs`` environments (worker processes when > 1):
     A3C runs one learner thread per environment, IMPALA's learner acts in all of them."""
-    from agents.registry import get_agent_class
+    from agents.registry import get_agent_class, get_async_trainer
 
-    if cfg.algo == "a3c":
-        from agents.a3c import train_a3c as trainer
-    else:
-        from agents.impala import train_impala as trainer
+    trainer = get_async_trainer(cfg.algo)  # agents.a3c.train_a3c, agents.impala.train_impala
     probe = make_env(cfg.to_dict())
     obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
     probe.close()

@@ -18,6 +18,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from agents.registry import DETERMINISTIC, STOCHASTIC
 from eval.config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -29,8 +30,8 @@ uses ``--seed`` + episode and the validity suite 10,000 and up; SUMO takes seeds
 
 RULE = ("per AC, the checkpoint with the highest mean undiscounted return over the run's "
         "validation episodes, driven under the test's rules (collisions go on and every contact "
-        "step is charged; ppo, a3c, impala sample, dqn, ddpg, td3 greedy) on held-out seeds; "
-        "the run is represented by the AC with the highest such score")
+        f"step is charged; {', '.join(STOCHASTIC)} sample, {', '.join(DETERMINISTIC)} greedy) on "
+        "held-out seeds; the run is represented by the AC with the highest such score")
 
 
 def validation_seeds(cfg: TrainConfig) -> list[int]:

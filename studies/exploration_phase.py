@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from cosim.env import EPISODE_INFO, CosimParallelEnv
+from cosim.scenario import available_scenarios
 
 
 def measure(env_name: str, throttle_low: float, steps: int, seed: int = 0, horizon: int = 600) -> dict:
@@ -29,6 +30,7 @@ def measure(env_name: str, throttle_low: float, steps: int, seed: int = 0, horiz
     rng = np.random.default_rng(seed)
     low, high = np.array([throttle_low, -1.0], np.float32), np.ones(2, np.float32)
     speeds, episodes = [], []
+    dt = env.scenario.dt  # seconds per step
     try:
         env.reset(seed=seed)
         for t in range(steps):
@@ -43,7 +45,6 @@ def measure(env_name: str, throttle_low: float, steps: int, seed: int = 0, horiz
     finally:
         env.close()
     speeds = np.asarray(speeds)
-    dt = 0.1
     metres = [e["mean_speed_kmh"] / 3.6 * e["length"] * dt for e in episodes]
     return {
         "env": env_name, "throttle_low": throttle_low, "episodes": len(episodes),
@@ -57,7 +58,7 @@ def measure(env_name: str, throttle_low: float, steps: int, seed: int = 0, horiz
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", nargs="+", default=["env_1", "env_2", "env_3", "env_4", "env_5"])
+    parser.add_argument("--envs", nargs="+", default=available_scenarios())
     parser.add_argument("--steps", type=int, default=1000, help="env steps per (env, throttle floor)")
     parser.add_argument("--lows", type=float, nargs="+", default=[-1.0, -0.5, 0.0],
                         help="lower ends of the throttle/brake draw (-1: uniform over the box)")

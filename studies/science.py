@@ -50,6 +50,7 @@ if str(ROOT) not in sys.path:  # run as a script from a checkout
 import pandas as pd  # noqa: E402
 
 from agents.errors import AgentError  # noqa: E402
+from agents.registry import ALGORITHMS  # noqa: E402
 from cosim.errors import CosimError  # noqa: E402
 from eval import science  # noqa: E402
 from eval.benchmark import (  # noqa: E402
@@ -129,7 +130,7 @@ def parse(argv=None) -> argparse.Namespace:
         args.no_ray = True
     args.preset = args.preset or default_preset()
     args.envs = args.envs or list(science.ENVS)
-    args.algos = args.algos or ["ppo", "a3c", "impala", "dqn", "ddpg", "td3"]
+    args.algos = args.algos or list(ALGORITHMS)
     args.seeds = 3 if args.seeds is None else args.seeds
     args.scenarios = sorted(set(args.scenarios or [1, 2]))
     return args

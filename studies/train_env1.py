@@ -27,7 +27,7 @@ import yaml
 
 import agents
 import cosim
-from cosim.scenario import nets_dir
+from cosim.scenario import load_scenario, nets_dir
 from eval.metrics import episode_metrics
 from eval.protocol import drive
 from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
@@ -45,7 +45,7 @@ def evaluate(policies_for, action_type: str, episodes: int, horizon: int, num_ag
         records = run_episodes(env, policies_for(env), HELD_OUT_SEEDS[:episodes])
     finally:
         env.close()
-    m = episode_metrics(records, dt=0.1)
+    m = episode_metrics(records, dt=load_scenario(scenario).dt)
     out = {k: float(m[k].mean()) for k in COLUMNS}
     out["per_ac"] = {aid: {k: round(float(g[k].mean()), 3) for k in ("return", "DISTANCE", "OS")}
                      for aid, g in m.groupby("agent")}

@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from cosim.events import EVENT_FLAGS
@@ -72,3 +73,25 @@ def test_summary_and_success_rates():
     assert rates.loc[0, "safety"] == pytest.approx(1 - 0.125)
     assert rates.loc[0, "lane_keeping"] == 1.0
     assert np.isnan(s.loc[0, "CP"])
+
+
+def test_seconds_come_from_the_scenario_dt(tmp_path):
+    """TTFC and the report's time axes use the environment's own step length (Scenario.dt),
+    not a fixed 0.1 s: a scenario YAML with dt 0.05 halves the seconds of the same steps."""
+    from cosim.scenario import scenarios_dir
+    from eval.metrics import scenario_dt
+    from eval.protocol import metrics_table
+    from eval.report import per_episode
+
+    text = (scenarios_dir() / "env_1.yaml").read_text()
+    assert "\ndt: 0.1 " in text
+    fast = tmp_path / "fast.yaml"
+    fast.write_text(text.replace("../", f"{scenarios_dir().parent}/").replace("\ndt: 0.1 ", "\ndt: 0.05 "))
+    steps = [(_info(10), 1.0), (_info(20, collision_vehicle=True), -49.0), (_info(30), 1.0)]
+    records = pd.concat([_records(steps).assign(env=env, scenario=1) for env in ("env_1", str(fast))])
+    assert (scenario_dt("env_1"), scenario_dt(str(fast))) == (0.1, 0.05)
+    ttfc = per_episode(records).set_index("env")["TTFC"]
+    assert ttfc["env_1"] == pytest.approx(0.2) and ttfc[str(fast)] == pytest.approx(0.1)
+    table = metrics_table(records).set_index("env")["TTFC"]
+    assert table["env_1"] == pytest.approx(0.2) and table[str(fast)] == pytest.approx(0.1)
+    assert per_episode(records, dt=1.0)["TTFC"].tolist() == [2.0, 2.0]  # an explicit dt wins
