@@ -199,7 +199,8 @@ class Scenario:
     warmup: float = 30.0
     """Simulated seconds of background traffic before the ACs appear."""
     speed_limit: float = 13.89
-    """m/s; the speed term of the reward is speed / speed_limit clipped to [0, 1]."""
+    """m/s; the speed term of the reward is the speed along the route / speed_limit, clipped to
+    [-1, 1] (negative when driving against the route; cosim.events.reward_terms)."""
     background: Background = field(default_factory=Background)
     pedestrians: bool = False
     """Whether the pedestrian demand runs (env_2 and env_3)."""

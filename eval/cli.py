@@ -147,7 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "paper's rule; docs/task.md, Training rule)")
     t.add_argument("--validation-episodes", type=_int_in(0), default=None, metavar="N",
                    help="held-out episodes under the test's rules at every checkpoint that pick each "
-                        "AC's best.pt (default 2; 0: off, best.pt by training return; docs/task.md)")
+                        "AC's best.pt (default: the preset's, else 2; 0: off, best.pt by training "
+                        "return; docs/task.md)")
     t.add_argument("--validation-steps", type=_int_in(1), default=None, metavar="STEPS",
                    help="steps per validation episode (default 300, or the preset's horizon if shorter)")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",

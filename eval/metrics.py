@@ -13,8 +13,10 @@ Per AC per episode:
 | SPEED | mean forward speed, km/h |
 | DISTANCE | abs(goal - spawn) - abs(goal - final position), metres (Euclidean) |
 
-Success rates (RQ2): Safety = mean of CV, CO, CP (those that apply);
-Efficiency = SPEED and DISTANCE; Lane keeping = OS.
+Success rates (RQ2, :func:`success_rates`, metrics.csv): Safety = 1 - the mean of CV, CO,
+CP (those that apply); Efficiency = SPEED and DISTANCE; Lane keeping = 1 - OS. (The report's
+figures count Safety per episode instead: the share of collision-free episodes,
+eval/report.py ``per_episode``.)
 """
 
 from __future__ import annotations

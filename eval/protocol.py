@@ -8,8 +8,9 @@ Scenario 2 (single-agent): each AC alone, no other vehicles, no pedestrians.
 
 In Scenario 1 the algorithms take turns at the spawn points: in episode ``e`` the
 algorithm at position ``i`` of the order drives slot ``ac_{(i + e) mod N}``
-(:func:`slot_order`), so no algorithm is tied to one spawn (in env_1 ``ac_0`` starts
-25 m behind ``ac_4`` in the same lane, every other slot has a free lane ahead).
+(:func:`slot_order`), so no algorithm is tied to one spawn (in env_1 with 6 ACs ``ac_0``
+starts 25 m behind ``ac_4`` and ``ac_2`` 25 m behind ``ac_5`` in the same lane; the other
+slots have a free lane ahead).
 With a multiple of N episodes every algorithm starts from every spawn equally often.
 ``ProtocolPlan(rotate=False)`` keeps algorithm ``i`` in ``ac_i``.
 

@@ -2,13 +2,15 @@
 
 The layer, one concern per module:
 
-    agents/registry.py    the algorithm catalogue: name, class, action kind, sync/async loop
+    agents/registry.py    the algorithm catalogue: name, class, action kind, sync/async loop,
+                          policy kind
     eval/presets.py       run presets (smoke, quick, standard, paper) from eval/hyperparams/*.yaml
     eval/config.py        TrainConfig, make_config, --set parsing
     eval/runfolder.py     the run folder: layout, config.yaml, manifest, lock, resume recovery
     eval/runlog.py        episodes.csv (columns from the event and reward-term catalogues),
                           TensorBoard, checkpoints
     eval/trainer.py       train(): the sync (vector env) and async (worker) paths, env factory
+    eval/validation.py    held-out validation episodes at each checkpoint that pick best.pt
     eval/plots.py         the convergence plot
 
 This module re-exports their public names, so ``from eval.train import train,
