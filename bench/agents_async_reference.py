@@ -40,8 +40,7 @@ import gymnasium
 import numpy as np
 import torch
 
-from agents.a3c import A3CConfig, train_a3c
-from agents.impala import IMPALAConfig, train_impala
+from agents import registry
 
 ENV_ID = "CartPole-v1"
 EVAL_SEED = 10_000
@@ -103,14 +102,10 @@ def run(algo: str, seed: int, args) -> dict:
             return not args.full_budget
         return False
 
-    if algo == "a3c":
-        config = A3CConfig.preset(args.preset)
-        trained = train_a3c(env_fn, *spaces, config=config, total_steps=args.total_steps,
-                            num_envs=args.workers, seed=seed, callback=callback)
-    else:
-        config = IMPALAConfig.preset(args.preset)
-        trained = train_impala(env_fn, *spaces, config=config, total_steps=args.total_steps,
-                               num_envs=args.workers, seed=seed, callback=callback)
+    # the catalogue's config class and async training function (train_a3c, train_impala)
+    config = registry.get_agent_class(algo).config_class.preset(args.preset)
+    trained = registry.get_async_trainer(algo)(env_fn, *spaces, config=config, total_steps=args.total_steps,
+                                               num_envs=args.workers, seed=seed, callback=callback)
     wall = time.monotonic() - start
     solved = state["solved"]
     final_agent = solved["agent"] if solved and not args.full_budget else snapshot(trained["agent_0"])
@@ -151,7 +146,7 @@ def markdown(records: list[dict], args) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algos", nargs="+", default=["a3c", "impala"], choices=["a3c", "impala"])
+    parser.add_argument("--algos", nargs="+", default=list(registry.ASYNC), choices=registry.ASYNC)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--workers", type=int, default=2, help="environments (env worker processes; A3C: one learner thread each)")
     parser.add_argument("--total-steps", type=int, default=300_000)
