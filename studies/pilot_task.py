@@ -473,6 +473,7 @@ def main(argv=None) -> int:
         print(f"pilot_task: error: {exc}", file=sys.stderr)
         return 2
     agents = _agents(args)
+    _acting_threads()
     chores = [("references", env) for env in args.envs]  # run in this process between polls
     chores += [("test", c) for c in to_test]
     say(f"{len(cells(args))} runs: {len(to_train)} to train, {len(to_test)} to test "
@@ -481,8 +482,6 @@ def main(argv=None) -> int:
     failed: list[str] = []
     try:
         while to_train or running or chores:
-            while to_train and len(running) < args.jobs:
-                running.append(start_training(out, to_train.pop(0), args))
             for proc in [p for p in running if p.poll() is not None]:
                 running.remove(proc)
                 cell = proc.cell  # type: ignore[attr-defined]
@@ -494,6 +493,8 @@ def main(argv=None) -> int:
                     say(f"train {cell.name}: FAILED (exit {proc.returncode}, {mins:.1f} min); see "
                         f"{out / 'logs' / (cell.name + '.log')}; rerun to resume")
                     failed.append(cell.name)
+            while to_train and len(running) < args.jobs:  # before a chore: it takes minutes
+                running.append(start_training(out, to_train.pop(0), args))
             if chores:
                 kind, what = chores.pop(0)
                 if kind == "references":
@@ -512,6 +513,15 @@ def main(argv=None) -> int:
     if failed:
         say(f"not finished: {', '.join(failed)}; rerun the same command to continue")
     return 1 if failed else 0
+
+
+def _acting_threads() -> None:
+    """One torch thread in this process, which only acts (the tests): two OpenMP threads on
+    a busy 2-core machine made a forward pass ~20x slower (docs/benchmarks.md, "Where PPO's
+    CPU goes"); here a 60-step test of 6 PPO ACs took 62 s with 2 threads, 14 s with 1."""
+    import torch
+
+    torch.set_num_threads(1)
 
 
 def _agents(args) -> int:
