@@ -75,7 +75,9 @@ class VehicleParams:
     the wheel angle is limited to ``atan(max_lateral_accel * wheelbase / v**2)``, for
     discrete and continuous actions alike. It binds above ~5.6 m/s at full lock and keeps
     the kinematic bicycle from turning at several g (full lock at 14 m/s would be 5 g);
-    every turn of the nets, taken at the autopilot's 2 m/s^2, is far below it."""
+    every turn of the nets, taken at the autopilot's 2 m/s^2, is far below it. ``math.inf``:
+    no grip limit (the steering before issue 25; a scenario's ``vehicle:`` block writes it
+    ``max_lateral_accel: null``)."""
     max_accel: float = 3.5
     """m/s^2 at full throttle."""
     max_brake: float = 8.0

@@ -271,7 +271,7 @@ class CosimParallelEnv(ParallelEnv):
         for a in self.agents:
             try:
                 controls[a] = action_to_control(
-                    actions[a], self.action_types[a] == "discrete", a
+                    actions[a], self.action_types[a] == "discrete", a, self._world.vehicle
                 )
             except ActionError as exc:
                 raise ActionError(f"{exc} (expected space: {self._action_spaces[a]})") from None

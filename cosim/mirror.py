@@ -395,7 +395,7 @@ class Mirror:
         self.roadmap = roadmap
         self.image_size = int(image_size)
         self.fov_deg = float(fov_deg)
-        self.vehicle = VehicleParams()
+        self.vehicle: VehicleParams = roadmap.scenario.vehicle
         self._p = _pybullet()
         self._client: int | None = None
         self._egl_plugin = -1

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.dynamics import VehicleParams
 from cosim.errors import NetError, ScenarioError
 from cosim.geometry import Polyline, Raster, SegmentField
 from cosim.scenario import ACSpec, Scenario
@@ -146,7 +145,7 @@ class RoadMap:
                         f"region (center {list(region.center)}, size {list(region.size)}); move "
                         f"{key} or enlarge region.size"
                     )
-        car = VehicleParams()
+        car = self.scenario.vehicle
         for i, a in enumerate(self.routes):
             h = a.spawn_heading
             for j in range(i + 1, len(self.routes)):

@@ -4,7 +4,9 @@ A scenario names its SUMO files (network, demand, static objects), the region of
 the network it covers, the learning cars' (ACs') spawn lanes, routes and goals,
 the reward weights and the termination rules. Adding an environment means adding
 SUMO files and one YAML; no code changes. Paths inside a YAML are relative to
-the YAML file.
+the YAML file. An optional ``vehicle:`` block changes the learning cars'
+``VehicleParams`` by field name (angles in degrees), e.g. the steering before
+issue 25: ``vehicle: {discrete_steer_reference: 35, max_lateral_accel: null}``.
 
 Example (``sumo_nets/scenarios/env_3.yaml``)::
 
@@ -34,6 +36,11 @@ from cosim.errors import ScenarioError
 
 MAX_ACS = 6
 MAX_DEPART_SPEED = VehicleParams.max_speed  # m/s, what the learning car's dynamics allow
+VEHICLE_ANGLES = ("max_steer", "discrete_steer_reference")
+"""VehicleParams fields given in degrees in a scenario's ``vehicle:`` block (radians in code)."""
+GRIP_OFF = (None, "off")
+"""``vehicle: {max_lateral_accel: null}`` (or ``off``): no grip limit, the wheel angle is what
+the steer commands at any speed (as before issue 25); stored as ``math.inf``."""
 
 
 def nets_dir() -> Path:
@@ -208,6 +215,10 @@ class Scenario:
     termination: Termination = field(default_factory=Termination)
     spawn_jitter: SpawnJitter = field(default_factory=SpawnJitter)
     """Random spawn-pose offsets per reset (none by default)."""
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    """The learning cars' geometry, limits and steering (``cosim.dynamics.VehicleParams``); a
+    YAML ``vehicle:`` block overrides fields by name (:data:`VEHICLE_ANGLES` in degrees,
+    ``max_lateral_accel: null`` = no grip limit); default: the defaults."""
     source: Path | None = None
     """The YAML file this scenario was read from."""
 
@@ -222,6 +233,10 @@ class Scenario:
             raise ValueError(f"acs must list 1 to {MAX_ACS} learning cars, got {len(self.acs)}")
         if self.speed_limit <= 0:
             raise ValueError(f"speed_limit must be > 0 m/s, got {self.speed_limit}")
+        fast = [i for i, ac in enumerate(self.acs) if ac.depart_speed > self.vehicle.max_speed]
+        if fast:
+            raise ValueError(f"acs[{fast[0]}].depart_speed {self.acs[fast[0]].depart_speed} m/s is above "
+                             f"vehicle.max_speed {self.vehicle.max_speed} m/s")
 
     @property
     def max_agents(self) -> int:
@@ -302,6 +317,8 @@ def _scenario_from_dict(data: dict[str, Any], path: Path) -> Scenario:
     for key, cls in nested.items():
         if key in data:
             data[key] = _build(cls, data[key], f"{path}: '{key}'")
+    if "vehicle" in data:
+        data["vehicle"] = _vehicle(data["vehicle"], f"{path}: 'vehicle'")
     if "region" not in data:
         raise ScenarioError(f"{path}: missing required key 'region' (center and size in metres)")
     acs = data.get("acs")
@@ -310,6 +327,36 @@ def _scenario_from_dict(data: dict[str, Any], path: Path) -> Scenario:
     data["acs"] = tuple(_build(ACSpec, ac, f"{path}: acs[{i}]") for i, ac in enumerate(acs))
     data["source"] = path
     return _build(Scenario, data, str(path))
+
+
+def _vehicle(data: Any, where: str) -> VehicleParams:
+    """A ``vehicle:`` block: VehicleParams fields by name, angles in degrees, grip ``null``/off."""
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{where}: expected a mapping of VehicleParams fields, got "
+                            f"{type(data).__name__}")
+    names = [f.name for f in dataclasses.fields(VehicleParams)]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key(s) {unknown}; valid keys: {sorted(names)} "
+                            f"({', '.join(VEHICLE_ANGLES)} in degrees, the rest in SI units)")
+    kwargs = {}
+    for key, value in data.items():
+        if key == "max_lateral_accel" and value in GRIP_OFF:
+            kwargs[key] = math.inf
+            continue
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not math.isfinite(value) or value <= 0:
+            grip = " (or null / off: no grip limit)" if key == "max_lateral_accel" else ""
+            raise ScenarioError(f"{where}: '{key}' must be a finite number > 0{grip}, got {value!r}")
+        if key in VEHICLE_ANGLES:
+            if key == "max_steer" and value >= 90:
+                raise ScenarioError(f"{where}: 'max_steer' must be below 90 degrees, got {value!r}")
+            value = math.radians(value)
+        kwargs[key] = float(value)
+    try:
+        return VehicleParams(**kwargs)
+    except ValueError as exc:
+        raise ScenarioError(f"{where}: {exc}") from exc
 
 
 def _build(cls: type, data: Any, where: str) -> Any:

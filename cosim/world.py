@@ -87,6 +87,8 @@ class World:
         backend: str = "auto",
     ):
         self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
+        if vehicle is not None:  # one car everywhere: road map, cameras and dynamics read it
+            self.scenario = self.scenario.with_overrides(vehicle=vehicle)
         n = self.scenario.max_agents if num_acs is None else int(num_acs)
         if not 1 <= n <= self.scenario.max_agents:
             raise ScenarioError(
@@ -97,7 +99,8 @@ class World:
         self.ac_ids = [f"ac_{i}" for i in range(n)]
         self.index = {ac: i for i, ac in enumerate(self.ac_ids)}
         """AC id -> its row in the state arrays (and its priority: lower goes first)."""
-        self.vehicle = vehicle or VehicleParams()
+        self.vehicle: VehicleParams = self.scenario.vehicle
+        """The ACs' car: the scenario's ``vehicle`` (its YAML's ``vehicle:`` block), or ``vehicle``."""
         self.roadmap: RoadMap = road_map(self.scenario)
         self.routes = self.roadmap.routes[:n]
         self.bridge = SumoBridge(

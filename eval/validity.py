@@ -55,25 +55,27 @@ DEGENERATE: dict[str, tuple[float, float] | None] = {
     "forward-drift-left": tuple(_TABLE[5]),  # discrete action 5: forward with a small steer
     "forward-drift-right": tuple(_TABLE[6]),  # discrete action 6
 }
+_DRIFT = {"forward-drift-left": 5, "forward-drift-right": 6}  # their discrete actions
 POLICIES = (*REFERENCES, *DEGENERATE)
 COLUMNS = ("return", "goal", "DISTANCE", "CV", "CO", "CP", "OS", "RL")
 
 
 def _controller(name: str, world: World, rng: np.random.Generator) -> Callable[[str], tuple]:
+    table = discrete_controls(world.vehicle)  # the scenario's car (a `vehicle:` block may change it)
     if name == "autopilot":
         pilots = {ac: Autopilot(world, ac) for ac in world.ac_ids}
         return lambda ac: tuple(pilots[ac].act())
     if name == "autopilot-discrete":
         pilots = {ac: Autopilot(world, ac) for ac in world.ac_ids}
-        return lambda ac: tuple(_TABLE[pilots[ac].act_discrete()])
+        return lambda ac: tuple(table[pilots[ac].act_discrete()])
     if name == "safe-non-turner":
         pilots = {ac: NonTurner(world, ac) for ac in world.ac_ids}
         return lambda ac: tuple(pilots[ac].act())
     if name == "random":
-        return lambda ac: tuple(_TABLE[rng.integers(len(_TABLE))])
+        return lambda ac: tuple(table[rng.integers(len(table))])
     if name == "random-box":
         return lambda ac: tuple(rng.uniform(-1.0, 1.0, 2))
-    fixed = DEGENERATE[name]
+    fixed = tuple(table[_DRIFT[name]]) if name in _DRIFT else DEGENERATE[name]
     return lambda ac: fixed
 
 
