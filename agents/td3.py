@@ -197,7 +197,7 @@ class TD3(Agent):
 
     @torch.no_grad()
     def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        cfg, n = self.config, len(obs)
+        cfg, n = self.config, len(columns)
         if not deterministic and self.steps < self.random_until:
             return self.rng.uniform(self.random_low, self.high, (n, *self.low.shape)).astype(np.float32)
         actions = self.actor(self.critic.encode(obs_to_tensor(obs, self.device))).cpu().numpy()
