@@ -53,16 +53,26 @@ def test_obs_is_part_of_the_config_and_a_bad_value_is_refused(tmp_path):
         env.close()
 
 
-def test_cosim_train_obs_nav_writes_checkpoints_with_the_measurement_mlp(tmp_path):
+def test_cosim_train_obs_nav_writes_checkpoints_with_the_measurement_mlp_that_drive_beside_image_acs(tmp_path):
+    from eval.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+
+    runs = tmp_path / "runs"
     assert main(["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "4",
-                 "--obs", "nav", "--out", str(tmp_path), "--quiet"]) == 0
-    (run,) = tmp_path.iterdir()
+                 "--obs", "nav", "--out", str(runs), "--quiet"]) == 0
+    (run,) = runs.iterdir()
     assert yaml.safe_load((run / "config.yaml").read_text())["obs"] == "nav"
     agent = agents.load(run / "checkpoints" / "ac_0" / "best.pt")  # validated on nav episodes too
     assert agent.observation_space == _nav_space() and _has_measurement_mlp(agent)
     with pytest.raises(ObservationError, match=r"trained on nav observations \(84x84x12 image \+ 7 "
                        r"measurements\) but is given image observations \(84x84x12\); use --obs nav"):
         agent.act(np.zeros((84, 84, 12), np.uint8), deterministic=True)
+    image = runs / "env_1__ppo__0__20260101-000000" / "checkpoints" / "ac_0"
+    image.mkdir(parents=True)
+    get_agent_class("ppo").from_spaces(IMAGE, spaces.Discrete(9)).save(image / "latest.pt")
+    make = policy_factory("trained", find_checkpoints(runs, ["ppo", "dqn"]))
+    plan = ProtocolPlan(envs=("env_1",), scenarios=(1,), episodes=1, steps=3, agents=2)
+    records = run_protocol(plan, make, ["ppo", "dqn"])  # one env: an image AC and a nav AC
+    assert sorted(records.algorithm.unique()) == ["dqn", "ppo"] and len(records) == 2 * 3
 
 
 def test_a_resume_with_the_other_obs_than_the_checkpoints_is_refused_in_one_line(tmp_path):
