@@ -84,6 +84,7 @@ class RolloutBuffer:
         """Grow the arrays so that ``n`` transitions fit (a batch of N envs past ``size``)."""
         if n <= self.capacity:
             return
+
         def grown(old: np.ndarray) -> np.ndarray:
             new = np.zeros((n, *old.shape[1:]), old.dtype)
             new[: len(old)] = old
@@ -92,7 +93,8 @@ class RolloutBuffer:
         for name in ("actions", "log_probs", "logits", "values", "rewards", "terminateds", "truncateds",
                      "next_values", "columns"):
             setattr(self, name, grown(getattr(self, name)))
-        self.obs = {key: grown(part) for key, part in self.obs.items()} if isinstance(self.obs, dict) else grown(self.obs)
+        obs = self.obs
+        self.obs = {key: grown(part) for key, part in obs.items()} if isinstance(obs, dict) else grown(obs)
 
     @property
     def full(self) -> bool:
@@ -245,8 +247,7 @@ class ReplayBuffer:
         """Channels of one stored frame (the whole observation when ``k`` is 1)."""
         frame = (*shape[:-1], self.channels) if shape else ()
         self.obs = np.zeros((capacity, *frame), _obs_dtype(image))
-        """The newest frame of each slot's observation (the observation itself when k = 1; the
-        image's with measurements)."""
+        """The newest frame of each slot's image (the whole image when k = 1)."""
         self.measurements = (np.zeros((capacity, *observation_space["measurements"].shape), np.float32)
                              if self.nav else None)
         """Each slot's measurements vector (nav observations), else None."""

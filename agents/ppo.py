@@ -244,7 +244,8 @@ class PPO(Agent):
                 mb = torch.as_tensor(mb, device=self.device)
                 epoch_stats.append(
                     self._minibatch_step(
-                        observations.take(b_obs, mb), b_actions[mb], b_log_probs[mb], b_logits[mb], b_advantages[mb], b_returns[mb]
+                        observations.take(b_obs, mb), b_actions[mb], b_log_probs[mb], b_logits[mb],
+                        b_advantages[mb], b_returns[mb],
                     )
                 )
         pg_loss, v_loss, entropy, kl, clipfrac = np.mean(epoch_stats, axis=0)

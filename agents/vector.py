@@ -21,8 +21,9 @@ Both return, per agent id ``a`` (an AC slot ``ac_k``), arrays of shape
 Observations travel through ``multiprocessing.shared_memory`` (one block per
 agent, kind and array, each worker writes its own row; a ``Dict(image, measurements)``
 observation is two arrays, and its rows are dicts of them: agents/observations.py);
-only actions, rewards, flags and infos are pickled. The arrays in a :class:`VecStep` are views of that
-memory, valid until the next ``step``/``step_async``/``reset``: copy what you keep.
+only actions, rewards, flags and infos are pickled. The arrays in a :class:`VecStep`
+are views of that memory, valid until the next ``step``/``step_async``/``reset``: copy
+what you keep.
 ``step_async(actions)`` + ``step_wait()`` (what ``step`` does) let the caller
 learn while the workers step (:func:`agents.loop.run_vector_loop` does).
 Both take ``envs=[...]`` to step a subset; threads that step DISJOINT sets of

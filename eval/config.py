@@ -183,7 +183,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
         image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
-        torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs, learner_threads=int(learner_threads),
+        torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs,
+        learner_threads=int(learner_threads),
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
         validation_steps=validation_steps,
     )

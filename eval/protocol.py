@@ -441,4 +441,5 @@ def _save(fig, title: str, path: Path) -> Path:
 
 
 __all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "metrics_table",
-           "obs_of", "policy_factory", "rq1_table", "rules", "run_protocol", "slot_checkpoint", "slot_order", "write_report"]
+           "obs_of", "policy_factory", "rq1_table", "rules", "run_protocol", "slot_checkpoint", "slot_order",
+           "write_report"]
