@@ -25,8 +25,11 @@ def _nav_space(image=IMAGE):
 
 
 def _has_measurement_mlp(agent) -> bool:
+    """The networks that read the observation (DDPG's and TD3's actor reads the critic's
+    features) have the CNN and the measurement MLP."""
+    readers = ("critic",) if agent.algo in ("ddpg", "td3") else POLICY_NETWORKS[agent.algo]
     return all(any(isinstance(m, ImageMeasurementsEncoder) for m in agent.networks[name].modules())
-               for name in POLICY_NETWORKS[agent.algo])
+               for name in readers)
 
 
 def test_obs_is_part_of_the_config_and_a_bad_value_is_refused(tmp_path):
