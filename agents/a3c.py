@@ -36,7 +36,7 @@ import torch
 from torch import nn
 
 from agents.async_env import ThreadRun, run_threads, vector_env
-from agents.base import Agent, AgentConfig, check_range
+from agents.base import Agent, AgentConfig, check_observation_space, check_range
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import gae
 from agents.workers import Rollout, RolloutBuilder, TrainProgress, agents_for
@@ -232,8 +232,7 @@ class A3C(Agent):
                 f"A3C here supports Discrete action spaces only, got {action_space!r}; "
                 "use DDPG or TD3 for the continuous driving actions"
             )
-        if not isinstance(observation_space, gymnasium.spaces.Box):
-            raise ValueError(f"A3C needs a Box observation space, got {observation_space!r}")
+        check_observation_space(cls.algo, observation_space)
 
     def _build(self) -> None:
         config: A3CConfig = self.config

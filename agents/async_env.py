@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from agents import observations
 from agents.networks import obs_to_tensor
 from agents.vector import VecStep, make_vector_env
 from agents.workers import (
@@ -117,7 +118,7 @@ def act_for(models: Mapping[str, torch.nn.Module], generators: Mapping[str, torc
         rows = envs[alive[aid][envs]]
         if rows.size == 0:
             continue
-        batch = obs[aid][rows]  # a copy: the vector env overwrites its arrays on step
+        batch = observations.take(obs[aid], rows)  # a copy: the vector env overwrites its arrays on step
         device = next(model.parameters()).device
         logits, _ = model(obs_to_tensor(batch, device))
         log_probs = torch.log_softmax(logits, dim=-1)
@@ -173,13 +174,13 @@ def record(unrolls: Unrolls, acted: Acted, step: VecStep, reward_scale: float,
     for aid, (envs, obs, actions, log_probs) in acted.items():
         if not step.active[aid][envs].all():
             raise RuntimeError(f"agent {aid} acted in envs {envs.tolist()} but not all of them stepped it")
-        next_obs = step.next_obs[aid][envs]  # a copy (fancy indexing)
+        next_obs = observations.take(step.next_obs[aid], envs)  # a copy (fancy indexing)
         rewards = step.rewards[aid][envs] * reward_scale
         terminated, truncated = step.terminated[aid][envs], step.truncated[aid][envs]
         version = 0 if versions is None else versions[aid]
         for j, env in enumerate(envs.tolist()):
-            unrolls.add(aid, env, obs[j], actions[j], rewards[j], next_obs[j], terminated[j], truncated[j],
-                        log_probs[j], version)
+            unrolls.add(aid, env, observations.take(obs, j), actions[j], rewards[j],
+                        observations.take(next_obs, j), terminated[j], truncated[j], log_probs[j], version)
         count += envs.size
     return count
 

@@ -38,9 +38,13 @@ import gymnasium
 import numpy as np
 import torch
 
+from agents import observations
+from agents.errors import AgentError
 from agents.networks import obs_to_tensor
+from agents.observations import image_space, is_nav_space
 
-__all__ = ["Agent", "AgentConfig", "check_range", "due", "resolve_device", "seeded_init"]
+__all__ = ["Agent", "AgentConfig", "ObservationError", "check_frames", "check_observation_space",
+           "check_observations", "check_range", "check_variant", "due", "resolve_device", "seeded_init"]
 
 logger = logging.getLogger(__name__)
 
@@ -152,24 +156,84 @@ def due(before: int, now: int, every: int, start: int = 0) -> int:
     return max(0, now // every - low // every) if now >= start else 0
 
 
+class ObservationError(AgentError, ValueError):
+    """An agent is given observations of another variant or frame stack than it was trained
+    on; the message names both and the option that fixes it."""
+
+
+def check_observation_space(algo: str, observation_space) -> None:
+    """Refuse an observation space the networks cannot take: a Box or ``Dict(image,
+    measurements)`` only (agents/networks.py make_encoder)."""
+    if isinstance(observation_space, gymnasium.spaces.Box) or is_nav_space(observation_space):
+        return
+    raise ValueError(f"{algo.upper()} needs a Box observation space or Dict(image, measurements), got "
+                     f"{observation_space!r}; flatten other Dict/Tuple observations with a gymnasium wrapper")
+
+
+def _shape(shape) -> str:
+    return "x".join(map(str, shape))
+
+
+def _dims(space_or_array) -> str:
+    """The shape of a Box or an array as ``84x84x12``."""
+    shape = space_or_array.shape if hasattr(space_or_array, "shape") else np.shape(space_or_array)
+    return _shape(shape)
+
+
+def describe_observation(space_or_obs) -> str:
+    """The variant of an observation space (or of one observation) in words, as the refusals
+    name it: ``nav observations (84x84x12 image + 7 measurements)`` or ``image observations
+    (84x84x12)``."""
+    if is_nav_space(space_or_obs) or isinstance(space_or_obs, Mapping):
+        return (f"nav observations ({_dims(space_or_obs['image'])} image + "
+                f"{_dims(space_or_obs['measurements'])} measurements)")
+    return f"image observations ({_dims(space_or_obs)})"
+
+
+def check_variant(trained: gymnasium.Space, given, what: str) -> None:
+    """Refuse observations (a space or one observation) of the other variant than ``trained``:
+    the camera image alone or with the nav measurements (cosim's ``--obs image|nav``), in one
+    line naming both and the fix (every checkpoint records its space, Box or Dict).
+
+    Raises:
+        ObservationError: one is a nav observation and the other is not.
+    """
+    trained_nav = is_nav_space(trained)
+    given_nav = is_nav_space(given) or isinstance(given, Mapping)
+    if trained_nav == given_nav:
+        return
+    variant = "nav" if trained_nav else "image"
+    raise ObservationError(
+        f"{what} was trained on {describe_observation(trained)} but is given "
+        f"{describe_observation(given)}; use --obs {variant} (the run's obs) with it")
+
+
 def check_frames(trained: gymnasium.Space, given_shape: tuple, what: str) -> None:
     """Refuse observations with another number of stacked camera frames than ``trained``, in
     one line naming both and the fix (the frame stack is recorded in every checkpoint as its
-    observation shape, H x W x 3K; docs/task.md, "Observation").
+    observation shape, H x W x 3K; docs/task.md, "Observation"). ``trained`` may be a nav
+    space: its image is compared.
 
     Raises:
-        ValueError: the image sizes match but the frame counts differ.
+        ObservationError: the image sizes match but the frame counts differ.
     """
-    shape = tuple(getattr(trained, "shape", None) or ())
+    shape = tuple(getattr(image_space(trained), "shape", None) or ())
     given_shape = tuple(given_shape)
     if len(shape) != 3 or len(given_shape) != 3 or shape == given_shape or shape[:2] != given_shape[:2]:
         return
     k, k_given = shape[-1] / 3, given_shape[-1] / 3
     fmt = lambda v: f"{v:g}"  # noqa: E731 - whole frames print as integers
-    raise ValueError(
-        f"{what} was trained on {fmt(k)} stacked camera frame(s) ({'x'.join(map(str, shape))}) but "
-        f"is given {fmt(k_given)} ({'x'.join(map(str, given_shape))}); use --frame-stack {fmt(k)} "
+    raise ObservationError(
+        f"{what} was trained on {fmt(k)} stacked camera frame(s) ({_shape(shape)}) but "
+        f"is given {fmt(k_given)} ({_shape(given_shape)}); use --frame-stack {fmt(k)} "
         f"(the run's frame_stack) with it")
+
+
+def check_observations(trained: gymnasium.Space, given: gymnasium.Space, what: str) -> None:
+    """:func:`check_variant`, then :func:`check_frames` on the images: an agent trained on
+    ``trained`` refuses ``given`` in one line unless they are the same variant and stack."""
+    check_variant(trained, given, what)
+    check_frames(trained, image_space(given).shape, what)
 
 
 @contextlib.contextmanager
@@ -270,7 +334,8 @@ class Agent(abc.ABC):
 
         The default calls :meth:`act` per row; algorithms override it with one forward pass.
         """
-        return np.stack([np.asarray(self.act(o, deterministic=deterministic)) for o in obs])
+        return np.stack([np.asarray(self.act(observations.take(obs, j), deterministic=deterministic))
+                         for j in range(len(columns))])
 
     def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
         """Record the transitions that followed :meth:`act_batch`, one per row (environment ``columns[j]``).
@@ -278,7 +343,8 @@ class Agent(abc.ABC):
         The default calls :meth:`observe` per row.
         """
         for j in range(len(columns)):
-            self.observe(obs[j], actions[j], float(rewards[j]), next_obs[j], bool(terminated[j]), bool(truncated[j]))
+            self.observe(observations.take(obs, j), actions[j], float(rewards[j]), observations.take(next_obs, j),
+                         bool(terminated[j]), bool(truncated[j]))
 
     def _extra_state(self) -> dict[str, Any]:
         """Plain values (ints, floats, tensors) besides weights needed to resume."""
@@ -338,17 +404,21 @@ class Agent(abc.ABC):
         """Build an untrained agent for these spaces (the constructor, by name)."""
         return cls(observation_space, action_space, config=config, seed=seed, device=device)
 
-    def obs_batch(self, obs: np.ndarray) -> torch.Tensor:
-        """One observation -> a batch of one on the agent's device, checking its shape."""
-        array = np.asarray(obs)
-        if array.shape != self.observation_space.shape:
-            if array.ndim == 3 and array.shape[:2] == self.observation_space.shape[:2]:
-                check_frames(self.observation_space, array.shape, f"{self.algo} agent")
-            raise ValueError(
-                f"{self.algo} agent expected an observation of shape {self.observation_space.shape}, "
-                f"got {array.shape}; pass one observation at a time"
-            )
-        return obs_to_tensor(array[None], self.device)
+    def obs_batch(self, obs) -> torch.Tensor:
+        """One observation -> a batch of one on the agent's device, checking its variant and
+        shape (an image array, or a dict of image and measurements for a nav space)."""
+        check_variant(self.observation_space, obs, f"{self.algo} agent")
+        obs = observations.asarray(obs)
+        for key, space in observations.parts(self.observation_space).items():
+            array = obs[key] if key else obs
+            if array.shape != space.shape:
+                if array.ndim == 3 and array.shape[:2] == space.shape[:2]:
+                    check_frames(space, array.shape, f"{self.algo} agent")
+                raise ValueError(
+                    f"{self.algo} agent expected {f'{key} ' if key else 'an observation '}of shape "
+                    f"{space.shape}, got {array.shape}; pass one observation at a time"
+                )
+        return obs_to_tensor(observations.take(obs, np.newaxis), self.device)
 
     def __repr__(self) -> str:
         return (

@@ -20,18 +20,27 @@ the replay buffer splits its capacity into one ring per column, so the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium
 import numpy as np
 import torch
 
+from agents import observations
 from agents.networks import obs_to_tensor
+from agents.observations import image_space, is_nav_space
 
 __all__ = ["FRAME_CHANNELS", "ReplayBuffer", "ReplaySample", "RolloutBuffer", "frames_in"]
 
 
 def _obs_dtype(space: gymnasium.spaces.Box) -> np.dtype:
     return np.uint8 if space.dtype == np.uint8 else np.float32
+
+
+def _obs_zeros(space, n: int):
+    """``n`` zero observations of ``space`` as stored: uint8 images stay uint8, the rest float32
+    (a dict of such arrays for ``Dict(image, measurements)``; agents/observations.py)."""
+    return observations.zeros(space, n, _obs_dtype)
 
 
 class RolloutBuffer:
@@ -52,7 +61,8 @@ class RolloutBuffer:
         if size < 1:
             raise ValueError(f"RolloutBuffer size must be >= 1, got {size}")
         self.size = size
-        self.obs = np.zeros((size, *observation_space.shape), _obs_dtype(observation_space))
+        self.obs = _obs_zeros(observation_space, size)
+        """The observations: an array, or a dict of arrays for a Dict(image, measurements) space."""
         self.actions = np.zeros((size, *action_shape), action_dtype)
         self.log_probs = np.zeros(size, np.float32)
         self.logits = np.zeros((size, n_logits), np.float32)
@@ -74,12 +84,17 @@ class RolloutBuffer:
         """Grow the arrays so that ``n`` transitions fit (a batch of N envs past ``size``)."""
         if n <= self.capacity:
             return
-        for name in ("obs", "actions", "log_probs", "logits", "values", "rewards", "terminateds",
-                     "truncateds", "next_values", "columns"):
-            old = getattr(self, name)
+
+        def grown(old: np.ndarray) -> np.ndarray:
             new = np.zeros((n, *old.shape[1:]), old.dtype)
             new[: len(old)] = old
-            setattr(self, name, new)
+            return new
+
+        for name in ("actions", "log_probs", "logits", "values", "rewards", "terminateds", "truncateds",
+                     "next_values", "columns"):
+            setattr(self, name, grown(getattr(self, name)))
+        obs = self.obs
+        self.obs = {key: grown(part) for key, part in obs.items()} if isinstance(obs, dict) else grown(obs)
 
     @property
     def full(self) -> bool:
@@ -95,7 +110,7 @@ class RolloutBuffer:
         if self.pos >= self.capacity:
             raise RuntimeError("RolloutBuffer is full; learn from it and call reset() first")
         t = self.pos
-        self.obs[t] = obs
+        observations.put(self.obs, t, obs)
         self.actions[t] = action
         self.log_probs[t] = log_prob
         self.values[t] = value
@@ -163,7 +178,9 @@ FRAME_CHANNELS = 3
 
 def frames_in(space) -> int:
     """How many camera frames an observation space stacks (cosim.wrappers.FrameStack): K for
-    a uint8 (H, W, 3K) image, else 1 (docs/task.md, "Observation")."""
+    a uint8 (H, W, 3K) image (alone or in ``Dict(image, measurements)``), else 1
+    (docs/task.md, "Observation")."""
+    space = image_space(space)
     shape = getattr(space, "shape", None) or ()
     if getattr(space, "dtype", None) != np.uint8 or len(shape) != 3:
         return 1
@@ -190,6 +207,11 @@ class ReplayBuffer:
     slots unsampled (their history is overwritten). Observations that are not such a stack
     (the older frames of ``next_obs`` are not the newer frames of ``obs``) are refused.
 
+    With a ``Dict(image, measurements)`` space (cosim's ``obs="nav"``) the image is stored as
+    above and each slot also keeps its observation's measurements vector (a few floats), so a
+    sample's measurements are those of the same transition's image; observations go in and
+    come out as dicts.
+
     Args:
         capacity: Maximum number of transitions kept (split evenly between columns).
         observation_space: Space of one observation (uint8 images stay uint8).
@@ -205,8 +227,11 @@ class ReplayBuffer:
             raise ValueError(f"ReplayBuffer columns must be >= 1, got {columns}")
         if capacity // columns < 2:
             raise ValueError(f"ReplayBuffer capacity must be >= 2 per column, got {capacity} for {columns} column(s)")
-        self.k = frames_in(observation_space) if frame_stack is None else int(frame_stack)
-        shape = tuple(observation_space.shape)
+        self.nav = is_nav_space(observation_space)
+        """Observations are dicts of an image and a measurements vector."""
+        image = image_space(observation_space)
+        self.k = frames_in(image) if frame_stack is None else int(frame_stack)
+        shape = tuple(image.shape)
         divides = self.k == 1 or (bool(shape) and self.k >= 1 and shape[-1] % self.k == 0)
         if not divides:
             raise ValueError(f"frame_stack={frame_stack} does not divide the observation's last axis "
@@ -221,8 +246,11 @@ class ReplayBuffer:
         self.channels = shape[-1] // self.k if shape else 0
         """Channels of one stored frame (the whole observation when ``k`` is 1)."""
         frame = (*shape[:-1], self.channels) if shape else ()
-        self.obs = np.zeros((capacity, *frame), _obs_dtype(observation_space))
-        """The newest frame of each slot's observation (the observation itself when k = 1)."""
+        self.obs = np.zeros((capacity, *frame), _obs_dtype(image))
+        """The newest frame of each slot's image (the whole image when k = 1)."""
+        self.measurements = (np.zeros((capacity, *observation_space["measurements"].shape), np.float32)
+                             if self.nav else None)
+        """Each slot's measurements vector (nav observations), else None."""
         if isinstance(action_space, gymnasium.spaces.Discrete):
             self.actions = np.zeros(capacity, np.int64)
         else:
@@ -232,10 +260,10 @@ class ReplayBuffer:
         self.truncateds = np.zeros(capacity, bool)
         self.starts = np.zeros(capacity, bool)  # the slot's observation starts an episode
         self.heads: dict[int, np.ndarray] = {}  # start slot -> its whole stack, when not k copies
-        self.final_obs: dict[int, np.ndarray] = {}  # truncated slot -> its real next_obs
+        self.final_obs: dict[int, Any] = {}  # truncated slot -> its real next_obs
         self.positions = np.zeros(columns, np.int64)  # next slot of each ring, relative to its start
         self.sizes = np.zeros(columns, np.int64)
-        self._last_next: list[np.ndarray | None] = [None] * columns  # each column's previous next_obs
+        self._last_next: list[Any] = [None] * columns  # each column's previous next_obs
         self.rng = np.random.default_rng(seed)
 
     @property
@@ -251,7 +279,7 @@ class ReplayBuffer:
     @property
     def nbytes(self) -> int:
         """Bytes of the stored observations (what dominates the buffer's memory)."""
-        return int(self.obs.nbytes)
+        return int(self.obs.nbytes) + (int(self.measurements.nbytes) if self.nav else 0)
 
     def __len__(self) -> int:
         return self.size
@@ -264,28 +292,12 @@ class ReplayBuffer:
         """
         base, j = column * self.ring, int(self.positions[column])
         i, after = base + j, base + (j + 1) % self.ring
-        obs, next_obs = np.asarray(obs), np.asarray(next_obs)
+        obs, next_obs = observations.asarray(obs), observations.asarray(next_obs)
         previous = self._last_next[column]
-        start = previous is None or not np.array_equal(previous, obs)
+        start = previous is None or not observations.equal(previous, obs)
         self.starts[i] = start
         self.heads.pop(i, None)
-        if self.k > 1:
-            c = self.channels
-            if not np.array_equal(next_obs[..., :-c], obs[..., c:]):
-                raise ValueError(
-                    f"replay buffer of {self.k}-frame stacks: the older frames of next_obs are not "
-                    f"the newer frames of obs, so these observations are not frame stacks; build the "
-                    f"ReplayBuffer with frame_stack=1")
-            if start and not all(np.array_equal(obs[..., -c:], obs[..., m * c:(m + 1) * c])
-                                 for m in range(self.k - 1)):
-                self.heads[i] = np.array(obs, dtype=self.obs.dtype, copy=True)
-            self.obs[i] = obs[..., -c:]
-            # Written now so the newest transition can be sampled; the next add() overwrites it
-            # with the same frame while the episode goes on.
-            self.obs[after] = next_obs[..., -c:]
-        else:
-            self.obs[i] = obs
-            self.obs[after] = next_obs
+        self._store(i, after, obs, next_obs, start)
         self.starts[after] = False
         self.heads.pop(after, None)
         self.actions[i] = action
@@ -294,10 +306,42 @@ class ReplayBuffer:
         self.truncateds[i] = truncated and not terminated
         self.final_obs.pop(i, None)
         if self.truncateds[i]:
-            self.final_obs[i] = np.array(next_obs, dtype=self.obs.dtype, copy=True)
-        self._last_next[column] = None if (terminated or truncated) else np.array(next_obs, copy=True)
+            self.final_obs[i] = self._stored_copy(next_obs)
+        self._last_next[column] = None if (terminated or truncated) else observations.copy(next_obs)
         self.positions[column] = (j + 1) % self.ring
         self.sizes[column] = min(self.sizes[column] + 1, self.ring)
+
+    def _stored_copy(self, obs):
+        """A copy of a whole observation in the stored dtypes."""
+        if self.nav:
+            return {"image": np.array(obs["image"], dtype=self.obs.dtype, copy=True),
+                    "measurements": np.array(obs["measurements"], dtype=np.float32, copy=True)}
+        return np.array(obs, dtype=self.obs.dtype, copy=True)
+
+    def _store(self, i: int, after: int, obs, next_obs, start: bool) -> None:
+        """Write the observation into slot ``i`` and the next one into slot ``after`` (its newest
+        frame and, for nav observations, its measurements)."""
+        image, next_image = (obs["image"], next_obs["image"]) if self.nav else (obs, next_obs)
+        if self.k > 1:
+            c = self.channels
+            if not np.array_equal(next_image[..., :-c], image[..., c:]):
+                raise ValueError(
+                    f"replay buffer of {self.k}-frame stacks: the older frames of next_obs are not "
+                    f"the newer frames of obs, so these observations are not frame stacks; build the "
+                    f"ReplayBuffer with frame_stack=1")
+            if start and not all(np.array_equal(image[..., -c:], image[..., m * c:(m + 1) * c])
+                                 for m in range(self.k - 1)):
+                self.heads[i] = np.array(image, dtype=self.obs.dtype, copy=True)
+            self.obs[i] = image[..., -c:]
+            # Written now so the newest transition can be sampled; the next add() overwrites it
+            # with the same frame while the episode goes on.
+            self.obs[after] = next_image[..., -c:]
+        else:
+            self.obs[i] = image
+            self.obs[after] = next_image
+        if self.nav:  # the same slots: slot i's measurements belong to slot i's image
+            self.measurements[i] = obs["measurements"]
+            self.measurements[after] = next_obs["measurements"]
 
     def _stacks(self, slots: np.ndarray, column: np.ndarray) -> np.ndarray:
         """The whole observations of ``slots`` (absolute indices), rebuilt from their frames."""
@@ -347,10 +391,14 @@ class ReplayBuffer:
             offset = u - (ends - valid)[column]
         offset = np.where(full[column], (offset + skip + self.positions[column]) % self.ring, offset)
         idx = column * self.ring + offset
+        after = column * self.ring + (offset + 1) % self.ring
         obs = self._stacks(idx, column)
-        next_obs = self._stacks(column * self.ring + (offset + 1) % self.ring, column)
+        next_obs = self._stacks(after, column)
+        if self.nav:  # the measurements of the same slots as the images
+            obs = {"image": obs, "measurements": self.measurements[idx]}
+            next_obs = {"image": next_obs, "measurements": self.measurements[after]}
         for row in np.flatnonzero(self.truncateds[idx]):
-            next_obs[row] = self.final_obs[int(idx[row])]
+            observations.put(next_obs, row, self.final_obs[int(idx[row])])
         return ReplaySample(
             obs=obs_to_tensor(obs, device),
             actions=torch.as_tensor(self.actions[idx], device=device),

@@ -6,7 +6,8 @@ knowing how it was trained::
     {
       "format": "cosim-agents-checkpoint", "format_version": 1,
       "algo": "ppo", "config": {...dataclasses.asdict(config)...},
-      "observation_space": {"type": "Box", ...}, "action_space": {"type": "Discrete", ...},
+      "observation_space": {"type": "Box", ...},  # or {"type": "Dict", "spaces": {"image": ..., ...}}
+      "action_space": {"type": "Discrete", ...},
       "state": agent.state_dict(),          # weights, optimizer states, counters
       "versions": {"torch": ..., "numpy": ..., "cosim-agents": ...},
     }
@@ -78,7 +79,10 @@ def _compact(array: np.ndarray):
 
 
 def space_to_dict(space: gymnasium.Space) -> dict[str, Any]:
-    """Serialise a Box or Discrete space to a plain dict.
+    """Serialise a Box or Discrete space, or a Dict of them (cosim's ``obs="nav"`` observation:
+    ``Dict(image, measurements)``), to a plain dict. The observation space's format (Box or
+    Dict) is what an agent loaded from it checks its observations against
+    (agents/base.py check_variant).
 
     Raises:
         ValueError: For other space types.
@@ -93,7 +97,9 @@ def space_to_dict(space: gymnasium.Space) -> dict[str, Any]:
             "low": _compact(space.low),
             "high": _compact(space.high),
         }
-    raise ValueError(f"checkpoints support Box and Discrete spaces, got {space!r}")
+    if isinstance(space, gymnasium.spaces.Dict):
+        return {"type": "Dict", "spaces": {key: space_to_dict(sub) for key, sub in space.spaces.items()}}
+    raise ValueError(f"checkpoints support Box, Discrete and Dict spaces, got {space!r}")
 
 
 def space_from_dict(data: dict[str, Any]) -> gymnasium.Space:
@@ -106,6 +112,8 @@ def space_from_dict(data: dict[str, Any]) -> gymnasium.Space:
         low = np.broadcast_to(np.asarray(data["low"], dtype=dtype), shape)
         high = np.broadcast_to(np.asarray(data["high"], dtype=dtype), shape)
         return gymnasium.spaces.Box(low=low, high=high, shape=shape, dtype=dtype)
+    if data["type"] == "Dict":
+        return gymnasium.spaces.Dict({key: space_from_dict(sub) for key, sub in data["spaces"].items()})
     raise ValueError(f"unknown space type {data['type']!r}")
 
 

@@ -19,7 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from agents.base import Agent, AgentConfig, check_range, due
+from agents import observations
+from agents.base import Agent, AgentConfig, check_observation_space, check_range, due
 from agents.buffers import ReplayBuffer
 from agents.networks import DuelingQNetwork, obs_to_tensor
 
@@ -119,8 +120,7 @@ class DQN(Agent):
     def check_spaces(cls, observation_space, action_space) -> None:
         if not isinstance(action_space, gymnasium.spaces.Discrete):
             raise ValueError(f"DQN needs a Discrete action space, got {action_space!r}; use DDPG or TD3 for Box")
-        if not isinstance(observation_space, gymnasium.spaces.Box):
-            raise ValueError(f"DQN needs a Box observation space, got {observation_space!r}")
+        check_observation_space(cls.algo, observation_space)
 
     def _build(self) -> None:
         cfg = self.config
@@ -159,7 +159,7 @@ class DQN(Agent):
 
     @torch.no_grad()
     def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        actions = self.q_network(obs_to_tensor(np.asarray(obs), self.device)).argmax(-1).cpu().numpy()
+        actions = self.q_network(obs_to_tensor(obs, self.device)).argmax(-1).cpu().numpy()
         if not deterministic:
             explore = self.rng.random(len(actions)) < self.epsilon
             actions = np.where(explore, self.rng.integers(self.action_space.n, size=len(actions)), actions)
@@ -173,8 +173,8 @@ class DQN(Agent):
     def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
         scale = self.config.reward_scale
         for j, column in enumerate(np.asarray(columns).tolist()):
-            self.buffer.add(obs[j], int(actions[j]), float(rewards[j]) * scale, next_obs[j],
-                            bool(terminated[j]), bool(truncated[j]), column=column)
+            self.buffer.add(observations.take(obs, j), int(actions[j]), float(rewards[j]) * scale,
+                            observations.take(next_obs, j), bool(terminated[j]), bool(truncated[j]), column=column)
         self.steps += len(columns)
 
     def update(self) -> dict[str, float]:

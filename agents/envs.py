@@ -228,17 +228,25 @@ class ScriptedParallelEnv:
     steps (seed None counts as 0): terminated for even ``k``, truncated for odd.
     ``fail_at`` makes ``step`` raise ``ValueError`` at that step of the first
     episode (error propagation); ``image`` switches to uint8 ``(8, 8, 3)``
-    observations holding the same numbers in the first pixels.
+    observations holding the same numbers in the first pixels; ``nav`` to
+    ``Dict(image=<uint8 (36, 36, 3), the numbers in the first pixels>,
+    measurements=<the float32 vector>)``, the smallest image the Nature CNN takes beside a
+    measurements vector (cosim's ``obs="nav"``): both parts say which step they belong to.
     """
 
     metadata = {"name": "scripted_v0"}
 
     def __init__(self, env_index: int = 0, num_agents: int = 3, lengths=(3, 5, 4), fail_at: int | None = None,
-                 image: bool = False):
-        self.env_index, self.lengths, self.fail_at, self.image = env_index, tuple(lengths), fail_at, image
+                 image: bool = False, nav: bool = False):
+        self.env_index, self.lengths, self.fail_at = env_index, tuple(lengths), fail_at
+        self.image, self.nav = image, nav
         self.possible_agents = [f"agent_{k}" for k in range(num_agents)]
         self.agents: list[str] = []
-        if image:
+        if nav:
+            self._obs_space = gymnasium.spaces.Dict({
+                "image": gymnasium.spaces.Box(0, 255, (36, 36, 3), np.uint8),
+                "measurements": gymnasium.spaces.Box(-np.inf, np.inf, (5,), np.float32)})
+        elif image:
             self._obs_space = gymnasium.spaces.Box(0, 255, (8, 8, 3), np.uint8)
         else:
             self._obs_space = gymnasium.spaces.Box(-np.inf, np.inf, (5,), np.float32)
@@ -255,11 +263,11 @@ class ScriptedParallelEnv:
 
     def _obs(self, agent: str, action: int) -> np.ndarray:
         values = [self.env_index, self.possible_agents.index(agent), self.t[agent], self.seed, action]
-        if not self.image:
+        if not (self.image or self.nav):
             return np.array(values, np.float32)
-        out = np.zeros(self._obs_space.shape, np.uint8)
+        out = np.zeros((36, 36, 3) if self.nav else self._obs_space.shape, np.uint8)
         out.reshape(-1)[:5] = np.array(values) % 256
-        return out
+        return {"image": out, "measurements": np.array(values, np.float32)} if self.nav else out
 
     def reset(self, seed: int | None = None, options=None):
         self.seed = -1 if seed is None else int(seed)

@@ -40,7 +40,7 @@ import torch
 from torch import nn
 
 from agents.async_env import EpisodeTracker, Unrolls, act_for, check_agents, record, vector_env
-from agents.base import Agent, AgentConfig, check_range
+from agents.base import Agent, AgentConfig, check_observation_space, check_range
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import vtrace
 from agents.workers import (
@@ -204,8 +204,7 @@ class IMPALA(Agent):
                 f"IMPALA here supports Discrete action spaces only, got {action_space!r}; "
                 "use DDPG or TD3 for the continuous driving actions"
             )
-        if not isinstance(observation_space, gymnasium.spaces.Box):
-            raise ValueError(f"IMPALA needs a Box observation space, got {observation_space!r}")
+        check_observation_space(cls.algo, observation_space)
 
     def _build(self) -> None:
         config: IMPALAConfig = self.config

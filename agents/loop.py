@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agents import observations
 from agents.base import Agent
 
 __all__ = ["LoopStats", "evaluate", "run_loop", "run_vector_loop"]
@@ -275,7 +276,7 @@ def run_vector_loop(
             envs = group[alive[a][group]]
             if envs.size == 0:
                 continue
-            obs = obs_rows[a][envs]  # a copy: the vector env overwrites its arrays on step
+            obs = observations.take(obs_rows[a], envs)  # a copy: the vector env overwrites its arrays on step
             actions = np.asarray(agents[a].act_batch(obs, envs, deterministic=deterministic))
             batch = np.zeros((n, *actions.shape[1:]), actions.dtype)
             batch[envs] = actions
@@ -335,7 +336,8 @@ def _vector_steps(venv, total_steps, callback, seed, learn, stats, act_and_send,
             lengths[a][envs] += 1
             stats.agent_steps += envs.size
             # copies (fancy indexing): the shared arrays change during the next step
-            result[a] = (state.next_obs[a][envs], rewards, state.terminated[a][envs], state.truncated[a][envs])
+            result[a] = (observations.take(state.next_obs[a], envs), rewards, state.terminated[a][envs],
+                         state.truncated[a][envs])
         for i in np.flatnonzero(state.env_reset):
             for a in ids:
                 stats.episode_returns.setdefault(a, []).append(float(returns[a][i]))

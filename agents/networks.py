@@ -22,6 +22,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from agents.observations import NAV_KEYS, is_nav_space
+
 NATURE_CNN_FEATURES = 512
 
 __all__ = [
@@ -127,21 +129,13 @@ class MLPEncoder(nn.Module):
         return self.net(obs.float().flatten(1))
 
 
-NAV_KEYS = ("image", "measurements")
-"""The keys of an image-and-measurements observation (cosim's ``obs="nav"``)."""
 MEASUREMENT_FEATURES = 64
 """Width of the small MLP on the measurements vector, joined to the CNN's features."""
 
 
-def _is_nav_space(observation_space) -> bool:
-    return (isinstance(observation_space, gymnasium.spaces.Dict)
-            and tuple(sorted(observation_space.spaces)) == NAV_KEYS
-            and len(observation_space["image"].shape) == 3 and len(observation_space["measurements"].shape) == 1)
-
-
 def _is_image_space(observation_space) -> bool:
     """An image, or an image with measurements: the encoders that start with a Nature CNN."""
-    return _is_nav_space(observation_space) or len(observation_space.shape) == 3
+    return is_nav_space(observation_space) or len(observation_space.shape) == 3
 
 
 class ImageMeasurementsEncoder(nn.Module):
@@ -184,7 +178,7 @@ def make_encoder(
     Raises:
         ValueError: If the space is not a Box.
     """
-    if _is_nav_space(observation_space):
+    if is_nav_space(observation_space):
         return ImageMeasurementsEncoder(tuple(observation_space["image"].shape),
                                         observation_space["measurements"].shape[0])
     if not isinstance(observation_space, gymnasium.spaces.Box):
@@ -200,7 +194,7 @@ def make_encoder(
 def encoder_features_dim(observation_space: gymnasium.spaces.Box) -> int:
     """Width of what :class:`QEnsemble` ``.encode`` returns: 512 for images (+ the measurement
     features for ``Dict(image, measurements)``), the flat size otherwise."""
-    if _is_nav_space(observation_space):
+    if is_nav_space(observation_space):
         return NATURE_CNN_FEATURES + MEASUREMENT_FEATURES
     if _is_image_space(observation_space):
         return NATURE_CNN_FEATURES

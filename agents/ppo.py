@@ -24,7 +24,8 @@ import torch
 from torch import nn
 from torch.distributions import Categorical, kl_divergence
 
-from agents.base import Agent, AgentConfig, check_range
+from agents import observations
+from agents.base import Agent, AgentConfig, check_observation_space, check_range
 from agents.buffers import RolloutBuffer
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import gae
@@ -103,8 +104,7 @@ class PPO(Agent):
     def check_spaces(cls, observation_space, action_space) -> None:
         if not isinstance(action_space, gymnasium.spaces.Discrete):
             raise ValueError(f"PPO here supports Discrete action spaces, got {action_space!r}; use DDPG or TD3 for Box")
-        if not isinstance(observation_space, gymnasium.spaces.Box):
-            raise ValueError(f"PPO needs a Box observation space, got {observation_space!r}")
+        check_observation_space(cls.algo, observation_space)
 
     def _build(self) -> None:
         cfg = self.config
@@ -141,7 +141,7 @@ class PPO(Agent):
 
     @torch.no_grad()
     def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        logits, values = self.net(obs_to_tensor(np.asarray(obs), self.device))
+        logits, values = self.net(obs_to_tensor(obs, self.device))
         if deterministic:
             actions = logits.argmax(-1)
         else:
@@ -161,7 +161,7 @@ class PPO(Agent):
         missing = [j for j, (c, a) in enumerate(zip(cached, actions, strict=True)) if c is None or c[0] != int(a)]
         if missing:  # not from our last act_batch: score them now
             with torch.no_grad():
-                logits, values = self.net(obs_to_tensor(np.asarray(obs)[missing], self.device))
+                logits, values = self.net(obs_to_tensor(observations.take(obs, missing), self.device))
             log_probs = torch.log_softmax(logits, -1)
             for row, j in enumerate(missing):
                 a = int(actions[j])
@@ -170,23 +170,23 @@ class PPO(Agent):
         for j, column in enumerate(columns):
             _, log_prob, value, logits = cached[j]
             term, trunc = bool(terminated[j]), bool(truncated[j])
-            t = self.buffer.add(obs[j], int(actions[j]), log_prob, value, float(rewards[j]) * self.config.reward_scale,
-                                term, trunc, logits, column=column)
+            t = self.buffer.add(observations.take(obs, j), int(actions[j]), log_prob, value,
+                                float(rewards[j]) * self.config.reward_scale, term, trunc, logits, column=column)
             self.steps += 1
             if trunc and not term:
                 bootstrap.append((t, j))
             if term or trunc:
                 self._column_next.pop(column, None)
             else:
-                self._column_next[column] = np.array(next_obs[j], copy=True)
+                self._column_next[column] = observations.copy(observations.take(next_obs, j))
         if bootstrap:  # time limit, not a real end: bootstrap from the final observations, one pass
-            values = self._values(np.stack([next_obs[j] for _, j in bootstrap]))
+            values = self._values(observations.stack([observations.take(next_obs, j) for _, j in bootstrap]))
             for (t, _), v in zip(bootstrap, values, strict=True):
                 self.buffer.next_values[t] = v
 
     @torch.no_grad()
-    def _values(self, obs: np.ndarray) -> np.ndarray:
-        return self.net(obs_to_tensor(np.asarray(obs), self.device))[1].cpu().numpy()
+    def _values(self, obs) -> np.ndarray:
+        return self.net(obs_to_tensor(obs, self.device))[1].cpu().numpy()
 
     @torch.no_grad()
     def _value(self, obs: np.ndarray) -> float:
@@ -211,7 +211,7 @@ class PPO(Agent):
         if terminated or truncated:
             self._column_next.pop(0, None)
         elif self.buffer.full:
-            self._column_next[0] = np.array(next_obs, copy=True)
+            self._column_next[0] = observations.copy(next_obs)
 
     # ---- learning ---------------------------------------------------------------------
     def update(self) -> dict[str, float]:
@@ -221,7 +221,8 @@ class PPO(Agent):
         n = buf.pos
         # Each environment's last transition, if its episode goes on, bootstraps from V(next obs).
         going_on = sorted(self._column_next)
-        last_values = self._values(np.stack([self._column_next[c] for c in going_on])) if going_on else []
+        last_values = (self._values(observations.stack([self._column_next[c] for c in going_on]))
+                       if going_on else [])
         next_values = buf.bootstrap_columns(dict(zip(going_on, np.asarray(last_values).tolist(), strict=True)))
         self._column_next.clear()
         advantages, returns = np.zeros(n, np.float32), np.zeros(n, np.float32)
@@ -230,7 +231,7 @@ class PPO(Agent):
                 buf.rewards[idx], buf.values[idx], next_values[idx], buf.terminateds[idx], buf.truncateds[idx],
                 cfg.gamma, cfg.gae_lambda,
             )
-        b_obs = obs_to_tensor(buf.obs[:n], self.device)
+        b_obs = obs_to_tensor(observations.take(buf.obs, slice(n)), self.device)
         b_actions = torch.as_tensor(buf.actions[:n], device=self.device)
         b_log_probs = torch.as_tensor(buf.log_probs[:n], device=self.device)
         b_logits = torch.as_tensor(buf.logits[:n], device=self.device)
@@ -243,7 +244,8 @@ class PPO(Agent):
                 mb = torch.as_tensor(mb, device=self.device)
                 epoch_stats.append(
                     self._minibatch_step(
-                        b_obs[mb], b_actions[mb], b_log_probs[mb], b_logits[mb], b_advantages[mb], b_returns[mb]
+                        observations.take(b_obs, mb), b_actions[mb], b_log_probs[mb], b_logits[mb],
+                        b_advantages[mb], b_returns[mb],
                     )
                 )
         pg_loss, v_loss, entropy, kl, clipfrac = np.mean(epoch_stats, axis=0)

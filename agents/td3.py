@@ -20,7 +20,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from agents.base import Agent, AgentConfig, check_range, due
+from agents import observations
+from agents.base import Agent, AgentConfig, check_observation_space, check_range, due
 from agents.buffers import ReplayBuffer
 from agents.networks import (
     DeterministicActor,
@@ -140,8 +141,7 @@ class TD3(Agent):
             raise ValueError(
                 f"{cls.algo.upper()} needs a 1-D Box action space, got {action_space!r}; use PPO or DQN for Discrete"
             )
-        if not isinstance(observation_space, gymnasium.spaces.Box):
-            raise ValueError(f"{cls.algo.upper()} needs a Box observation space, got {observation_space!r}")
+        check_observation_space(cls.algo, observation_space)
 
     def _build(self) -> None:
         cfg = self.config
@@ -197,10 +197,10 @@ class TD3(Agent):
 
     @torch.no_grad()
     def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        cfg, n = self.config, len(obs)
+        cfg, n = self.config, len(columns)
         if not deterministic and self.steps < self.random_until:
             return self.rng.uniform(self.random_low, self.high, (n, *self.low.shape)).astype(np.float32)
-        actions = self.actor(self.critic.encode(obs_to_tensor(np.asarray(obs), self.device))).cpu().numpy()
+        actions = self.actor(self.critic.encode(obs_to_tensor(obs, self.device))).cpu().numpy()
         if not deterministic:
             actions = actions + self.rng.normal(0.0, cfg.exploration_noise, actions.shape) * self.half_range
         return np.clip(actions, self.low, self.high).astype(np.float32)
@@ -214,8 +214,8 @@ class TD3(Agent):
         scale = self.config.reward_scale
         for j, column in enumerate(np.asarray(columns).tolist()):
             action = np.asarray(actions[j], dtype=np.float32).reshape(self.action_space.shape)
-            self.buffer.add(obs[j], action, float(rewards[j]) * scale, next_obs[j],
-                            bool(terminated[j]), bool(truncated[j]), column=column)
+            self.buffer.add(observations.take(obs, j), action, float(rewards[j]) * scale,
+                            observations.take(next_obs, j), bool(terminated[j]), bool(truncated[j]), column=column)
         self.steps += len(columns)
 
     # ---- learning ---------------------------------------------------------------------

@@ -19,9 +19,11 @@ Both return, per agent id ``a`` (an AC slot ``ac_k``), arrays of shape
   then holds the first observation of the new episode.
 
 Observations travel through ``multiprocessing.shared_memory`` (one block per
-agent and kind, each worker writes its own row); only actions, rewards, flags
-and infos are pickled. The arrays in a :class:`VecStep` are views of that
-memory, valid until the next ``step``/``step_async``/``reset``: copy what you keep.
+agent, kind and array, each worker writes its own row; a ``Dict(image, measurements)``
+observation is two arrays, and its rows are dicts of them: agents/observations.py);
+only actions, rewards, flags and infos are pickled. The arrays in a :class:`VecStep`
+are views of that memory, valid until the next ``step``/``step_async``/``reset``: copy
+what you keep.
 ``step_async(actions)`` + ``step_wait()`` (what ``step`` does) let the caller
 learn while the workers step (:func:`agents.loop.run_vector_loop` does).
 Both take ``envs=[...]`` to step a subset; threads that step DISJOINT sets of
@@ -57,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from agents import observations
 from agents.workers import WorkerError, _die_with_owner, get_context
 
 __all__ = ["InProcessVectorEnv", "VecStep", "VectorEnv", "VectorEnvError", "make_vector_env"]
@@ -78,11 +81,12 @@ class VectorEnvError(WorkerError):
 class VecStep:
     """What one vector step (or a reset) returns; per agent id, one row per env."""
 
-    obs: dict[str, np.ndarray]
-    """(N, ...) observation to act on next (a reset observation where ``env_reset``)."""
+    obs: dict[str, Any]
+    """(N, ...) observation to act on next (a reset observation where ``env_reset``); a dict of
+    such arrays for a Dict space."""
     alive: dict[str, np.ndarray]
     """(N,) bool: the agent acts in env i on the next step."""
-    next_obs: dict[str, np.ndarray]
+    next_obs: dict[str, Any]
     """(N, ...) observation that followed this step's action (the true final one when it ended)."""
     active: dict[str, np.ndarray]
     """(N,) bool: the agent acted in env i this step (its row is a transition)."""
@@ -119,7 +123,7 @@ class _EnvSlot:
         if not self.env.agents:
             raise RuntimeError("env.reset() left no live agent; an episode needs at least one")
         for a, o in obs.items():
-            self.rows["obs"][a][...] = o
+            observations.assign(self.rows["obs"][a], o)
         return np.array([a in self.env.agents for a in self.agent_ids]), dict(infos)
 
     def reset(self, seed: int | None) -> tuple[np.ndarray, dict]:
@@ -136,9 +140,9 @@ class _EnvSlot:
             if a in live:
                 active[k], reward[k] = True, float(rewards[a])
                 term[k], trunc[k] = bool(terms[a]), bool(truncs[a])
-                self.rows["next_obs"][a][...] = obs[a]
+                observations.assign(self.rows["next_obs"][a], obs[a])
                 if a in self.env.agents:
-                    self.rows["obs"][a][...] = obs[a]
+                    observations.assign(self.rows["obs"][a], obs[a])
         infos = {a: infos[a] for a in live if a in infos}
         if self.env.agents:
             alive = np.array([a in self.env.agents for a in self.agent_ids])
@@ -236,11 +240,12 @@ class InProcessVectorEnv(_VectorBase):
         self.envs = [fn() for fn in env_fns]
         self.agent_ids, self.observation_spaces, self.action_spaces = _spaces(self.envs[0])
         self.arrays = {
-            kind: {a: np.zeros((self.num_envs, *s.shape), s.dtype) for a, s in self.observation_spaces.items()}
+            kind: {a: observations.zeros(s, self.num_envs) for a, s in self.observation_spaces.items()}
             for kind in _KINDS
         }
         self.slots = [
-            _EnvSlot(env, i, self.num_envs, {k: {a: v[i] for a, v in self.arrays[k].items()} for k in _KINDS})
+            _EnvSlot(env, i, self.num_envs,
+                     {k: {a: observations.take(v, i) for a, v in self.arrays[k].items()} for k in _KINDS})
             for i, env in enumerate(self.envs)
         ]
         self.pids: list[int] = []
@@ -302,16 +307,18 @@ def _env_worker(index: int, num_envs: int, env_fn: Callable[[], Any], conn, owne
         env = env_fn()
         ids, obs_spaces, act_spaces = _spaces(env)
         conn.send(("spaces", (ids, obs_spaces, act_spaces)))
-        names = conn.recv()  # kind -> agent -> block name, or a close command when the owner gave up
+        names = conn.recv()  # kind -> agent -> part -> block name, or a close command when the owner gave up
         if not isinstance(names, dict):
             return
-        rows: dict[str, dict[str, np.ndarray]] = {kind: {} for kind in _KINDS}
+        rows: dict[str, dict[str, Any]] = {kind: {} for kind in _KINDS}
         for kind in _KINDS:
-            for a, name in names[kind].items():
-                block = shared_memory.SharedMemory(name=name)
-                blocks.append(block)
-                space = obs_spaces[a]
-                rows[kind][a] = np.ndarray((num_envs, *space.shape), space.dtype, buffer=block.buf)[index]
+            for a, part_names in names[kind].items():
+                arrays = {}
+                for key, space in observations.parts(obs_spaces[a]).items():
+                    block = shared_memory.SharedMemory(name=part_names[key])
+                    blocks.append(block)
+                    arrays[key] = np.ndarray((num_envs, *space.shape), space.dtype, buffer=block.buf)[index]
+                rows[kind][a] = observations.join(arrays)
         slot = _EnvSlot(env, index, num_envs, rows)
         while True:
             command, arg = conn.recv()
@@ -381,14 +388,17 @@ class VectorEnv(_VectorBase):
             for i, (ids, _, _) in enumerate(spaces):
                 if ids != self.agent_ids:
                     raise VectorEnvError(i, f"agents {ids} differ from env 0's {self.agent_ids}")
-            names: dict[str, dict[str, str]] = {kind: {} for kind in _KINDS}
+            names: dict[str, dict[str, dict[str, str]]] = {kind: {} for kind in _KINDS}
             for kind in _KINDS:
-                for a, space in self.observation_spaces.items():
-                    size = max(1, int(np.prod(space.shape)) * np.dtype(space.dtype).itemsize * self.num_envs)
-                    block = shared_memory.SharedMemory(create=True, size=size)
-                    self.blocks.append(block)
-                    names[kind][a] = block.name
-                    self.arrays[kind][a] = np.ndarray((self.num_envs, *space.shape), space.dtype, buffer=block.buf)
+                for a, agent_space in self.observation_spaces.items():
+                    arrays, names[kind][a] = {}, {}
+                    for key, space in observations.parts(agent_space).items():  # one block per array
+                        size = max(1, int(np.prod(space.shape)) * np.dtype(space.dtype).itemsize * self.num_envs)
+                        block = shared_memory.SharedMemory(create=True, size=size)
+                        self.blocks.append(block)
+                        names[kind][a][key] = block.name
+                        arrays[key] = np.ndarray((self.num_envs, *space.shape), space.dtype, buffer=block.buf)
+                    self.arrays[kind][a] = observations.join(arrays)
             for conn in self.conns:
                 conn.send(names)
         except BaseException:

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 
+from agents import observations
 from agents.errors import AgentError
 
 __all__ = [
@@ -175,7 +176,8 @@ class Rollout:
 
     Attributes:
         agent_id: The agent the transitions belong to.
-        obs: ``(T, *obs_shape)`` observations ``s_t``.
+        obs: ``(T, *obs_shape)`` observations ``s_t`` (a dict of such arrays for a
+            ``Dict(image, measurements)`` space; agents/observations.py).
         actions: ``(T,)`` int64 actions.
         rewards: ``(T,)`` float32 rewards.
         terminateds: ``(T,)`` bool, the episode terminated at t.
@@ -223,13 +225,13 @@ class Rollout:
         offsets = np.cumsum([0] + [len(r) for r in rollouts[:-1]])
         return cls(
             agent_id=rollouts[0].agent_id,
-            obs=np.concatenate([r.obs for r in rollouts]),
+            obs=observations.concatenate([r.obs for r in rollouts]),
             actions=np.concatenate([r.actions for r in rollouts]),
             rewards=np.concatenate([r.rewards for r in rollouts]),
             terminateds=np.concatenate([r.terminateds for r in rollouts]),
             truncateds=np.concatenate([r.truncateds for r in rollouts]),
             log_probs=np.concatenate([r.log_probs for r in rollouts]),
-            final_obs=np.concatenate([r.final_obs for r in rollouts]),
+            final_obs=observations.concatenate([r.final_obs for r in rollouts]),
             final_index=np.concatenate([r.final_index + o for r, o in zip(rollouts, offsets, strict=True)]),
         )
 
@@ -266,9 +268,9 @@ class RolloutBuilder:
 
     def add(self, obs, action, reward, next_obs, terminated, truncated, log_prob=0.0) -> None:
         """Append one transition ``(s_t, a_t, r_t, s_{t+1})``."""
-        obs, next_obs = np.asarray(obs), np.asarray(next_obs)
+        obs, next_obs = observations.asarray(obs), observations.asarray(next_obs)
         if self._steps and self._last_next_obs is not None:
-            if not np.array_equal(self._last_next_obs, obs):
+            if not observations.equal(self._last_next_obs, obs):
                 self._final[len(self._steps) - 1] = self._last_next_obs
         self._steps.append((obs, int(action), float(reward), bool(terminated), bool(truncated), float(log_prob)))
         done = bool(terminated) or bool(truncated)
@@ -288,13 +290,13 @@ class RolloutBuilder:
         index = sorted(self._final)
         rollout = Rollout(
             agent_id=self.agent_id,
-            obs=np.stack(obs),
+            obs=observations.stack(obs),
             actions=np.asarray(actions, dtype=np.int64),
             rewards=np.asarray(rewards, dtype=np.float32),
             terminateds=np.asarray(terminateds, dtype=bool),
             truncateds=np.asarray(truncateds, dtype=bool),
             log_probs=np.asarray(log_probs, dtype=np.float32),
-            final_obs=np.stack([self._final[i] for i in index]),
+            final_obs=observations.stack([self._final[i] for i in index]),
             final_index=np.asarray(index, dtype=np.int64),
         )
         self._steps, self._final, self._last_next_obs = [], {}, None

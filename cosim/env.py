@@ -131,6 +131,7 @@ class CosimParallelEnv(ParallelEnv):
         self._closed = False
         self._needs_reset = True
         self._episode: dict[str, dict] = {}
+        self._last_infos: dict[str, dict] = {}
         self.timings = {"sumo_world": 0.0, "mirror_sync": 0.0, "render": 0.0, "steps": 0}
 
     # -- spaces (the same object every call, as PettingZoo requires) ----------
@@ -167,6 +168,7 @@ class CosimParallelEnv(ParallelEnv):
         self._needs_reset = False
         obs = self._observe(self.agents)
         infos = {a: self._info(a, results[a]) for a in self.agents}
+        self._last_infos = infos
         return obs, infos
 
     def step(self, actions: Mapping[str, object]):
@@ -189,6 +191,7 @@ class CosimParallelEnv(ParallelEnv):
         infos = {a: self._info(a, r) for a, r in results.items()}
         for a, r in results.items():
             self._accumulate(a, r, infos[a])
+        self._last_infos = infos
         self.timings["sumo_world"] += t1 - t0
         self.timings["steps"] += 1
         return obs, rewards, terminations, truncations, infos
@@ -228,6 +231,12 @@ class CosimParallelEnv(ParallelEnv):
     def world(self) -> World:
         """The SUMO-side world (snapshot, routes, poses): for controllers and evaluation."""
         return self._world
+
+    @property
+    def last_infos(self) -> dict[str, dict]:
+        """The infos of the last reset or step, per AC (what it returned): what a policy that
+        drives one AC of a shared env reads beside its camera (eval/rollout.py NavPolicy)."""
+        return self._last_infos
 
     @property
     def mirror(self):

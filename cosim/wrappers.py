@@ -196,12 +196,23 @@ class RouteGuide:
         exit_ = route.path.length - last.getLength() if len(route.edges) > 1 else route.path.length
         return cls(entry, exit_, movement(net, route.edges), route.goal_s - route.spawn_s, route.goal_s)
 
+    @classmethod
+    def of_agent(cls, env, agent: str) -> RouteGuide:
+        """The guide of AC ``agent``'s route in a cosim env (or a wrapper of one)."""
+        world = env.unwrapped.world
+        return cls.of_route(world.route(agent), world.roadmap.net)
+
     def command(self, distance_to_goal: float) -> str:
         """The command where the car is, given its distance to the goal along the route."""
         return nav_command(self.goal_s - float(distance_to_goal), self.entry_s, self.exit_s, self.movement)
 
     def measurements(self, speed: float, distance_to_goal: float) -> np.ndarray:
         return nav_measurements(speed, distance_to_goal, self.route_length, self.command(distance_to_goal))
+
+    def observe(self, image, info: dict) -> dict:
+        """The ``nav`` observation of the AC: ``image`` beside the measurements read from the info
+        of the same step (its speed and distance to the goal)."""
+        return {"image": image, "measurements": self.measurements(info["speed"], info["distance_to_goal"])}
 
 
 class NavObservation(BaseParallelWrapper):
@@ -235,9 +246,7 @@ class NavObservation(BaseParallelWrapper):
     def reset(self, seed=None, options=None):
         obs, infos = self.env.reset(seed=seed, options=options)
         if self._guides is None:
-            world = self.env.unwrapped.world
-            self._guides = {a: RouteGuide.of_route(world.route(a), world.roadmap.net)
-                            for a in self.possible_agents}
+            self._guides = {a: RouteGuide.of_agent(self.env, a) for a in self.possible_agents}
         return self._join(obs, infos), infos
 
     def step(self, actions):
@@ -245,8 +254,7 @@ class NavObservation(BaseParallelWrapper):
         return self._join(obs, infos), rewards, terms, truncs, infos
 
     def _join(self, obs: dict, infos: dict) -> dict:
-        return {a: {"image": o, "measurements": self._guides[a].measurements(
-                    infos[a]["speed"], infos[a]["distance_to_goal"])} for a, o in obs.items()}
+        return {a: self._guides[a].observe(o, infos[a]) for a, o in obs.items()}
 
 
 class BlackDeath(BaseParallelWrapper):

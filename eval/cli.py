@@ -112,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     # the catalogue (no algorithm imported) and the environments (the scenario files)
     from agents.registry import ALGORITHMS, DETERMINISTIC, DISCRETE, STOCHASTIC
-    from eval.config import COLLISION_RULES
+    from eval.config import COLLISION_RULES, OBS_VARIANTS
     from eval.labels import ENVS
     from eval.runfolder import KEEP_POLICIES
 
@@ -141,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
                    help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
                         "preset's, 1 = the paper's single frame); tests of the run stack K too")
+    t.add_argument("--obs", choices=OBS_VARIANTS, default="image",
+                   help="what an AC observes: image (default: its camera frames, the paper's) or nav "
+                        "(the frames beside speed, route command and distance to the goal; "
+                        "docs/task.md, Observation); tests of the run build the same for its ACs")
     t.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
                    help="continue (default): as in the test, the episode goes on and each contact "
                         "step is charged; end: a collision ends the AC's training episode (the "

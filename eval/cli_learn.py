@@ -30,7 +30,7 @@ def cmd_train(args) -> int:
                         seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
                         hyper=hyper, envs=args.envs, device=args.device, collisions=args.collisions,
                         torch_threads=args.torch_threads, frame_stack=args.frame_stack,
-                        learner_threads=args.learner_threads,
+                        obs=args.obs, learner_threads=args.learner_threads,
                         validation_episodes=args.validation_episodes,
                         validation_steps=args.validation_steps)
             for a in algos
@@ -80,7 +80,7 @@ def _train_command(args) -> list[str]:
     base = [sys.executable, "-m", "eval.cli", "train", "--env", args.env, "--preset", args.preset,
             "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
             "--torch-threads", str(args.torch_threads), "--collisions", args.collisions,
-            "--keep", args.keep]
+            "--obs", args.obs, "--keep", args.keep]
     if args.agents is not None:
         base += ["--agents", str(args.agents)]
     if args.steps is not None:
@@ -116,7 +116,7 @@ def _train_pbt(args) -> int:
                               seed=args.seed, action_type=args.action_type,
                               agent_preset=args.agent_preset, hyper=parse_set(args.hyper),
                               envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
-                              frame_stack=args.frame_stack, collisions=args.collisions,
+                              frame_stack=args.frame_stack, obs=args.obs, collisions=args.collisions,
                               validation_episodes=args.validation_episodes,
                               validation_steps=args.validation_steps)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,

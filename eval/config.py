@@ -17,10 +17,11 @@ import yaml
 
 from agents import registry
 from cosim.errors import CosimError
+from cosim.wrappers import OBS_VARIANTS
 from eval.presets import load_presets
 
 __all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DISCRETE_ALGOS",
-           "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
+           "OBS_VARIANTS", "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
 
 ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
 DISCRETE_ALGOS = registry.DISCRETE
@@ -74,6 +75,11 @@ class TrainConfig:
     """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
     1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)
     and every test of a checkpoint does too, read from its observation shape."""
+    obs: str = "image"
+    """What an AC observes: ``image``, its camera frames (the paper's observation), or ``nav``,
+    those beside the measurements vector (speed, route command, distance to the goal;
+    cosim.wrappers.NavObservation). Checkpoints record it as their observation space (Box or
+    Dict), and every test of a checkpoint builds it for that AC (docs/task.md, "Observation")."""
     collisions_end_episode: bool = False
     """False (the default, ``--collisions continue``): the test's rule, the episode goes on after
     a collision and the car pays the collision reward every step it stays in contact, until the
@@ -101,7 +107,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 steps: int | None = None, seed: int = 0, action_type: str | None = None,
                 image_size: int = 84, agent_preset: str | None = None,
                 hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
-                torch_threads: int = 0, frame_stack: int | None = None,
+                torch_threads: int = 0, frame_stack: int | None = None, obs: str = "image",
                 learner_threads: int = 0, collisions: str = "continue",
                 validation_episodes: int | None = None, validation_steps: int | None = None) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
@@ -114,6 +120,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     best.pt (TrainConfig.validation_episodes; 0 episodes: by training return).
     ``collisions``: "continue" (the default, the test's rule: the episode goes on and every
     contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
+    ``obs``: "image" (the default) or "nav" (TrainConfig.obs).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -159,6 +166,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     if validation_episodes < 0 or validation_steps < 1:
         raise TrainError(f"--validation-episodes must be >= 0 (0: off) and --validation-steps >= 1, got "
                          f"{validation_episodes} and {validation_steps}")
+    if obs not in OBS_VARIANTS:
+        raise TrainError(f"--obs must be {' or '.join(OBS_VARIANTS)}, got {obs!r}")
     if collisions not in COLLISION_RULES:
         raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
@@ -174,7 +183,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
         horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
         image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
-        torch_threads=int(torch_threads), frame_stack=frame_stack, learner_threads=int(learner_threads),
+        torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs,
+        learner_threads=int(learner_threads),
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
         validation_steps=validation_steps,
     )

@@ -29,11 +29,19 @@ from pathlib import Path
 import pandas as pd
 
 from agents import registry
+from agents.observations import image_space, is_nav_space
 from cosim.errors import CosimError
 from eval import selection
 from eval.labels import ENVS
 from eval.metrics import METRICS, episode_metrics, scenario_dt, success_rates, summarize
-from eval.rollout import AutopilotPolicy, RandomPolicy, SampledPolicy, StackedPolicy, run_episodes
+from eval.rollout import (
+    AutopilotPolicy,
+    NavPolicy,
+    RandomPolicy,
+    SampledPolicy,
+    StackedPolicy,
+    run_episodes,
+)
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +122,8 @@ PolicyFactory = Callable[[object, str, str], object]  # (env, agent id, algorith
 
 def load_for_slot(path: Path, algo: str, image_size: int = 84):
     """Load the checkpoint given for `algo`'s AC, refusing one that cannot drive it
-    (a checkpoint trained on K stacked frames is tested on K: :func:`drive`).
+    (a checkpoint trained on K stacked frames is tested on K, one trained on the nav
+    observation with its measurements: :func:`drive`).
 
     Raises:
         agents.CheckpointError: the file is missing or corrupt.
@@ -139,7 +148,7 @@ def load_for_slot(path: Path, algo: str, image_size: int = 84):
             f"checkpoint {path} acts in {agent.action_space}, but the {algo} AC needs a {want} "
             "action space; give a checkpoint trained with that action type"
         )
-    shape = tuple(agent.observation_space.shape)
+    shape = tuple(image_space(agent.observation_space).shape)
     if len(shape) != 3 or shape[:2] != (image_size, image_size) or shape[2] % 3 or not shape[2]:
         raise ProtocolError(
             f"checkpoint {path} sees observations of shape {shape}, the test environments give "
@@ -150,25 +159,43 @@ def load_for_slot(path: Path, algo: str, image_size: int = 84):
 
 
 def frame_stack_of(agent) -> int:
-    """Camera frames a checkpoint's agent observes at once: its observation channels / 3
-    (a run trained with ``frame_stack`` K has 84x84x3K observations)."""
-    return int(agent.observation_space.shape[-1]) // 3
+    """Camera frames a checkpoint's agent observes at once: its image channels / 3
+    (a run trained with ``frame_stack`` K has 84x84x3K images)."""
+    return int(image_space(agent.observation_space).shape[-1]) // 3
 
 
-def drive(agent, sample_seed: int | None = None):
+def obs_of(agent) -> str:
+    """The observation variant a checkpoint's agent was trained on (``cosim train --obs``):
+    "nav" for a ``Dict(image, measurements)`` observation space, else "image"."""
+    return "nav" if is_nav_space(agent.observation_space) else "image"
+
+
+def drive(agent, sample_seed: int | None = None, env=None, slot: str | None = None):
     """The policy of one AC from a loaded checkpoint: the agent itself (or, with
     ``sample_seed``, a :class:`~eval.rollout.SampledPolicy` drawing its actions) for
-    one frame, wrapped in a :class:`~eval.rollout.StackedPolicy` with that AC's own
-    frame history when it was trained on K frames."""
+    one frame; for a nav-trained agent inside a :class:`~eval.rollout.NavPolicy` that
+    builds the measurements of AC ``slot`` of ``env``; inside a
+    :class:`~eval.rollout.StackedPolicy` with that AC's own frame history when it was
+    trained on K frames. Both read from the checkpoint, so ACs of every variant share one
+    test environment.
+
+    Raises:
+        ProtocolError: a nav-trained agent without the env and slot it drives.
+    """
     k = frame_stack_of(agent)
     policy = agent if sample_seed is None else SampledPolicy(agent, sample_seed)
+    if obs_of(agent) == "nav":
+        if env is None or slot is None:
+            raise ProtocolError(f"{agent.algo} was trained with --obs nav: give drive() the test env and "
+                                "the AC slot it drives, to build that AC's measurements")
+        policy = NavPolicy(policy, env, slot)
     return StackedPolicy(policy, k) if k > 1 else policy
 
 
 def slot_checkpoint(path: Path, slot: str) -> Path:
     """The checkpoint that drives ``slot`` for an algorithm represented by ``path``: the
     AC of the same run trained in that slot when there is one (its route: the camera
-    carries no route command, so an AC knows only the turns it was trained on), else
+    carries no route command, so an image-trained AC knows only the turns it was trained on), else
     ``path`` itself (eval/selection.py's choice)."""
     path = Path(path)
     if path.parent.parent.name != "checkpoints":
@@ -196,7 +223,7 @@ def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
             if path not in loaded:
                 loaded[path] = load_for_slot(path, algo)
             seed = int(agent.rsplit("_", 1)[1]) if algo in SAMPLED and not greedy else None
-            return drive(loaded[path], seed)  # one frame history (and draw stream) per AC
+            return drive(loaded[path], seed, env, agent)  # one frame history (and draw stream) per AC
 
         return make
     if kind == "autopilot":
@@ -298,5 +325,5 @@ def references_markdown(refs: pd.DataFrame) -> str:
 
 
 __all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "load_for_slot",
-           "metrics_table", "policy_factory", "reference_rows", "references_markdown", "rules", "run_protocol",
+           "metrics_table", "obs_of", "policy_factory", "reference_rows", "references_markdown", "rules", "run_protocol",
            "slot_checkpoint", "slot_order"]

@@ -3,7 +3,8 @@
 A policy is anything with ``act(obs, deterministic=True)`` (every trained agent)
 or a callable ``policy(obs) -> action``. :class:`RandomPolicy` and
 :class:`AutopilotPolicy` are the two references; :class:`StackedPolicy` feeds a
-policy trained on stacked frames its own frame history.
+policy trained on stacked frames its own frame history, :class:`NavPolicy` one trained on
+the ``nav`` observation its own measurements.
 """
 
 from __future__ import annotations
@@ -78,6 +79,36 @@ class StackedPolicy:
 
     def act(self, obs, deterministic: bool = True):
         return _act(self.policy, self.history.push(obs))
+
+
+class NavPolicy:
+    """A policy trained on the ``nav`` observation (cosim.wrappers.NavObservation), driving AC
+    ``agent`` of a test env that gives camera images only.
+
+    It builds that AC's measurements itself, as the training env's NavObservation does: from
+    the AC's route (cosim.wrappers.RouteGuide, read again after every ``reset()``) and the
+    speed and distance to the goal in the env's infos of the step that gave the image
+    (``CosimParallelEnv.last_infos``). So ACs trained on either observation share one test
+    environment. Inside a :class:`StackedPolicy` it gets the stacked frames as its image.
+    """
+
+    def __init__(self, policy, env, agent: str):
+        self.policy, self.env, self.agent = policy, env, agent
+        self.guide = None
+        self.algo = getattr(policy, "algo", None)
+        self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    def reset(self) -> None:
+        self.guide = None
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def act(self, obs, deterministic: bool = True):
+        from cosim.wrappers import RouteGuide
+
+        if self.guide is None:
+            self.guide = RouteGuide.of_agent(self.env, self.agent)
+        return _act(self.policy, self.guide.observe(obs, self.env.unwrapped.last_infos[self.agent]))
 
 
 class SampledPolicy:
@@ -160,4 +191,4 @@ def mean_return(records: pd.DataFrame) -> float:
     return float(records.groupby(["episode", "agent"])["reward"].sum().mean())
 
 
-__all__ = ["AutopilotPolicy", "RandomPolicy", "StackedPolicy", "mean_return", "run_episodes", "np"]
+__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "StackedPolicy", "mean_return", "run_episodes", "np"]

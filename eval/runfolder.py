@@ -57,7 +57,7 @@ from typing import Any
 
 import yaml
 
-from eval.config import ALGORITHMS, TrainConfig, TrainError
+from eval.config import ALGORITHMS, OBS_VARIANTS, TrainConfig, TrainError
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +127,8 @@ def load_run_config(run: Path) -> TrainConfig:
         if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
             raise TrainError(f"{path}: '{key}' must be {kind.__name__}, got {value!r}; {fix}")
     cfg = TrainConfig(**data)
+    if cfg.obs not in OBS_VARIANTS:
+        raise TrainError(f"{path}: 'obs' must be {' or '.join(OBS_VARIANTS)}, got {cfg.obs!r}; {fix}")
     if min(cfg.agents, cfg.steps, cfg.horizon, cfg.checkpoint_every, cfg.workers, cfg.image_size) < 1:
         raise TrainError(f"{path}: agents, steps, horizon, checkpoint_every, workers and image_size "
                          f"must be >= 1; {fix}")

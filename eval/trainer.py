@@ -103,7 +103,7 @@ def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, 
 def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space,
                    device: str = "cpu") -> dict:
     import agents as agents_pkg
-    from agents.base import check_frames
+    from agents.base import check_observations
     from agents.registry import get_agent_class
 
     cls = get_agent_class(cfg.algo)
@@ -114,8 +114,8 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
         latest = run / "checkpoints" / aid / "latest.pt"
         if resumed and latest.exists():
             out[aid] = agents_pkg.load(latest, device=device)  # saved from any device, loads on any
-            try:  # a config.yaml edited to another --frame-stack than the checkpoints'
-                check_frames(out[aid].observation_space, obs_space.shape, f"checkpoint {latest}")
+            try:  # a config.yaml edited to another --obs or --frame-stack than the checkpoints'
+                check_observations(out[aid].observation_space, obs_space, f"checkpoint {latest}")
             except ValueError as exc:
                 raise TrainError(str(exc)) from None
         else:
@@ -268,8 +268,9 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
 
 def make_env(cfg_dict: dict, worker_seed: int | None = None):
     """Build the training env of a config (top-level, so worker processes can pickle it);
-    with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack);
-    collisions end an AC's episode unless ``collisions_end_episode`` is off."""
+    with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack),
+    with ``obs`` "nav" beside its measurements (cosim.wrappers.NavObservation); collisions end
+    an AC's episode unless ``collisions_end_episode`` is off."""
     from cosim.env import CosimParallelEnv
     from cosim.wrappers import observation_wrappers
 
@@ -279,7 +280,7 @@ def make_env(cfg_dict: dict, worker_seed: int | None = None):
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
         horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
     )
-    return observation_wrappers(env, frame_stack=cfg.frame_stack)
+    return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs)
 
 
 class _EpisodeTap:

@@ -60,7 +60,7 @@ class Validator:
         env = CosimParallelEnv(cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
                                seed=self.seeds[0], image_size=cfg.image_size, horizon=self.steps,
                                terminate_on_collision=False)
-        return observation_wrappers(env, frame_stack=cfg.frame_stack)
+        return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs)
 
     def scores(self, agents: Mapping[str, object]) -> dict[str, float]:
         """Each AC's mean return over the validation episodes (AC id -> score)."""
