@@ -55,8 +55,9 @@ CATALOGUE: tuple[Algorithm, ...] = (
     Algorithm("impala", "agents.impala:IMPALA", "discrete", "async", ("actor_critic",), stochastic=True,
               async_trainer="agents.impala:train_impala"),
     Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",), stochastic=False),
-    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor",), stochastic=False),
-    Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor",), stochastic=False),
+    # DDPG/TD3: the actor acts on the critic's encoder (critic.encode), so the critic is policy too
+    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor", "critic"), stochastic=False),
+    Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor", "critic"), stochastic=False),
 )
 # ---------------------------------------------------------------------------------------
 

@@ -64,6 +64,31 @@ def test_a_policy_checkpoint_acts_like_the_full_one_and_holds_only_the_policy(al
 
 
 @pytest.mark.parametrize("algo", ["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
+def test_a_camera_policy_checkpoint_acts_like_the_full_agent(algo, tmp_path):
+    """On camera images every network the action passes through is in the policy file: with
+    every weight moved away from its initialisation, the policy-only agent acts as the full one
+    (DDPG/TD3's actor reads the critic's CNN; a best.pt without the critic acted on untrained
+    features)."""
+    import gymnasium as gym
+
+    cls = get_agent_class(algo)
+    action = gym.spaces.Box(-1, 1, (2,), np.float32) if algo in ("ddpg", "td3") else gym.spaces.Discrete(9)
+    agent = cls.from_spaces(gym.spaces.Box(0, 255, (84, 84, 3), np.uint8), action, seed=5)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for net in agent.networks.values():
+            for p in net.parameters():
+                p.add_(0.05 * torch.randn(p.shape, generator=gen))
+    agent.save(tmp_path / "policy.pt", policy_only=True)
+    policy = agents.load(tmp_path / "policy.pt")
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        obs = rng.integers(0, 256, size=(84, 84, 3), dtype=np.uint8)
+        np.testing.assert_allclose(policy.act(obs, deterministic=True), agent.act(obs, deterministic=True),
+                                   rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
 def test_every_policy_network_is_an_agent_network_and_the_camera_policy_fits_the_disk_budget(algo, tmp_path):
     """A quick run folder (6 ACs) keeps one policy file per AC: <= 60 MB needs <= 10 MB each."""
     import gymnasium as gym
