@@ -1,0 +1,108 @@
+"""Same seeds, same results (issue 26): a tiny training run of PPO and DQN and a test-protocol
+run of their checkpoints and of the autopilot, compared with the records the code gave when
+the fixture was written (tests/data/same_results/, before ``eval/`` was split into
+subpackages). A refactor that keeps behaviour keeps these numbers.
+
+Discrete quantities (agents, episodes, steps, event counts, flags, weight digests) are
+compared exactly; floats (returns, positions, speeds, weight sums) to ``rtol=1e-9``: two
+runs of the same code on this machine gave bit-identical records and checkpoints
+(torch on CPU with one thread), so any difference is a change of behaviour, not noise.
+Regenerate, only on purpose: ``COSIM_WRITE_SAME_RESULTS=1 pytest tests/eval/test_same_results.py``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import agents
+
+torch = pytest.importorskip("torch")
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "same_results"
+ALGOS = ("ppo", "dqn")
+TRAIN_STEPS = 130  # two 60-step smoke episodes and a checkpoint every 40 steps: updates happen
+TEST_STEPS = 20
+
+
+def _tensors(node, prefix=""):
+    """Every tensor of a checkpoint's state, by its path, in a fixed order."""
+    if isinstance(node, torch.Tensor):
+        yield prefix, node
+    elif isinstance(node, dict):
+        for key in sorted(node, key=str):
+            yield from _tensors(node[key], f"{prefix}/{key}")
+    elif isinstance(node, (list, tuple)):
+        for i, item in enumerate(node):
+            yield from _tensors(item, f"{prefix}/{i}")
+
+
+def _weights(run: Path, algo: str) -> list[dict]:
+    rows = []
+    for path in sorted((run / "checkpoints").rglob("*.pt")):
+        agent = agents.load(path)  # best.pt packs its weights: compare what the agent acts with
+        state = agent.state_dict()
+        for group in ("networks",) if agent.policy_only else ("networks", "optimizers"):
+            tensors = list(_tensors(state[group]))
+            digest = hashlib.sha256()
+            total = absolute = 0.0
+            for name, t in tensors:
+                data = t.detach().contiguous().cpu()
+                digest.update(name.encode() + data.numpy().tobytes())
+                total += float(data.double().sum())
+                absolute += float(data.double().abs().sum())
+            rows.append({"algo": algo, "file": path.relative_to(run).as_posix(), "group": group,
+                         "sha256": digest.hexdigest()[:16], "sum": total, "abs_sum": absolute})
+    return rows
+
+
+def _records(tmp_path: Path) -> dict[str, pd.DataFrame]:
+    from eval.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.train import make_config, train
+
+    episodes, weights = [], []
+    for algo in ALGOS:
+        cfg = make_config(algo, "env_1", "smoke", steps=TRAIN_STEPS, seed=0, torch_threads=1,
+                          validation_episodes=0, device="cpu")
+        run = train(cfg, tmp_path / "runs", quiet=True, progress=False, keep="all")
+        ep = pd.read_csv(run / "episodes.csv").drop(columns=["wall_time_s"])
+        episodes.append(ep.assign(algo=algo))
+        weights += _weights(run, algo)
+    plan = ProtocolPlan(envs=("env_1",), scenarios=(1, 2), episodes=1, steps=TEST_STEPS, agents=2)
+    found = find_checkpoints(tmp_path / "runs", list(ALGOS))
+    trained = run_protocol(plan, policy_factory("trained", found), list(ALGOS)).assign(policy="trained")
+    autopilot = run_protocol(plan, policy_factory("autopilot"), list(ALGOS)).assign(policy="autopilot")
+    return {"train_episodes": pd.concat(episodes, ignore_index=True),
+            "train_weights": pd.DataFrame(weights),
+            "test_records": pd.concat([trained, autopilot], ignore_index=True)}
+
+
+def _compare(name: str, got: pd.DataFrame, want: pd.DataFrame) -> None:
+    assert list(got.columns) == list(want.columns), name
+    assert len(got) == len(want), name
+    for column in want.columns:
+        g, w = got[column], want[column]
+        if pd.api.types.is_float_dtype(w) or pd.api.types.is_float_dtype(g):
+            np.testing.assert_allclose(g.to_numpy(float), w.to_numpy(float), rtol=1e-9, atol=1e-9,
+                                       equal_nan=True, err_msg=f"{name}.{column}")
+        else:
+            assert g.astype(str).tolist() == w.astype(str).tolist(), f"{name}.{column}"
+
+
+def test_a_training_run_and_a_test_run_give_the_recorded_results(tmp_path):
+    records = _records(tmp_path)
+    assert (records["train_weights"]["abs_sum"] > 0).all()
+    if os.environ.get("COSIM_WRITE_SAME_RESULTS"):
+        DATA.mkdir(parents=True, exist_ok=True)
+        for name, frame in records.items():
+            frame.to_csv(DATA / f"{name}.csv", index=False, float_format="%.17g")
+    for name, frame in records.items():
+        # through CSV both ways, so both sides have the same dtypes
+        path = tmp_path / f"{name}.csv"
+        frame.to_csv(path, index=False, float_format="%.17g")
+        _compare(name, pd.read_csv(path), pd.read_csv(DATA / f"{name}.csv"))
