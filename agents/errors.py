@@ -8,7 +8,7 @@
 does not pull in torch.
 
 Every subclass's message names the bad input and the fix; the command line
-(``eval/cli.py``) catches this root and ``cosim.errors.CosimError`` alike and prints the
+(``eval/cli/__init__.py``) catches this root and ``cosim.errors.CosimError`` alike and prints the
 message as one line (``cosim: error: ...``; exit codes: docs/reference.md#exit-codes-and-errors).
 """
 

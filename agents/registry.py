@@ -35,7 +35,7 @@ class Algorithm:
     checkpoint keeps (agents/checkpoint.py; run folders' ``best.pt``)."""
     stochastic: bool
     """True: the learned policy is a distribution (actor-critic), its training maximised the
-    return of its samples, so an evaluation samples it (``act(obs)``; eval.protocol.SAMPLED);
+    return of its samples, so an evaluation samples it (``act(obs)``; eval.testing.protocol.SAMPLED);
     False: a deterministic policy (greedy in Q, or a deterministic actor) whose exploration
     (epsilon, action noise) is training-only, so an evaluation acts greedily."""
     async_trainer: str = ""

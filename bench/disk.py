@@ -45,7 +45,7 @@ def cosim(args: list[str]) -> float:
 
 
 def run_folders(tmp: Path, preset: str, steps: int, keep: str) -> dict[str, dict[str, float]]:
-    from eval.presets import load_presets
+    from eval.training.presets import load_presets
 
     budget = load_presets()[preset].steps
     cosim(["train", "--algo", "all", "--preset", preset, "--steps", str(steps), "--keep", keep,

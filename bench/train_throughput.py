@@ -6,7 +6,7 @@ For each --envs value, in the same run on the same cores:
   N env_1 copies with uniform random actions, no learning, no networks;
 * each algorithm training --steps environment steps with its quick-preset
   hyperparameters (learning_starts lowered to 200 so learning happens inside the
-  window), through `eval.train.train` exactly as `cosim train --envs N` runs it.
+  window), through `eval.training.train.train` exactly as `cosim train --envs N` runs it.
 
 Rates: "steady" counts env steps (summed over the N environments) over the time
 inside the loop (reset, step, act, learn: the loop's own clocks; process and
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.train import make_config, make_env, train
+from eval.training.train import make_config, make_env, train
 
 AGENTS = 3  # the default of --agents: the first tables of docs/benchmarks.md were taken with 3 ACs
 

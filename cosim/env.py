@@ -235,7 +235,7 @@ class CosimParallelEnv(ParallelEnv):
     @property
     def last_infos(self) -> dict[str, dict]:
         """The infos of the last reset or step, per AC (what it returned): what a policy that
-        drives one AC of a shared env reads beside its camera (eval/rollout.py NavPolicy)."""
+        drives one AC of a shared env reads beside its camera (eval/testing/rollout.py NavPolicy)."""
         return self._last_infos
 
     @property

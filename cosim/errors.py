@@ -17,7 +17,7 @@ __all__ = [
 class CosimError(Exception):
     """Base class of every error the simulation package (and ``eval`` on top of it) raises on
     purpose. ``agents`` has its own root, ``agents.errors.AgentError``, since it never imports
-    cosim; the command line (``eval/cli.py``) catches both and prints one line
+    cosim; the command line (``eval/cli/__init__.py``) catches both and prints one line
     (docs/reference.md#exit-codes-and-errors)."""
 
 

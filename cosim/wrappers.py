@@ -8,7 +8,7 @@ A single camera frame has no velocity. :class:`FrameStack` gives each agent its 
 frames, stacked on the channel axis oldest first (84x84x3 -> 84x84x3K); at a reset the
 history is K copies of the first frame. :class:`FrameHistory` is the stack of one camera,
 which a policy that drives one car of a shared test environment keeps for itself
-(eval/rollout.py ``StackedPolicy``), so training and testing stack identically.
+(eval/testing/rollout.py ``StackedPolicy``), so training and testing stack identically.
 
 SuperSuit's ``pettingzoo_env_to_vec_env_v1`` (and SB3 or CleanRL behind it) makes each
 agent one slot of a vector env, so every agent must appear in every step's output

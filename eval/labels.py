@@ -6,9 +6,9 @@ The facts themselves have one source each: the algorithms and their order are th
 :func:`cosim.scenario.available_scenarios`) with their titles. Only the presentation is
 decided here, once for every report, figure and study.
 
-Its own module so that ``eval/figures.py`` and ``eval/report.py`` (which draws the figures)
+Its own module so that ``eval/reporting/figures.py`` and ``eval/reporting/report.py`` (which draws the figures)
 both import it instead of each other: no import cycle (tests/eval/test_layout.py).
-``eval.report`` re-exports the names it used to define.
+``eval.reporting.report`` re-exports the names it used to define.
 """
 
 from __future__ import annotations

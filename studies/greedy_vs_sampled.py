@@ -4,8 +4,8 @@
 
 For every run of PPO, A3C and IMPALA under ``--runs`` trained in ``--env``: its ``ac_0``
 (Scenario 2 drives ac_0's spawn and goal) alone on held-out episode seeds, once taking
-the policy's mode and once sampling it (eval.rollout.SampledPolicy). The test protocol
-samples these algorithms (eval.protocol.SAMPLED); this is the measurement behind it.
+the policy's mode and once sampling it (eval.testing.rollout.SampledPolicy). The test protocol
+samples these algorithms (eval.testing.protocol.SAMPLED); this is the measurement behind it.
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ if str(ROOT) not in sys.path:
 import pandas as pd  # noqa: E402
 
 from cosim.env import CosimParallelEnv  # noqa: E402
-from eval import selection  # noqa: E402
-from eval.protocol import SAMPLED, drive, load_for_slot  # noqa: E402
-from eval.report import per_episode  # noqa: E402
-from eval.rollout import run_episodes  # noqa: E402
-from eval.validity import HELD_OUT_SEED  # noqa: E402
+from eval.reporting.report import per_episode  # noqa: E402
+from eval.testing import selection  # noqa: E402
+from eval.testing.protocol import SAMPLED, drive, load_for_slot  # noqa: E402
+from eval.testing.rollout import run_episodes  # noqa: E402
+from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 
 def main(argv=None) -> int:

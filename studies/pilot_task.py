@@ -24,12 +24,12 @@ interval) and skips finished tests; the plan (preset, steps, seed, test) is kept
 ``OUT/plan.json`` and a rerun with another is refused.
 
 Test: each run's ACs drive together, each in the slot it was trained in with its own selected
-checkpoint (eval/protocol.py ``slot_checkpoint``: best.pt, chosen by the run's own rule), under
+checkpoint (eval/testing/protocol.py ``slot_checkpoint``: best.pt, chosen by the run's own rule), under
 the test's rules (collisions go on, every contact step charged, the scenario's horizon, PPO
 sampling and DQN greedy), on the held-out episode seeds 10,000, 10,001, ...
-(eval.validity.HELD_OUT_SEED), with background traffic, in the new task's environment except
+(eval.testing.validity.HELD_OUT_SEED), with background traffic, in the new task's environment except
 the steering, which follows the arm: a car trained with the old wheel drives with the old wheel.
-References on the same seeds, AC count and steps (eval/validity.py ``run_policy``):
+References on the same seeds, AC count and steps (eval/testing/validity.py ``run_policy``):
 always-brake, safe-non-turner, autopilot-discrete and autopilot on the new task's car, and
 autopilot-discrete on the old wheel when the old arm runs.
 
@@ -65,7 +65,7 @@ from science import _write  # noqa: E402
 
 from cosim.errors import CosimError  # noqa: E402
 from cosim.scenario import load_scenario, scenarios_dir  # noqa: E402
-from eval.validity import HELD_OUT_SEED  # noqa: E402
+from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 ARMS = ("old", "new", "nav")
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -196,7 +196,7 @@ def find_run(out: Path, cell: Cell, seed: int) -> Path | None:
 
 def run_status(run: Path | None) -> str:
     """``missing`` (no run folder), ``unfinished`` or ``finished`` (its steps all done)."""
-    from eval.runfolder import load_run_config, read_state
+    from eval.training.runfolder import load_run_config, read_state
 
     if run is None:
         return "missing"
@@ -245,9 +245,9 @@ def test_steps(args, env: str) -> int:
 def test_run(run: Path, algo: str, episodes: int, steps: int) -> pd.DataFrame:
     """The run's ACs together, each in its own slot with its own selected checkpoint, under
     the test's rules, in the run's scenario (its car), on the held-out seeds."""
-    from eval import selection
-    from eval.protocol import ProtocolPlan, policy_factory, run_protocol
-    from eval.runfolder import load_run_config
+    from eval.testing import selection
+    from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
+    from eval.training.runfolder import load_run_config
 
     cfg = load_run_config(run)
     chosen = selection.choose(run)
@@ -266,8 +266,8 @@ def test_run(run: Path, algo: str, episodes: int, steps: int) -> pd.DataFrame:
 
 def references(out: Path, env: str, car: str, policies, agents: int, episodes: int,
                steps: int) -> pd.DataFrame:
-    """Reference rows (eval/validity.py run_policy), cached as references/<env>__<car>.csv."""
-    from eval import validity
+    """Reference rows (eval/testing/validity.py run_policy), cached as references/<env>__<car>.csv."""
+    from eval.testing import validity
 
     path = out / "references" / f"{env}__{car}.csv"
     if path.exists():
@@ -386,7 +386,7 @@ def env_summary(table: pd.DataFrame, env: str) -> tuple[str, list[str]]:
 
 
 def summary(table: pd.DataFrame, args) -> str:
-    from eval.report import env_title
+    from eval.reporting.report import env_title
 
     parts = [f"Preset `{args.preset}`" + (f", {args.steps} steps per run" if args.steps else "")
              + f", training seed {args.seed}; test: {args.episodes} held-out episodes (seeds "
@@ -525,7 +525,7 @@ def _acting_threads() -> None:
 
 
 def _agents(args) -> int:
-    from eval.presets import load_presets
+    from eval.training.presets import load_presets
 
     return load_presets()[args.preset].agents
 

@@ -17,12 +17,12 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
    finished runs of other ``cosim benchmark --train-only`` folders (say two processes of
    three algorithms each, one per core) are linked in instead, once their configs are
    checked against the plan's;
-2. test: per (environment, training seed) the test protocol (eval/protocol.py) with that
-   seed's checkpoints on episode seeds from eval.validity.HELD_OUT_SEED (10,000; training
+2. test: per (environment, training seed) the test protocol (eval/testing/protocol.py) with that
+   seed's checkpoints on episode seeds from eval.testing.validity.HELD_OUT_SEED (10,000; training
    uses small seeds), saved as ``OUT/test/<env>__seed<k>.parquet``;
-3. references: the autopilot, uniform random and degenerate suite (eval/validity.py) on the
+3. references: the autopilot, uniform random and degenerate suite (eval/testing/validity.py) on the
    same episode seeds, AC count and steps, saved as ``OUT/references/<env>.csv``;
-4. results (eval/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
+4. results (eval/reporting/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
    seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``,
    ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``),
    ``summary.md`` (printed: a study's results section, as in docs/results/*/README.md), ``report/`` (the `cosim test`
@@ -31,7 +31,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
 ``--combine`` replaces stages 1-3: finished studies of different environments (run as
 separate processes, say one per core) are gathered into ``--out`` and stage 4 runs over
 all of them; each environment keeps its own number of training seeds, and the verdict
-asks for 3 (eval.science.MIN_SEEDS) whatever the intervals say.
+asks for 3 (eval.reporting.science.MIN_SEEDS) whatever the intervals say.
 """
 
 from __future__ import annotations
@@ -52,8 +52,9 @@ import pandas as pd  # noqa: E402
 from agents.errors import AgentError  # noqa: E402
 from agents.registry import ALGORITHMS  # noqa: E402
 from cosim.errors import CosimError  # noqa: E402
-from eval import science  # noqa: E402
-from eval.benchmark import (  # noqa: E402
+from eval.reporting import science  # noqa: E402
+from eval.reporting.report import env_title  # noqa: E402
+from eval.scale.benchmark import (  # noqa: E402
     TEST_SETTINGS,
     BenchmarkPlan,
     adds_seeds,
@@ -61,11 +62,10 @@ from eval.benchmark import (  # noqa: E402
     finished_runs,
     saved_plan,
 )
-from eval.config import COLLISION_RULES  # noqa: E402
-from eval.presets import load_presets  # noqa: E402
-from eval.protocol import ProtocolPlan, rules  # noqa: E402
-from eval.report import env_title  # noqa: E402
-from eval.validity import HELD_OUT_SEED, POLICIES  # noqa: E402
+from eval.testing.protocol import ProtocolPlan, rules  # noqa: E402
+from eval.testing.validity import HELD_OUT_SEED, POLICIES  # noqa: E402
+from eval.training.config import COLLISION_RULES  # noqa: E402
+from eval.training.presets import load_presets  # noqa: E402
 
 SMOKE = {"preset": "smoke", "envs": ["env_1"], "algos": ["ppo", "dqn"], "seeds": 2, "steps": 60,
          "scenarios": [1]}
@@ -76,7 +76,7 @@ class ScienceError(CosimError, ValueError):
 
 
 def default_preset() -> str:
-    """``standard`` once eval/hyperparams defines it, else ``quick``."""
+    """``standard`` once eval/training/hyperparams defines it, else ``quick``."""
     return "standard" if "standard" in load_presets() else "quick"
 
 
@@ -139,7 +139,7 @@ def parse(argv=None) -> argparse.Namespace:
 def test_settings(args) -> tuple[int, int]:
     """(episodes, steps) of the test: the options, else the preset's `cosim benchmark` test,
     else the protocol's defaults (3 episodes of 500 steps)."""
-    from eval.protocol import ProtocolPlan
+    from eval.testing.protocol import ProtocolPlan
 
     base = TEST_SETTINGS.get(args.preset)
     episodes = args.episodes or (base.episodes if base else ProtocolPlan.episodes)
@@ -222,7 +222,7 @@ def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
     """Stage 1 from runs trained elsewhere: link each cell's finished run from one of the
     ``sources`` (``cosim benchmark --train-only`` folders) into ``bench/runs`` and record the
     plan, so that :func:`train` finds every run done."""
-    from eval.runfolder import load_run_config
+    from eval.training.runfolder import load_run_config
 
     links = {}
     for cfg in plan.cells():
@@ -258,7 +258,7 @@ def adopt(plan: BenchmarkPlan, bench: Path, sources: list[Path], say) -> None:
 
 # -- 2. test on held-out seeds ------------------------------------------------------------------
 def checkpoints(plan: BenchmarkPlan, bench: Path, env: str, seed: int) -> dict[str, Path]:
-    from eval import selection
+    from eval.testing import selection
 
     found = {}
     for algo in plan.algos:
@@ -284,7 +284,7 @@ def _write(df: pd.DataFrame, path: Path) -> None:
 def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, int]) -> pd.DataFrame:
     """Held-out records of every (env, training seed < seeds_of[env]), from the cache where
     present."""
-    from eval.protocol import ProtocolPlan, policy_factory, run_protocol
+    from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
 
     t = study["test"]
     frames = []
@@ -306,7 +306,7 @@ def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, i
 
 def references(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame:
     """Reference rows per environment (Scenario 1 conditions, the same episode seeds)."""
-    from eval import validity
+    from eval.testing import validity
 
     t = study["test"]
     frames = []
@@ -402,8 +402,8 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
             out: Path, command: str, seeds_of: dict[str, int]) -> str:
     """Every results file; returns summary.md's text. ``seeds_of``: training seeds per
     environment (``plan.seeds`` each, except in a --combine'd study)."""
-    from eval.protocol import ProtocolPlan
-    from eval.report import per_episode, provenance, write_paper_report
+    from eval.reporting.report import per_episode, provenance, write_paper_report
+    from eval.testing.protocol import ProtocolPlan
 
     per = pd.concat([per_episode(g).assign(train_seed=seed)
                      for seed, g in records.groupby("train_seed", sort=True)], ignore_index=True)

@@ -4,7 +4,7 @@ algorithm trained with the preset's 3, in the science study's test.
     for s in 0 1 2; do cosim train --algo ppo --env env_1 --preset quick --agents 6 --seed $s --out runs/six_acs; done
     python studies/six_acs.py --science runs/science_env1 --runs runs/six_acs --algo ppo
 
-Per training seed k: the science study's Scenario 1 test (eval/protocol.py; rotated
+Per training seed k: the science study's Scenario 1 test (eval/testing/protocol.py; rotated
 slots, each slot driven by the run's AC trained in it, held-out episode seeds) with
 seed k's checkpoints of ``--science``, once as they are (cached there) and once with
 ``--algo`` replaced by its 6-AC run of seed k under ``--runs``. Prints both rows.
@@ -25,11 +25,11 @@ for path in (ROOT, ROOT / "studies"):  # run as a script from a checkout; studie
 import pandas as pd  # noqa: E402
 import science  # noqa: E402
 
-from eval import selection  # noqa: E402
-from eval.benchmark import BenchmarkPlan  # noqa: E402
-from eval.protocol import ProtocolPlan, policy_factory, run_protocol  # noqa: E402
-from eval.report import per_episode  # noqa: E402
-from eval.validity import HELD_OUT_SEED  # noqa: E402
+from eval.reporting.report import per_episode  # noqa: E402
+from eval.scale.benchmark import BenchmarkPlan  # noqa: E402
+from eval.testing import selection  # noqa: E402
+from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol  # noqa: E402
+from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 COLUMNS = ["return", "goal", "CV", "CO", "OS", "SPEED"]
 

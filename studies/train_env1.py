@@ -28,10 +28,10 @@ import yaml
 import agents
 import cosim
 from cosim.scenario import load_scenario, nets_dir
-from eval.metrics import episode_metrics
-from eval.protocol import drive
-from eval.rollout import AutopilotPolicy, RandomPolicy, run_episodes
-from eval.train import DISCRETE_ALGOS, make_config, parse_set, train
+from eval.testing.metrics import episode_metrics
+from eval.testing.protocol import drive
+from eval.testing.rollout import AutopilotPolicy, RandomPolicy, run_episodes
+from eval.training.train import DISCRETE_ALGOS, make_config, parse_set, train
 
 HELD_OUT_SEEDS = [90_001, 90_002, 90_003, 90_004, 90_005, 90_006, 90_007, 90_008]
 COLUMNS = ["return", "DISTANCE", "OS", "goal", "CV", "CO", "SPEED"]
@@ -145,7 +145,7 @@ def main() -> None:
     hyper = parse_set(args.set)
     for algo in [] if args.eval is not None else args.algos:
         # agents=3: the figures in docs/results/2026-11-22-train-env1/README.md were taken with the quick preset's 3 ACs of the
-        # time (the preset now trains 6, eval/hyperparams/runs.yaml).
+        # time (the preset now trains 6, eval/training/hyperparams/runs.yaml).
         cfg = make_config(algo, args.env, "quick", agents=3, seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()
         run = train(cfg, args.out, quiet=True)

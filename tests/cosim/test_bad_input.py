@@ -155,10 +155,10 @@ def test_bad_cli_input_is_one_line_naming_it(make_argv, expected, tmp_path, capf
 
 
 def test_out_under_a_file_fails_before_the_protocol_runs(tmp_path, capfd, monkeypatch):
-    import eval.protocol
+    import eval.testing.protocol
 
     ran = []
-    monkeypatch.setattr(eval.protocol, "run_protocol", lambda *a, **k: ran.append(1))
+    monkeypatch.setattr(eval.testing.protocol, "run_protocol", lambda *a, **k: ran.append(1))
     code, err = run_cli(["test", "--policy", "random", "--envs", "env_1", "--quiet",
                          "--out", str(_file(tmp_path) / "reports")], capfd)
     assert code != 0 and not ran and "--out" in err
@@ -217,9 +217,9 @@ def test_every_deliberate_error_has_its_package_root():
     from agents.checkpoint import CheckpointError
     from agents.errors import AgentError
     from agents.workers import WorkerError
-    from eval.presets import PresetError
-    from eval.protocol import ProtocolError
-    from eval.train import TrainError
+    from eval.testing.protocol import ProtocolError
+    from eval.training.presets import PresetError
+    from eval.training.train import TrainError
 
     for cls in (ScenarioError, ActionError, OptionError, TrainError, ProtocolError, PresetError):
         assert issubclass(cls, CosimError) and not issubclass(cls, AgentError), cls
@@ -228,8 +228,8 @@ def test_every_deliberate_error_has_its_package_root():
 
 
 def _bad_presets(tmp_path, monkeypatch, edit) -> None:
-    """eval/hyperparams/ copied to ``tmp_path``, changed by ``edit(folder)``, and read from there."""
-    import eval.presets as presets
+    """eval/training/hyperparams/ copied to ``tmp_path``, changed by ``edit(folder)``, and read from there."""
+    import eval.training.presets as presets
 
     for path in presets.HYPERPARAMS.glob("*.yaml"):
         (tmp_path / path.name).write_text(path.read_text())
@@ -241,7 +241,7 @@ def _bad_presets(tmp_path, monkeypatch, edit) -> None:
 @pytest.mark.parametrize("command", [["train", "--algo", "ppo"], ["benchmark", "--no-ray"]])
 def test_a_bad_preset_yaml_is_one_line_naming_the_file_for_the_commands_that_read_it(
         command, tmp_path, capfd, monkeypatch):
-    """train and benchmark read eval/hyperparams/*.yaml: a typo there is one line naming the
+    """train and benchmark read eval/training/hyperparams/*.yaml: a typo there is one line naming the
     file and the fix (exit 2), never a traceback."""
     _bad_presets(tmp_path, monkeypatch,
                  lambda folder: (folder / "td3.yaml").write_text("quick: {steps: 10\n"))  # unclosed
@@ -274,12 +274,12 @@ def test_a_preset_yaml_with_an_unknown_key_names_the_key_and_the_valid_ones(tmp_
 
 
 def test_a_bug_prints_one_line_and_the_log_holding_its_traceback(capfd, monkeypatch):
-    import eval.cli_sim
+    import eval.cli.sim
 
     def broken(args):
         raise RuntimeError("something deep inside\nwith a second line")
 
-    monkeypatch.setattr(eval.cli_sim, "cmd_scenarios", broken)
+    monkeypatch.setattr(eval.cli.sim, "cmd_scenarios", broken)
     code, err = run_cli(["scenarios"], capfd)
     assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
     assert "unexpected error RuntimeError: something deep inside" in err
@@ -289,13 +289,13 @@ def test_a_bug_prints_one_line_and_the_log_holding_its_traceback(capfd, monkeypa
 
 
 def test_a_multi_line_error_prints_its_first_line_and_keeps_the_rest_in_a_log(capfd, monkeypatch):
-    import eval.cli_sim
+    import eval.cli.sim
     from agents.workers import WorkerError
 
     def worker_died(args):
         raise WorkerError(1, "exited with code 1", "Traceback (most recent call last):\n  boom")
 
-    monkeypatch.setattr(eval.cli_sim, "cmd_scenarios", worker_died)
+    monkeypatch.setattr(eval.cli.sim, "cmd_scenarios", worker_died)
     code, err = run_cli(["scenarios"], capfd)
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err  # a user error (AgentError)
     assert err.startswith("cosim: error: worker 1 failed: exited with code 1 (details in ")

@@ -18,7 +18,7 @@ from cosim.roadmap import movement
 from cosim.scenario import load_scenario
 from cosim.world import World
 
-SEED = 10_000  # a held-out seed (eval.validity.HELD_OUT_SEED)
+SEED = 10_000  # a held-out seed (eval.testing.validity.HELD_OUT_SEED)
 
 
 def _alone(env: str, slot: int):

@@ -47,7 +47,7 @@ def exits(weights, horizon: int, dt: float, speed_limit: float, max_speed: float
 
 def _cases():
     from cosim.scenario import available_scenarios, load_scenario
-    from eval.presets import load_presets
+    from eval.training.presets import load_presets
 
     horizons = {p.horizon for p in load_presets().values()}
     for name in available_scenarios():
@@ -91,7 +91,7 @@ def test_the_paper_rule_pays_for_crashing_with_71_or_more_steps_left():
 
 def test_training_defaults_to_the_test_rule_and_the_paper_rule_is_one_flag_away():
     from eval.cli import build_parser
-    from eval.config import make_config
+    from eval.training.config import make_config
 
     assert make_config("ppo", "env_1", "smoke").collisions_end_episode is False
     assert make_config("ppo", "env_1", "smoke", collisions="end").collisions_end_episode is True

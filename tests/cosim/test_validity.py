@@ -12,7 +12,14 @@ from cosim.events import detect_all
 from cosim.roadmap import movement, read_net
 from cosim.scenario import SpawnJitter, load_scenario
 from cosim.world import World
-from eval.validity import POLICIES, REFERENCES, check_scenario, failures, format_table, summarize
+from eval.testing.validity import (
+    POLICIES,
+    REFERENCES,
+    check_scenario,
+    failures,
+    format_table,
+    summarize,
+)
 
 ENVS = ["env_1", "env_2", "env_3", "env_4", "env_5"]
 JUNCTIONS = ["env_2", "env_3", "env_4"]

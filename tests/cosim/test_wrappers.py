@@ -94,7 +94,7 @@ def test_frame_stack_starts_again_at_every_reset():
 def test_a_policy_s_frame_history_stacks_as_the_training_env_does():
     from agents.envs import ScriptedParallelEnv
     from cosim.wrappers import FrameStack
-    from eval.rollout import StackedPolicy
+    from eval.testing.rollout import StackedPolicy
 
     class Spy:
         algo = "spy"

@@ -20,7 +20,7 @@ import sys
 import torch
 
 import agents.checkpoint
-import eval.runlog
+import eval.training.runlog
 from eval.cli import main
 
 calls = {"checkpoint": 0, "fired": 0}
@@ -32,7 +32,7 @@ def fire() -> None:
     os.kill(os.getpid(), sig)
 
 
-real_checkpoint = eval.runlog.RunLog.checkpoint
+real_checkpoint = eval.training.runlog.RunLog.checkpoint
 
 
 def checkpoint(self, *args, **kwargs):
@@ -42,7 +42,7 @@ def checkpoint(self, *args, **kwargs):
     return real_checkpoint(self, *args, **kwargs)
 
 
-real_write = eval.runlog.atomic_write  # how RunLog.checkpoint writes state.json
+real_write = eval.training.runlog.atomic_write  # how RunLog.checkpoint writes state.json
 
 
 def atomic_write(path, text):
@@ -68,8 +68,8 @@ def save(obj, f, *args, **kwargs):
 
 if __name__ == "__main__":  # worker processes (spawn) import this module again
     moment, nth, sig = sys.argv[1], int(sys.argv[2]), getattr(signal, f"SIG{sys.argv[3]}")
-    eval.runlog.RunLog.checkpoint = checkpoint
-    eval.runlog.atomic_write = atomic_write
+    eval.training.runlog.RunLog.checkpoint = checkpoint
+    eval.training.runlog.atomic_write = atomic_write
     agents.checkpoint.torch.save = save
     code = main(sys.argv[sys.argv.index("--") + 1:])
     if not calls["fired"]:  # say why, for the test's failure message

@@ -1,4 +1,4 @@
-"""`cosim benchmark` and `cosim train --pbt` on Ray Tune (eval/benchmark.py, eval/pbt.py).
+"""`cosim benchmark` and `cosim train --pbt` on Ray Tune (eval/scale/benchmark.py, eval/scale/pbt.py).
 
 Each Ray run is a `cosim` subprocess with its own RAY_TMPDIR, so the test can tell
 its Ray processes (GCS, raylet, workers inherit the variable) from anyone else's
@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from eval.raysession import ray_available
+from eval.scale.raysession import ray_available
 
 needs_ray = pytest.mark.skipif(not ray_available(),
                                reason="Ray Tune is not installed (pip install -e '.[tune]')")
@@ -103,7 +103,7 @@ def tensors(path: Path) -> dict:
 
 # -- without Ray ---------------------------------------------------------------------
 def test_plan_agents_reach_every_trial_and_old_plans_still_match():
-    from eval.benchmark import BenchmarkError, BenchmarkPlan
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan
 
     base = BenchmarkPlan(preset="quick", envs=("env_1", "env_3"), algos=("ppo", "td3"), seeds=2)
     three = BenchmarkPlan(preset="quick", envs=("env_1", "env_3"), algos=("ppo", "td3"), seeds=2,
@@ -117,7 +117,7 @@ def test_plan_agents_reach_every_trial_and_old_plans_still_match():
 
 
 def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
-    from eval.benchmark import BenchmarkError, BenchmarkPlan
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan
 
     grid = {"preset": "quick", "envs": ("env_4",), "algos": ("dqn", "td3"), "seeds": 2}
     end, cont = BenchmarkPlan(**grid, collisions="end"), BenchmarkPlan(**grid)
@@ -132,8 +132,8 @@ def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
 
 
 def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch):
-    from eval import benchmark
-    from eval.benchmark import BenchmarkError, BenchmarkPlan, run_sequential
+    from eval.scale import benchmark
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, run_sequential
 
     trained = []
 
@@ -167,8 +167,8 @@ def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch)
 
 
 def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, monkeypatch, capsys):
-    from eval import benchmark
     from eval.cli import main
+    from eval.scale import benchmark
 
     def fake_train_cell(cfg, folder, keep="all"):
         run = Path(folder) / "run"
@@ -188,7 +188,7 @@ def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, mo
 
 
 def test_more_seeds_wait_for_the_saved_benchmark_to_finish(tmp_path):
-    from eval.benchmark import BenchmarkError, BenchmarkPlan, _prepare
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, _prepare
 
     grid = {"preset": "smoke", "envs": ("env_1",), "algos": ("ppo",)}
     out = tmp_path / "b"
@@ -203,17 +203,17 @@ def test_more_seeds_wait_for_the_saved_benchmark_to_finish(tmp_path):
 
 
 def test_commands_without_a_grid_never_import_ray():
-    code = ("import sys, eval.cli, eval.benchmark, eval.pbt, eval.raysession; "
+    code = ("import sys, eval.cli, eval.scale.benchmark, eval.scale.pbt, eval.scale.raysession; "
             "eval.cli.build_parser().parse_args(['benchmark', '--no-ray']); "
-            "eval.raysession.ray_available(); assert 'ray' not in sys.modules, 'ray imported'")
+            "eval.scale.raysession.ray_available(); assert 'ray' not in sys.modules, 'ray imported'")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
 def test_benchmark_without_ray_says_how_to_install(monkeypatch, capsys, tmp_path):
-    import eval.raysession
+    import eval.scale.raysession
     from eval.cli import main
 
-    monkeypatch.setattr(eval.raysession, "ray_available", lambda: False)
+    monkeypatch.setattr(eval.scale.raysession, "ray_available", lambda: False)
     assert main(["benchmark", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "pip install -e '.[tune]'" in err
@@ -222,8 +222,8 @@ def test_benchmark_without_ray_says_how_to_install(monkeypatch, capsys, tmp_path
 
 
 def test_pbt_mutations_are_fields_of_each_agent_config():
-    from eval.pbt import MUTATIONS, mutation_space, with_hyper
-    from eval.train import make_config
+    from eval.scale.pbt import MUTATIONS, mutation_space, with_hyper
+    from eval.training.train import make_config
 
     for algo in MUTATIONS:
         cfg = make_config(algo, "env_1", "quick")
@@ -271,9 +271,9 @@ def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperpar
     import pandas as pd
     import torch
 
-    from eval import selection
-    from eval.pbt import weights_digest
-    from eval.protocol import load_for_slot
+    from eval.scale.pbt import weights_digest
+    from eval.testing import selection
+    from eval.testing.protocol import load_for_slot
 
     done = cosim(["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps",
                   str(PBT_STEPS), "--pbt", "4", "--pbt-interval", str(PBT_INTERVAL), "--out",
@@ -488,3 +488,18 @@ def test_ctrl_c_during_pbt_leaves_no_ray_process_and_resume_finishes_it(tmp_path
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert (folder / "lineage.csv").exists() and (folder / "lineage.png").exists()
     assert json.loads((folder / "state.json").read_text())["env_steps"] == 240
+
+
+def test_a_tune_folder_from_before_the_subpackages_is_refused_with_what_to_do(tmp_path):
+    """Tune's tuner.pkl names the trainable's and the scheduler's modules; those of a folder
+    written before eval/ was split (issue 26) no longer import: one clear error, not a traceback."""
+    from eval.scale.raysession import RayError, refuse_old_layout
+
+    refuse_old_layout(tmp_path)  # nothing to restore
+    for new in (b"eval.scale.benchmark\x94_tune_trial", b"eval.scale.pbt_scheduler\x94ResumablePBT"):
+        (tmp_path / "tuner.pkl").write_bytes(b"\x80\x05" + new)
+        refuse_old_layout(tmp_path)
+    for old in (b"eval.benchmark\x94_tune_trial", b"eval.pbt\x94_pbt_trial", b"eval.pbt_scheduler\x94ResumablePBT"):
+        (tmp_path / "tuner.pkl").write_bytes(b"\x80\x05" + old)
+        with pytest.raises(RayError, match="before eval/ was split"):
+            refuse_old_layout(tmp_path)

@@ -19,7 +19,9 @@ import eval
 from agents import registry
 from cosim.env import EPISODE_EVENTS
 from cosim.events import REWARD_TERMS
-from eval import config, labels, presets, protocol, runlog
+from eval import labels
+from eval.testing import protocol
+from eval.training import config, presets, runlog
 
 ROOT = Path(eval.__file__).resolve().parents[1]
 PACKAGES = ("cosim", "agents", "eval")
@@ -27,6 +29,10 @@ MAY_IMPORT = {"cosim": set(), "agents": set(), "eval": {"cosim", "agents"}}
 """Which project packages each package may import: cosim (simulation) and agents (learning) sit
 side by side and import neither each other nor eval; eval, on top, imports both
 (docs/design.md#import-direction-and-no-cycles)."""
+EVAL_LAYERS = ("eval.cli", "eval.scale", "eval.reporting", "eval.training", "eval.testing", "eval.labels")
+"""eval by responsibility, top down: each subpackage imports only those below it (the command
+line; Ray, benchmark and PBT; the report; training, whose validation runs test episodes; the
+test; the names and colours all of them show). docs/design.md#module-map."""
 MAY_NOT_IMPORT = {"agents": {"libsumo", "traci", "sumolib", "pybullet", "pybullet_data"}}
 """Third-party packages a project package must not import: agents learns from Gymnasium spaces
 and arrays, never from the simulators."""
@@ -61,7 +67,7 @@ def _imports(name: str, path: Path) -> list[tuple[str, int]]:
 
 
 def _project_module(target: str) -> str | None:
-    """The project module an import names (``eval.report.bootstrap_ci`` -> ``eval.report``)."""
+    """The project module an import names (``eval.reporting.report.bootstrap_ci`` -> ``eval.reporting.report``)."""
     parts = target.split(".")
     while parts and ".".join(parts) not in MODULES:
         parts.pop()
@@ -76,12 +82,13 @@ def _import_graph() -> dict[str, set[str]]:
 def test_the_import_graph_sees_every_package_and_lazy_imports(tmp_path):
     assert {m.split(".")[0] for m in MODULES} == set(PACKAGES) and len(MODULES) > 60
     graph = _import_graph()
-    assert "eval.cli_learn" in graph["eval.cli"]  # module level
+    assert "eval.cli.learn" in graph["eval.cli"]  # module level
     assert "agents.errors" in graph["eval.cli"]  # inside main(): a function-level import
-    probe = tmp_path / "probe.py"  # read as if it were eval/probe.py
-    probe.write_text("def f():\n    from .report import bootstrap_ci\n    import cosim.errors\n"
-                     "    from . import labels\n")
-    assert {t for t, _ in _imports("eval.probe", probe)} == {"eval.report", "cosim.errors", "eval.labels"}
+    probe = tmp_path / "probe.py"  # read as if it were eval/testing/probe.py
+    probe.write_text("def f():\n    from ..reporting.report import bootstrap_ci\n    import cosim.errors\n"
+                     "    from .. import labels\n    from . import metrics\n")
+    assert {t for t, _ in _imports("eval.testing.probe", probe)} == {
+        "eval.reporting.report", "cosim.errors", "eval.labels", "eval.testing.metrics"}
 
 
 def test_cosim_and_agents_never_import_each_other_or_eval():
@@ -94,6 +101,37 @@ def test_cosim_and_agents_never_import_each_other_or_eval():
                     other in MAY_NOT_IMPORT.get(package, ()):
                 wrong.append(f"{path.relative_to(ROOT)}:{line} imports {target}")
     assert not wrong, "import direction (docs/design.md#import-direction-and-no-cycles):\n" + "\n".join(wrong)
+
+
+def _layer(module: str) -> str | None:
+    return next((layer for layer in EVAL_LAYERS if module == layer or module.startswith(layer + ".")), None)
+
+
+def test_every_eval_module_sits_in_a_subpackage_with_a_one_line_charter():
+    stray = [m for m in MODULES if m.startswith("eval.") and _layer(m) is None]
+    assert not stray, f"eval modules outside the subpackages {EVAL_LAYERS}: {stray}"
+    packages = [layer for layer in EVAL_LAYERS if MODULES[layer].name == "__init__.py"]
+    assert len(packages) == 5  # all but labels.py
+    for layer in packages:
+        path = MODULES[layer]
+        doc = ast.get_docstring(ast.parse(path.read_text()), clean=False) or ""
+        charter = doc.split("\n")[0]
+        assert charter.endswith(".") and len(charter.split()) >= 5, f"{path.relative_to(ROOT)}: {charter!r}"
+        if layer != "eval.cli":  # the CLI's docstring goes on with the commands (its --help)
+            assert doc.strip() == charter, f"{path.relative_to(ROOT)}: the charter is one line"
+
+
+def test_evals_subpackages_import_only_those_below_them():
+    rank = {layer: i for i, layer in enumerate(EVAL_LAYERS)}
+    wrong = []
+    for name, path in MODULES.items():
+        if not name.startswith("eval."):
+            continue
+        for target, line in _imports(name, path):
+            module = _project_module(target)
+            if module and module.startswith("eval.") and rank[_layer(module)] < rank[_layer(name)]:
+                wrong.append(f"{path.relative_to(ROOT)}:{line} imports {target}")
+    assert not wrong, "eval's layers (docs/design.md#module-map):\n" + "\n".join(wrong)
 
 
 def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -218,7 +256,7 @@ def test_the_algorithm_catalogue_is_the_single_source():
     assert protocol.SAMPLED == registry.STOCHASTIC == tuple(a.name for a in registry.CATALOGUE if a.stochastic)
     assert set(registry.STOCHASTIC) | set(registry.DETERMINISTIC) == set(names)
     assert not set(registry.STOCHASTIC) & set(registry.DETERMINISTIC)
-    from eval.pbt import MUTATIONS
+    from eval.scale.pbt import MUTATIONS
 
     assert set(MUTATIONS) == set(names)
 
@@ -226,8 +264,9 @@ def test_the_algorithm_catalogue_is_the_single_source():
 def test_the_environments_are_the_scenario_files():
     """Every "all the environments" default is the bundled scenario files, not a list of names."""
     from cosim.scenario import available_scenarios
-    from eval import benchmark, science
     from eval.cli import build_parser
+    from eval.reporting import science
+    from eval.scale import benchmark
 
     envs = tuple(available_scenarios())
     assert labels.ENVS == envs == science.ENVS
@@ -239,9 +278,9 @@ def test_the_environments_are_the_scenario_files():
 
 
 def test_the_facade_reexports_the_modules_names():
-    import eval.train as facade
+    import eval.training.train as facade
 
-    assert facade.train is __import__("eval.trainer").trainer.train
+    assert facade.train is __import__("eval.training.trainer").training.trainer.train
     assert facade.make_config is config.make_config and facade.RunLog is runlog.RunLog
 
 
@@ -287,8 +326,8 @@ def test_same_value_tells_nested_values_apart():
 
 
 def test_every_command_takes_the_presets_from_the_yaml():
-    from eval import benchmark
     from eval.cli import build_parser
+    from eval.scale import benchmark
 
     names = presets.preset_names()
     assert names == ("smoke", "quick", "standard", "paper")

@@ -7,8 +7,8 @@ import pandas as pd
 import pytest
 
 from cosim.events import EVENT_FLAGS
-from eval.metrics import episode_metrics, success_rates, summarize
-from eval.records import record_row, to_frame
+from eval.testing.metrics import episode_metrics, success_rates, summarize
+from eval.testing.records import record_row, to_frame
 
 
 def _info(x, speed=10.0, n_veh=3, n_ped=0, **events):
@@ -79,9 +79,9 @@ def test_seconds_come_from_the_scenario_dt(tmp_path):
     """TTFC and the report's time axes use the environment's own step length (Scenario.dt),
     not a fixed 0.1 s: a scenario YAML with dt 0.05 halves the seconds of the same steps."""
     from cosim.scenario import scenarios_dir
-    from eval.metrics import scenario_dt
-    from eval.protocol import metrics_table
-    from eval.report import per_episode
+    from eval.reporting.report import per_episode
+    from eval.testing.metrics import scenario_dt
+    from eval.testing.protocol import metrics_table
 
     text = (scenarios_dir() / "env_1.yaml").read_text()
     assert "\ndt: 0.1 " in text

@@ -1,4 +1,4 @@
-"""Synchronous PBT after `Tuner.restore` (eval/pbt_scheduler.py), without starting Ray.
+"""Synchronous PBT after `Tuner.restore` (eval/scale/pbt_scheduler.py), without starting Ray.
 
 The scheduler is driven the way Tune's controller drives it (``choose_trial_to_run``
 first, then every PENDING trial starts; a running trial reports one interval later;
@@ -19,7 +19,7 @@ from ray.train._internal.session import _TrainingResult  # noqa: E402
 from ray.tune.experiment import Trial  # noqa: E402
 from ray.tune.schedulers import PopulationBasedTraining, TrialScheduler  # noqa: E402
 
-from eval.pbt_scheduler import ResumablePBT  # noqa: E402
+from eval.scale.pbt_scheduler import ResumablePBT  # noqa: E402
 
 INTERVAL, STEPS = 60, 240
 

@@ -17,7 +17,7 @@ import yaml
 
 from cosim.dynamics import DISCRETE_ACTIONS, discrete_controls
 from cosim.scenario import load_scenario
-from eval.config import TrainConfig
+from eval.training.config import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "studies" / "pilot_task.py"

@@ -10,7 +10,7 @@ from gymnasium import spaces
 
 from agents.registry import get_agent_class
 from eval.cli import main
-from eval.protocol import (
+from eval.testing.protocol import (
     ProtocolError,
     ProtocolPlan,
     find_checkpoints,
@@ -60,7 +60,7 @@ def test_each_slot_is_driven_by_the_ac_trained_on_its_route(tmp_path):
 
     import torch
 
-    from eval import selection
+    from eval.testing import selection
 
     run = tmp_path / "env_3__dqn__0__20260101-000000"
     obs, act = spaces.Box(0, 255, (84, 84, 3), np.uint8), spaces.Discrete(9)
@@ -89,7 +89,7 @@ def test_stochastic_policies_are_tested_by_sampling_them_reproducibly(tmp_path):
     DDPG, TD3 and --greedy take the mode."""
     import torch
 
-    from eval.rollout import SampledPolicy
+    from eval.testing.rollout import SampledPolicy
 
     obs_space = spaces.Box(0, 255, (84, 84, 3), np.uint8)
     paths = {}
@@ -125,9 +125,9 @@ def test_a_checkpoint_trained_on_two_frames_is_tested_on_two(tmp_path):
     the checkpoint (84x84x6) and stack that AC's frames, beside a one-frame AC."""
     import yaml
 
-    from eval.protocol import drive, load_for_slot
-    from eval.rollout import StackedPolicy
-    from eval.train import make_config, train
+    from eval.testing.protocol import drive, load_for_slot
+    from eval.testing.rollout import StackedPolicy
+    from eval.training.train import make_config, train
 
     cfg = make_config("ppo", "env_1", "smoke", agents=1, steps=40, frame_stack=2)
     run = train(cfg, tmp_path / "runs", quiet=True, progress=False)
@@ -178,7 +178,7 @@ def test_scenario_1_rotates_the_algorithms_over_the_spawn_slots():
                                       agents=3, rotate=False), policy_factory("autopilot"), algos)
     assert (fixed[fixed.agent == "ac_0"].algorithm == "ppo").all()
     # the report and the science plan say which placement and actions a test used
-    from eval.protocol import rules
+    from eval.testing.protocol import rules
 
     assert rules(plan)["scenario_1_slots"].startswith("rotated")
     assert rules(ProtocolPlan(rotate=False, greedy=True)) == {**rules(plan), **{

@@ -12,10 +12,17 @@ import pandas as pd
 import pytest
 from gymnasium import spaces
 
-from eval import replay, selection
 from eval.cli import main
-from eval.protocol import ProtocolPlan, run_protocol
-from eval.report import TABLE_METRICS, bootstrap_ci, cell, provenance, sha256, write_paper_report
+from eval.reporting.report import (
+    TABLE_METRICS,
+    bootstrap_ci,
+    cell,
+    provenance,
+    sha256,
+    write_paper_report,
+)
+from eval.testing import replay, selection
+from eval.testing.protocol import ProtocolPlan, run_protocol
 
 ARGS = ["test", "--policy", "random", "--agents", "2", "--envs", "env_1", "env_3",
         "--episodes", "2", "--steps", "30", "--quiet", "--references", "none"]
@@ -255,8 +262,8 @@ def test_cross_play_and_a_sweep_on_tiny_budgets(tmp_path):
 
 
 def test_sweep_levels_are_checked_and_perturbations_are_seeded():
-    from eval.protocol import ProtocolError
-    from eval.robustness import Perturbed, parse_sweeps
+    from eval.testing.protocol import ProtocolError
+    from eval.testing.robustness import Perturbed, parse_sweeps
 
     assert parse_sweeps(["density=0.5,1,2", "dropout=0,0.3"]) == {"density": [0.5, 1.0, 2.0],
                                                                   "dropout": [0.0, 0.3]}
@@ -282,10 +289,10 @@ def test_sweep_levels_are_checked_and_perturbations_are_seeded():
 
 
 def test_provenance_and_a_run_manifest_record_what_ran_alike():
-    """One builder (eval.runfolder.software) for the command, Python, platform, versions and git
+    """One builder (eval.training.runfolder.software) for the command, Python, platform, versions and git
     commit of a report's provenance.json and a run's manifest.json."""
-    from eval import runfolder
-    from eval.config import TrainConfig
+    from eval.training import runfolder
+    from eval.training.config import TrainConfig
 
     prov = provenance(policy="autopilot", plan=ProtocolPlan(envs=("env_1",)), algos=["ppo"],
                       command=["test", "--agents", "1"])

@@ -22,7 +22,7 @@ import pytest
 
 import agents
 from eval.cli import main
-from eval.train import RunLock, TrainError, train
+from eval.training.train import RunLock, TrainError, train
 
 INTERRUPT = [sys.executable, str(Path(__file__).with_name("_interrupt.py"))]
 COSIM = [sys.executable, "-m", "eval.cli"]
@@ -148,7 +148,7 @@ def test_kills_at_random_times_then_resume(tmp_path, seed):
 
 
 def _hold_lock(run: Path) -> subprocess.Popen:
-    code = ("import sys, time; from pathlib import Path; from eval.train import RunLock; "
+    code = ("import sys, time; from pathlib import Path; from eval.training.train import RunLock; "
             "RunLock(Path(sys.argv[1])); print('locked', flush=True); time.sleep(60)")
     holder = subprocess.Popen([sys.executable, "-c", code, str(run)], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"
@@ -176,7 +176,7 @@ def test_second_concurrent_resume_is_refused_naming_the_pid(tmp_path, capsys):
 
 
 def test_recover_checkpoints_rolls_the_committed_step_forward_and_drops_the_rest(tmp_path):
-    from eval.train import recover_checkpoints
+    from eval.training.train import recover_checkpoints
 
     folder = tmp_path / "checkpoints" / "ac_0"
     folder.mkdir(parents=True)

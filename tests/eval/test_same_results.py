@@ -62,8 +62,8 @@ def _weights(run: Path, algo: str) -> list[dict]:
 
 
 def _records(tmp_path: Path) -> dict[str, pd.DataFrame]:
-    from eval.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
-    from eval.train import make_config, train
+    from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.training.train import make_config, train
 
     episodes, weights = [], []
     for algo in ALGOS:

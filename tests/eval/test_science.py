@@ -1,4 +1,4 @@
-"""The science study (issue 14): its statistics (eval/science.py) against hand-computed
+"""The science study (issue 14): its statistics (eval/reporting/science.py) against hand-computed
 values, and its smoke version (studies/science.py --smoke) end to end, rerun and refused."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from eval import science
-from eval.validity import DEGENERATE, POLICIES
+from eval.reporting import science
+from eval.testing.validity import DEGENERATE, POLICIES
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "studies" / "science.py"

@@ -14,7 +14,7 @@ import pytest
 
 import agents
 from eval.cli import main
-from eval.train import ALGORITHMS, TrainError, make_config, train
+from eval.training.train import ALGORITHMS, TrainError, make_config, train
 
 COSIM = [sys.executable, "-m", "eval.cli"]
 
@@ -54,7 +54,7 @@ def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
 
 
 def test_keep_all_keeps_the_resumable_checkpoint_and_prune_drops_only_covered_ones(tmp_path):
-    from eval.runfolder import prune_finished
+    from eval.training.runfolder import prune_finished
 
     cfg = make_config("dqn", "env_1", "smoke", steps=40)
     run = train(cfg, tmp_path, quiet=True, progress=False, keep="all")

@@ -13,7 +13,7 @@ from agents.base import ObservationError
 from agents.networks import ImageMeasurementsEncoder
 from agents.registry import POLICY_NETWORKS, get_agent_class
 from eval.cli import main
-from eval.train import TrainError, make_config, train
+from eval.training.train import TrainError, make_config, train
 
 IMAGE = spaces.Box(0, 255, (84, 84, 12), np.uint8)  # the smoke preset's 4-frame stack
 
@@ -33,8 +33,8 @@ def _has_measurement_mlp(agent) -> bool:
 
 
 def test_obs_is_part_of_the_config_and_a_bad_value_is_refused(tmp_path):
-    from eval.runfolder import load_run_config
-    from eval.train import make_env
+    from eval.training.runfolder import load_run_config
+    from eval.training.train import make_env
 
     assert make_config("ppo", "env_1", "smoke").obs == "image"  # the paper's observation
     cfg = make_config("td3", "env_1", "smoke", obs="nav")
@@ -57,7 +57,7 @@ def test_obs_is_part_of_the_config_and_a_bad_value_is_refused(tmp_path):
 
 
 def test_cosim_train_obs_nav_writes_checkpoints_with_the_measurement_mlp_that_drive_beside_image_acs(tmp_path):
-    from eval.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
 
     runs = tmp_path / "runs"
     assert main(["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "4",
@@ -79,7 +79,7 @@ def test_cosim_train_obs_nav_writes_checkpoints_with_the_measurement_mlp_that_dr
 
 
 def test_a_resume_with_the_other_obs_than_the_checkpoints_is_refused_in_one_line(tmp_path):
-    from eval.trainer import _load_or_build
+    from eval.training.trainer import _load_or_build
 
     cfg = make_config("ppo", "env_1", "smoke", agents=1, obs="nav")
     latest = tmp_path / "checkpoints" / "ac_0" / "latest.pt"
@@ -108,12 +108,12 @@ class _Spy:
 
 def test_the_test_env_gives_a_nav_ac_exactly_its_training_observation():
     """`cosim test` drives every AC in one env that gives camera frames; a nav AC's policy
-    (eval.protocol.drive: StackedPolicy around NavPolicy) builds, from each frame and the
+    (eval.testing.protocol.drive: StackedPolicy around NavPolicy) builds, from each frame and the
     env's infos, what the training env's wrappers (FrameStack + NavObservation) give, episode
     after episode."""
     from cosim.env import CosimParallelEnv
     from cosim.wrappers import observation_wrappers
-    from eval.protocol import ProtocolError, drive
+    from eval.testing.protocol import ProtocolError, drive
 
     raw = CosimParallelEnv("env_1", num_agents=2, action_types="discrete", horizon=12, seed=0)
     wrapped = observation_wrappers(raw, frame_stack=2, obs="nav")  # what a --frame-stack 2 --obs nav run trains on
@@ -146,8 +146,8 @@ def _interrupt_at_first_checkpoint(run, step, score):
 @pytest.mark.parametrize("algo, envs", [("ppo", 1), ("ppo", 2), ("a3c", 1), ("impala", 2),
                                         ("dqn", 1), ("ddpg", 1), ("td3", 1)])
 def test_every_algorithm_trains_resumes_and_is_tested_on_nav_beside_an_image_ac(tmp_path, algo, envs):
-    from eval.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
-    from eval.rollout import NavPolicy, StackedPolicy
+    from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.testing.rollout import NavPolicy, StackedPolicy
 
     runs = tmp_path / "runs"
     cfg = make_config(algo, "env_1", "smoke", steps=80, obs="nav", envs=envs)

@@ -4,7 +4,7 @@ config, bad values refused."""
 import pytest
 
 from agents.base import resolve_device
-from eval.train import TrainError, make_config
+from eval.training.train import TrainError, make_config
 
 
 def test_envs_device_and_threads_are_part_of_the_config():
@@ -15,7 +15,7 @@ def test_envs_device_and_threads_are_part_of_the_config():
 
 
 def test_a3c_and_impala_take_envs_and_default_to_the_presets_workers():
-    from eval.presets import load_presets
+    from eval.training.presets import load_presets
 
     for algo in ("a3c", "impala"):
         assert make_config(algo, "env_1", "smoke", envs=3).envs == 3
@@ -47,7 +47,7 @@ def test_auto_device_falls_back_to_cpu_without_cuda(monkeypatch):
 
 
 def test_frame_stack_is_part_of_the_config_and_shapes_the_training_env():
-    from eval.train import make_env
+    from eval.training.train import make_env
 
     assert make_config("ppo", "env_1", "smoke").frame_stack == 4  # the paper's released scripts' stack
     assert make_config("ppo", "env_1", "smoke", frame_stack=1).frame_stack == 1  # its text's single frame
@@ -66,12 +66,12 @@ def test_frame_stack_is_part_of_the_config_and_shapes_the_training_env():
 def test_the_preset_gives_envs_and_frame_stack_unless_the_command_does(monkeypatch):
     import dataclasses
 
-    import eval.config
-    from eval.presets import load_presets
+    import eval.training.config
+    from eval.training.presets import load_presets
 
     presets = dict(load_presets())
     presets["quick"] = dataclasses.replace(presets["quick"], envs=2, frame_stack=2)
-    monkeypatch.setattr(eval.config, "load_presets", lambda: presets)
+    monkeypatch.setattr(eval.training.config, "load_presets", lambda: presets)
     cfg = make_config("ppo", "env_1", "quick")
     assert (cfg.envs, cfg.frame_stack) == (2, 2)
     assert make_config("a3c", "env_1", "quick").frame_stack == 2
@@ -83,7 +83,7 @@ def _ram(cfg) -> list[tuple[bool, bool, float]]:
     (collision, terminated, reward) until the episode ends or 40 steps pass."""
     import numpy as np
 
-    from eval.train import make_env
+    from eval.training.train import make_env
 
     env = make_env(cfg.to_dict())
     try:
@@ -126,7 +126,7 @@ def test_a_continue_run_config_reads_back_and_a_bad_flag_is_refused(tmp_path):
     value that is not true/false is refused naming the key."""
     import yaml
 
-    from eval.runfolder import load_run_config
+    from eval.training.runfolder import load_run_config
 
     cfg = make_config("dqn", "env_1", "smoke", agents=1, collisions="continue")
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))

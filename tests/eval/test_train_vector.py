@@ -17,7 +17,7 @@ import yaml
 
 import agents
 from agents.workers import live_pids
-from eval.train import train
+from eval.training.train import train
 
 COSIM = [sys.executable, "-m", "eval.cli"]
 pytestmark = pytest.mark.slow

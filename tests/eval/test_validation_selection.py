@@ -1,5 +1,5 @@
 """best.pt and the AC that represents a run are chosen on validation episodes under the
-test's rules, not by training return (eval/runlog.py, eval/validation.py; docs/task.md,
+test's rules, not by training return (eval/training/runlog.py, eval/training/validation.py; docs/task.md,
 "Checkpoint selection")."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from eval.config import make_config
+from eval.training.config import make_config
 
 
 class _Agent:
@@ -22,8 +22,8 @@ class _Agent:
 
 
 def _runlog(tmp_path, monkeypatch, validation: dict[int, dict[str, float]], episodes=2):
-    import eval.validation
-    from eval.runlog import RunLog
+    import eval.training.validation
+    from eval.training.runlog import RunLog
 
     cfg = make_config("dqn", "env_1", "smoke", agents=2, validation_episodes=episodes)
     calls = []
@@ -33,7 +33,7 @@ def _runlog(tmp_path, monkeypatch, validation: dict[int, dict[str, float]], epis
         calls.append(step)
         return dict(validation[step])
 
-    monkeypatch.setattr(eval.validation.Validator, "scores", scores)
+    monkeypatch.setattr(eval.training.validation.Validator, "scores", scores)
     return RunLog(tmp_path, cfg, None), calls
 
 
@@ -44,7 +44,7 @@ def _episode(log, agent, ret, step):
 
 
 def test_best_checkpoint_and_representative_ac_follow_validation_not_training_return(tmp_path, monkeypatch):
-    from eval import selection
+    from eval.testing import selection
 
     # ac_0 trains better and better but validates worse; ac_1 trains worse but validates best
     validation = {40: {"ac_0": -100.0, "ac_1": -300.0}, 80: {"ac_0": -900.0, "ac_1": -50.0}}
@@ -93,7 +93,7 @@ def test_validation_off_keeps_the_training_return_rule(tmp_path, monkeypatch):
 
 
 def test_validation_seeds_are_disjoint_from_training_and_test_seeds():
-    from eval.validation import validation_seeds
+    from eval.training.validation import validation_seeds
 
     seeds = validation_seeds(make_config("ppo", "env_1", "smoke", seed=3, validation_episodes=4))
     assert len(set(seeds)) == 4 and all(10**9 <= s < 2**31 for s in seeds)
@@ -109,7 +109,7 @@ def test_validation_drives_the_acs_under_the_test_rules(tmp_path):
     import gymnasium as gym
     import numpy as np
 
-    from eval.validation import Validator
+    from eval.training.validation import Validator
 
     cfg = make_config("dqn", "env_1", "smoke", agents=2, validation_episodes=2, validation_steps=5)
 

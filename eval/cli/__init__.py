@@ -1,0 +1,328 @@
+"""The `cosim` command line: the top layer: the only place that wires environments, agents and evaluation.
+
+The parser and one error and exit policy (:func:`main`) are here, the handlers in
+eval/cli/learn.py and eval/cli/sim.py; ``python -m eval.cli`` runs :func:`main` (__main__.py).
+
+    cosim scenarios                         list the driving environments
+    cosim drive env_3 --agents 6            run the scripted drivers, print events (no cameras)
+    cosim view env_3 --out view/            camera mosaic PNG + GIFs of what the ACs see
+    cosim nets build | check                rebuild / check the SUMO networks
+    cosim train --algo ppo --env env_1      train N ACs of one algorithm together
+    cosim test --agents 6                   the test protocol (Scenario 1 and 2) and its report
+    cosim benchmark --preset smoke          train the grid on Ray Tune, test it, write the report
+    cosim replay REPORT/replays/X/state.json  reopen a failure replay's SUMO state
+    cosim check-scenarios env_4             degenerate-policy suite: does a scenario measure driving?
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+from eval.cli import learn, sim
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command; the exit code follows one policy (docs/reference.md#exit-codes-and-errors):
+    0 done, 2 a user error (argparse's usage errors, and any error a user can cause:
+    ``cosim.errors.CosimError``, ``agents.errors.AgentError``), 1 a bug or a failed check
+    (check-scenarios), 130 interrupted."""
+    from agents.errors import AgentError
+    from cosim.errors import CosimError
+
+    try:
+        # inside the try, though a bad preset YAML does not stop it: the commands that read the
+        # presets (train, benchmark) raise its error when run, the others work (_preset_names)
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        logging.basicConfig(level=logging.WARNING if not args.verbose else logging.INFO,
+                            format="%(levelname)s %(name)s: %(message)s")
+        if not hasattr(args, "func"):
+            parser.print_help()
+            return USAGE
+        return int(args.func(args) or 0)
+    except (CosimError, AgentError) as exc:
+        # the roots of cosim (eval's errors subclass it) and of agents: the message names the
+        # input and the fix; a multi-line one (a worker's traceback) goes to a log file
+        lines = str(exc).strip().splitlines() or [type(exc).__name__]
+        more = f" (details in {_write_log(str(exc))})" if len(lines) > 1 else ""
+        print(f"cosim: error: {lines[0]}{more}", file=sys.stderr)
+        return USAGE
+    except KeyboardInterrupt:
+        print("cosim: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a bug: one line here, the traceback in a log file
+        import traceback
+
+        path = _write_log(traceback.format_exc())
+        first = (str(exc).strip().splitlines() or [""])[0][:200]
+        print(f"cosim: unexpected error {type(exc).__name__}: {first} (traceback in {path}; "
+              "please report it)", file=sys.stderr)
+        return 1
+
+
+USAGE = 2
+"""The exit code of every user error: argparse's (a bad command line) and the errors a user
+can cause (bad input, a refused option or resume, a missing optional dependency); 1 is a bug
+or a failed check, so a script can tell "fix the input" from "cosim failed"."""
+
+
+def _write_log(text: str) -> Path:
+    """Write `text` to a fresh log file under the temp folder and return its path."""
+    import datetime as dt
+    import tempfile
+
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    path = Path(tempfile.gettempdir()) / f"cosim-error-{stamp}-{os.getpid()}.log"
+    path.write_text(f"cosim {' '.join(sys.argv[1:])}\n{text}")
+    return path
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cosim", description=__doc__.split("\n\n")[0])
+    p.add_argument("-v", "--verbose", action="store_true", help="log library messages")
+    sub = p.add_subparsers(metavar="COMMAND")
+
+    s = sub.add_parser("scenarios", help="list the driving environments")
+    s.set_defaults(func=sim.cmd_scenarios)
+
+    d = sub.add_parser("drive", help="drive ACs with the scripted controller and print events")
+    _scenario_args(d, steps=300)
+    d.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.add_argument("--gui", action="store_true", help="watch it in sumo-gui (needs a display)")
+    d.set_defaults(func=sim.cmd_drive)
+
+    v = sub.add_parser("view", help="write camera mosaics and GIFs of what the ACs see")
+    _scenario_args(v, steps=200)
+    v.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    v.add_argument("--out", type=Path, default=Path("view"), help="output folder")
+    v.add_argument("--image-size", type=_int_in(8, 512), default=84, help="camera pixels (8-512)")
+    v.add_argument("--moments", type=_int_in(1), default=3, help="mosaics taken along the run")
+    v.add_argument("--extent", type=float, default=100.0,
+                   help="metres across the top-down view beside the mosaic")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
+    v.set_defaults(func=sim.cmd_view)
+
+    n = sub.add_parser("nets", help="build or check the SUMO networks")
+    n.add_argument("action", choices=["build", "check"])
+    n.add_argument("--config", type=Path, action="append",
+                   help="a netconvert .netccfg (default: every bundled network)")
+    n.set_defaults(func=sim.cmd_nets)
+
+    # the catalogue (no algorithm imported) and the environments (the scenario files)
+    from agents.registry import ALGORITHMS, DETERMINISTIC, DISCRETE, STOCHASTIC
+    from eval.labels import ENVS
+    from eval.training.config import COLLISION_RULES, OBS_VARIANTS
+    from eval.training.runfolder import KEEP_POLICIES
+
+    presets, preset_error = _preset_names()
+
+    t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
+    t.add_argument("--algo", default="ppo",
+                   help=f"{', '.join(ALGORITHMS)}, or all (every one, in parallel where CPUs allow)")
+    t.add_argument("--env", default="env_1", help=f"{_names(ENVS)} or a scenario .yaml")
+    t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
+    t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--preset", default="quick", choices=presets or None,
+                   help=f"run preset, from eval/training/hyperparams/runs.yaml: {', '.join(presets)}")
+    t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
+                   help=f"must match the algorithm (discrete: {' '.join(DISCRETE)})")
+    t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
+    t.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="hyper",
+                   help="change one agent hyperparameter, e.g. --set learning_rate=3e-4 (repeatable)")
+    t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
+    t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
+                   help="continue an interrupted run from its last checkpoint")
+    t.add_argument("--envs", type=int, default=None,
+                   help="environments stepped together, one process each when > 1, every algorithm "
+                        "(default: the preset's envs; a3c/impala: its workers)")
+    t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
+                   help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
+                        "preset's, 1 = the paper's single frame); tests of the run stack K too")
+    t.add_argument("--obs", choices=OBS_VARIANTS, default="image",
+                   help="what an AC observes: image (default: its camera frames, the paper's) or nav "
+                        "(the frames beside speed, route command and distance to the goal; "
+                        "docs/task.md, Observation); tests of the run build the same for its ACs")
+    t.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
+                   help="continue (default): as in the test, the episode goes on and each contact "
+                        "step is charged; end: a collision ends the AC's training episode (the "
+                        "paper's rule; docs/task.md, Training rule)")
+    t.add_argument("--validation-episodes", type=_int_in(0), default=None, metavar="N",
+                   help="held-out episodes under the test's rules at every checkpoint that pick each "
+                        "AC's best.pt (default: the preset's, else 2; 0: off, best.pt by training "
+                        "return; docs/task.md)")
+    t.add_argument("--validation-steps", type=_int_in(1), default=None, metavar="STEPS",
+                   help="steps per validation episode (default 300, or the preset's horizon if shorter)")
+    t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="torch device of the learners (auto: cuda when available)")
+    t.add_argument("--torch-threads", type=int, default=0, metavar="K",
+                   help="torch threads in the trainer (0: the CPUs the env workers leave, shared among the learner threads)")
+    t.add_argument("--learner-threads", type=int, default=0, metavar="K",
+                   help="ACs updating at once on K threads (0: one per AC up to the CPUs); "
+                        "the result is the same for any K")
+    t.add_argument("--pbt", type=_int_in(2), default=None, metavar="P",
+                   help="Population Based Training on Ray Tune with P trials (eval/scale/pbt.py)")
+    t.add_argument("--pbt-interval", type=_int_in(1), default=None, metavar="STEPS",
+                   help="environment steps between PBT exploit/explore decisions (default: the "
+                        "preset's checkpoint interval)")
+    t.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --pbt: an existing Ray cluster (default: local Ray)")
+    t.add_argument("--keep", choices=sorted(KEEP_POLICIES), default="best",
+                   help="what a finished run folder keeps: best = each AC's best.pt (the policy the "
+                        "test drives), all = latest.pt too, to train it further (default: best)")
+    t.add_argument("--quiet", action="store_true", help="plain log lines instead of a progress bar")
+    t.set_defaults(func=_refuse(preset_error) if preset_error else learn.cmd_train)
+    e = sub.add_parser("test", help="the test protocol: Scenario 1 (together) and 2 (alone), report")
+    e.add_argument("--agents", type=int, default=6,
+                   help=f"ACs in Scenario 1, one per algorithm in the order {' '.join(ALGORITHMS)}")
+    e.add_argument("--algos", nargs="+", default=None, choices=list(ALGORITHMS), metavar="ALGO",
+                   help="the algorithms tested, one AC each (instead of the first --agents of that order)")
+    e.add_argument("--envs", nargs="+", default=list(ENVS), help=f"default: {_names(ENVS)}")
+    e.add_argument("--scenario", choices=["1", "2", "both"], default="both")
+    e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
+    e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--fixed-slots", action="store_true",
+                   help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
+                        "turns at the spawn slots, one step per episode)")
+    e.add_argument("--greedy", action="store_true",
+                   help=f"{', '.join(STOCHASTIC)} take their policy's mode (default: they sample "
+                        f"it; {', '.join(DETERMINISTIC)} always act greedily)")
+    e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
+                   help="trained checkpoints from --runs, or a reference driver")
+    e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")
+    e.add_argument("--checkpoint", action="append", default=[], metavar="ALGO=PATH",
+                   help="the checkpoint of one algorithm's AC instead of the newest under --runs "
+                        "(repeatable), e.g. --checkpoint ppo=runs/x/checkpoints/ac_0/best.pt")
+    e.add_argument("--out", type=Path, default=Path("reports"), help="report folder")
+    e.add_argument("--references", default="all",
+                   help="reference rows added to the report: 'all' (autopilot, random and the "
+                        "degenerate suite of `cosim check-scenarios`), 'none', or a comma list")
+    e.add_argument("--cross-play", action="store_true",
+                   help="also the cross-play matrix: each algorithm's AC among ACs of each other "
+                        "algorithm and among autopilots (eval/testing/robustness.py)")
+    e.add_argument("--cross-play-group", type=_int_in(2, 6), default=3, metavar="N",
+                   help="ACs per cross-play episode: the ego and N-1 partners (default 3)")
+    e.add_argument("--sweep", action="append", default=[], metavar="KIND=L1,L2",
+                   help="also a robustness sweep (repeatable): density=0.5,1,2, camera_noise=0,0.05, "
+                        "action_noise=0,0.2, dropout=0,0.3")
+    e.add_argument("--no-replays", action="store_true",
+                   help="skip the failure replays (clips and SUMO state of each first collision)")
+    e.add_argument("--quiet", action="store_true")
+    e.set_defaults(func=learn.cmd_test)
+
+    _benchmark_parser(sub, presets, preset_error)
+
+    rp = sub.add_parser("replay", help="reopen a failure replay's SUMO state (from a cosim test report)")
+    rp.add_argument("state", type=Path, help="replays/<...>/state.json (or state.xml) of a report")
+    rp.add_argument("--plot", type=Path, default=None, metavar="PNG",
+                    help="also draw the reloaded positions into this PNG")
+    rp.set_defaults(func=learn.cmd_replay)
+
+    c = sub.add_parser("check-scenarios",
+                       help="run the degenerate-policy suite: does a scenario measure driving?")
+    c.add_argument("scenarios", nargs="*", default=list(ENVS),
+                   help=f"{_names(ENVS)} or scenario .yaml files (default: all of them)")
+    c.add_argument("--agents", type=int, nargs="+", default=[3, 6], help="AC counts to check")
+    c.add_argument("--episodes", type=int, default=5, help="held-out episodes per policy")
+    c.add_argument("--steps", type=int, default=None, help="steps per episode (default: horizon)")
+    c.add_argument("--out", type=Path, default=None, help="also write the per-episode rows (CSV)")
+    c.set_defaults(func=sim.cmd_check_scenarios)
+    return p
+
+
+def _preset_names():
+    """The run presets' names (what ``--preset`` accepts) and None, or () and the
+    :class:`~eval.training.presets.PresetError` of a preset YAML that does not load: then only the
+    commands that read the presets fail, with that one-line error (:func:`_refuse`)."""
+    from eval.training.presets import PresetError, preset_names
+
+    try:
+        return preset_names(), None
+    except PresetError as exc:
+        return (), exc
+
+
+def _refuse(error: Exception):
+    """A command function that raises ``error`` (a command that cannot run, e.g. without presets)."""
+    def refuse(args):
+        raise error
+
+    return refuse
+
+
+def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | None) -> None:
+    from agents.registry import ALGORITHMS
+    from eval.labels import ENVS
+    from eval.training.config import COLLISION_RULES
+    from eval.training.runfolder import KEEP_POLICIES
+
+    b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
+                                         "trial, then test them and write the report")
+    b.add_argument("--preset", choices=presets or None, default="standard",
+                   help="run preset (eval/training/hyperparams/runs.yaml); standard: ~15 min per trial here")
+    b.add_argument("--envs", nargs="+", default=list(ENVS), help=f"default: {_names(ENVS)}")
+    b.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
+    b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")
+    b.add_argument("--steps", type=_int_in(1), default=None,
+                   help="environment steps per trial (default: the preset's)")
+    b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
+                   help="ACs each trial trains (default: the preset's, 6 for quick/standard/paper)")
+    b.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
+                   help="training episodes at a collision (as `cosim train --collisions`; default "
+                        "continue: the test's rule, docs/task.md)")
+    b.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
+    b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",
+                   help="trials at once (default: the CPUs here, or unlimited on a cluster)")
+    b.add_argument("--gpus-per-trial", type=float, default=0.0, help="GPU share of each trial")
+    b.add_argument("--no-ray", action="store_true",
+                   help="train the same grid one trial after another in this process")
+    b.add_argument("--train-only", action="store_true", help="train the grid, skip the test and report")
+    b.add_argument("--keep", choices=sorted(KEEP_POLICIES), default="best",
+                   help="what a finished trial's run folder keeps: best = each AC's best.pt, all = "
+                        "latest.pt too (default: best)")
+    b.add_argument("--out", type=Path, default=Path("benchmark"), help="benchmark folder")
+    b.add_argument("--resume", action="store_true",
+                   help="continue an interrupted benchmark in --out without redoing finished trials; "
+                        "with a larger --seeds, add those seeds to a finished one")
+    b.add_argument("--quiet", action="store_true")
+    b.set_defaults(func=_refuse(preset_error) if preset_error else learn.cmd_benchmark)
+
+
+def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
+    from eval.labels import ENVS
+
+    p.add_argument("scenario", nargs="?", default="env_3", help=f"{_names(ENVS)} or a scenario .yaml")
+    p.add_argument("--agents", type=_int_in(1, 6), default=None,
+                   help="learning cars (default: every spawn point of the scenario)")
+    p.add_argument("--steps", type=_int_in(1), default=steps)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-background", action="store_true", help="no background cars")
+    p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
+
+
+def _names(envs) -> str:
+    """``env_1..env_5`` for the bundled environments (a run of names), else the names listed."""
+    return f"{envs[0]}..{envs[-1]}" if len(envs) > 2 else ", ".join(envs)
+
+
+def _int_in(low: int, high: int | None = None):
+    """An argparse type: an int in [low, high]; the error names the value and the range."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            span = f"{low}..{high}" if high is not None else f">= {low}"
+            raise argparse.ArgumentTypeError(f"must be {span}, got {value}")
+        return value
+
+    return parse
+

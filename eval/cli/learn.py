@@ -1,0 +1,323 @@
+"""`cosim` commands that train and evaluate: train (and PBT), test, benchmark, replay
+(the parser is in eval/cli/__init__.py)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from eval.training.runfolder import output_folder
+
+
+def cmd_train(args) -> int:
+    import os
+    import subprocess
+
+    from eval.training.train import ALGORITHMS, TrainError, make_config, parse_set, train
+
+    if args.pbt is not None or (args.resume is not None and (args.resume / "pbt.json").exists()):
+        return _train_pbt(args)
+    try:
+        if args.resume is not None:
+            run = train(None, resume=args.resume, quiet=args.quiet, keep=args.keep)
+            print(f"run folder: {run}")
+            return 0
+        algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
+        hyper = parse_set(args.hyper)
+        configs = [
+            make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
+                        seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
+                        hyper=hyper, envs=args.envs, device=args.device, collisions=args.collisions,
+                        torch_threads=args.torch_threads, frame_stack=args.frame_stack,
+                        obs=args.obs, learner_threads=args.learner_threads,
+                        validation_episodes=args.validation_episodes,
+                        validation_steps=args.validation_steps)
+            for a in algos
+        ]
+    except TrainError as exc:
+        print(f"cosim train: error: {exc}", file=sys.stderr)
+        return 2
+    if len(configs) == 1:
+        try:
+            run = train(configs[0], args.out, quiet=args.quiet, keep=args.keep)
+        except TrainError as exc:
+            print(f"cosim train: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"run folder: {run}")
+        return 0
+    # --algo all: one process per algorithm, as many at once as there are CPUs
+    parallel = max(1, os.cpu_count() or 1)
+    print(f"training {len(configs)} algorithms, {parallel} at a time")
+    pending = list(algos)
+    running: dict[str, subprocess.Popen] = {}
+    failed = []
+    base = _train_command(args)
+    try:
+        while pending or running:
+            while pending and len(running) < parallel:
+                algo = pending.pop(0)
+                envs = [] if args.envs is None else ["--envs", str(args.envs)]
+                running[algo] = subprocess.Popen(base + envs + ["--algo", algo])
+            for algo, proc in list(running.items()):
+                try:
+                    proc.wait(timeout=0.5)
+                except subprocess.TimeoutExpired:
+                    continue
+                del running[algo]
+                ok = proc.returncode == 0
+                print(f"{algo}: {'done' if ok else f'FAILED (exit {proc.returncode})'}", flush=True)
+                if not ok:
+                    failed.append(algo)
+    finally:
+        for proc in running.values():
+            proc.terminate()
+    return 1 if failed else 0
+
+
+def _train_command(args) -> list[str]:
+    """The `cosim train` command line of one algorithm of ``--algo all`` (without --algo/--envs)."""
+    base = [sys.executable, "-m", "eval.cli", "train", "--env", args.env, "--preset", args.preset,
+            "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
+            "--torch-threads", str(args.torch_threads), "--collisions", args.collisions,
+            "--obs", args.obs, "--keep", args.keep]
+    if args.agents is not None:
+        base += ["--agents", str(args.agents)]
+    if args.steps is not None:
+        base += ["--steps", str(args.steps)]
+    if args.agent_preset is not None:
+        base += ["--agent-preset", args.agent_preset]
+    if args.frame_stack is not None:
+        base += ["--frame-stack", str(args.frame_stack)]
+    for flag, value in (("--validation-episodes", args.validation_episodes),
+                        ("--validation-steps", args.validation_steps)):
+        if value is not None:
+            base += [flag, str(value)]
+    for item in args.hyper:
+        base += ["--set", item]
+    return base
+
+
+def _train_pbt(args) -> int:
+    from eval.scale.pbt import run_pbt
+    from eval.scale.raysession import ray_available
+    from eval.training.train import TrainError, make_config, parse_set
+
+    if not ray_available():
+        print("cosim train: error: --pbt needs Ray Tune, which is not installed; install it with: "
+              "pip install -e '.[tune]'", file=sys.stderr)
+        return 2
+    try:
+        cfg = None
+        if args.resume is None:
+            if args.algo == "all":
+                raise TrainError("--pbt trains one algorithm; choose it with --algo")
+            cfg = make_config(args.algo, args.env, args.preset, agents=args.agents, steps=args.steps,
+                              seed=args.seed, action_type=args.action_type,
+                              agent_preset=args.agent_preset, hyper=parse_set(args.hyper),
+                              envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
+                              frame_stack=args.frame_stack, obs=args.obs, collisions=args.collisions,
+                              validation_episodes=args.validation_episodes,
+                              validation_steps=args.validation_steps)
+        folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
+                         address=args.ray_address)
+    except TrainError as exc:
+        print(f"cosim train: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"lineage: {folder / 'lineage.csv'}  {folder / 'lineage.png'}")
+    print(f"run folder (best trial): {folder}")
+    return 0
+
+
+def cmd_test(args) -> int:
+    import datetime as dt
+
+    from tqdm import tqdm
+
+    from eval.testing.protocol import (
+        ALGO_ORDER,
+        ProtocolError,
+        ProtocolPlan,
+        find_checkpoints,
+        policy_factory,
+        run_protocol,
+    )
+
+    if args.algos:  # paper order, one AC each
+        args.agents = len(set(args.algos))
+    if not 1 <= args.agents <= 6:
+        print("cosim test: error: --agents must be 1..6 (one AC per algorithm)", file=sys.stderr)
+        return 2
+    from eval.testing.protocol import reference_rows
+    from eval.testing.validity import POLICIES
+
+    refs_wanted = (list(POLICIES) if args.references == "all" else []
+                   if args.references == "none" else args.references.split(","))
+    unknown = sorted(set(refs_wanted) - set(POLICIES))
+    if unknown:
+        print(f"cosim test: error: --references {','.join(unknown)}: unknown; valid: all, none, "
+              f"or a comma list of {', '.join(POLICIES)}", file=sys.stderr)
+        return 2
+    scenarios = (1, 2) if args.scenario == "both" else (int(args.scenario),)
+    plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes, steps=args.steps,
+                        seed=args.seed, agents=args.agents, rotate=not args.fixed_slots, greedy=args.greedy)
+    algos = [a for a in ALGO_ORDER if a in args.algos] if args.algos else list(ALGO_ORDER[: args.agents])
+    try:
+        from eval.testing.robustness import parse_sweeps
+
+        sweeps = parse_sweeps(args.sweep)
+        given = _checkpoint_slots(args.checkpoint, algos)
+        if given and args.policy != "trained":
+            raise ProtocolError(f"--checkpoint is for --policy trained, not --policy {args.policy}")
+        ckpts = None
+        if args.policy == "trained":
+            ckpts = {**find_checkpoints(args.runs, [a for a in algos if a not in given]), **given}
+            ckpts = {a: ckpts[a] for a in algos}
+        factory = policy_factory(args.policy, ckpts, fixed=given, greedy=args.greedy)
+    except ProtocolError as exc:
+        print(f"cosim test: error: {exc}", file=sys.stderr)
+        return 2
+    from cosim.scenario import load_scenario
+
+    for env_name in plan.envs:  # a bad name fails now, not after the first environments ran
+        load_scenario(env_name)
+    out = output_folder(args.out / dt.datetime.now().strftime("%Y%m%d-%H%M%S"), "--out")
+    for algo, path in (ckpts or {}).items():
+        print(f"{algo:7s} {path}")
+    from eval.reporting.report import provenance, write_paper_report
+    from eval.testing import selection
+
+    # provenance first: the code, checkpoints and hashes as they are when the test starts
+    picked = {a: selection.describe(p) if a in given else
+              (selection.choose(p.parent.parent.parent) or selection.describe(p))
+              for a, p in (ckpts or {}).items()}
+    prov = provenance(policy=args.policy, plan=plan, algos=algos, checkpoints=ckpts,
+                      selections=picked, command=_test_command(args))
+    units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
+    bar = tqdm(total=units, disable=args.quiet, unit="run", desc="test")
+    records = run_protocol(plan, factory, algos, progress=lambda name: bar.update(1))
+    bar.close()
+    refs = None
+    if refs_wanted:
+        refs = reference_rows(plan, refs_wanted)
+    replays = []
+    if not args.no_replays:
+        from eval.testing import replay
+
+        labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
+        replays = replay.capture(plan, factory, algos, records, out, labels)
+    extra_md = ""
+    if args.cross_play or sweeps:
+        from eval.reporting import robustness as robustness_report
+        from eval.testing import robustness
+
+        labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
+        cross = (robustness.run_cross_play(plan, factory, algos, group=args.cross_play_group)
+                 if args.cross_play else None)
+        swept = {kind: robustness.run_sweep(plan, factory, algos, kind, levels)
+                 for kind, levels in sweeps.items()}
+        _, extra_md = robustness_report.write(out, labels, cross, swept)
+    written = write_paper_report(records, out, prov=prov, references=refs, replays=replays,
+                                 extra_md=extra_md)
+    print((out / "rq1.md").read_text())
+    print(f"index: {out / 'index.html'}")
+    print("wrote:\n" + "\n".join(f"  {p}" for p in written))
+    return 0
+
+
+def cmd_benchmark(args) -> int:
+    import time
+
+    from eval.scale.benchmark import (
+        BenchmarkPlan,
+        finished_runs,
+        run_ray,
+        run_sequential,
+        write_report,
+    )
+    from eval.scale.raysession import INSTALL_HINT, ray_available
+
+    if not args.no_ray and not ray_available():
+        print(f"cosim benchmark: error: {INSTALL_HINT}", file=sys.stderr)
+        return 2
+    plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos), seeds=args.seeds,
+                         steps=args.steps, agents=args.agents, collisions=args.collisions)
+    cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
+    output_folder(args.out, "--out")
+    say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
+    start, kept = time.monotonic(), len(finished_runs(plan, args.out))
+    say(f"benchmark {args.preset}: {len(cells)} trials ({kept} finished earlier, kept) -> {args.out}")
+    if args.no_ray:
+        runs = run_sequential(plan, args.out, resume=args.resume, progress=lambda n: say(f"trained {n}"),
+                              keep=args.keep)
+    else:
+        concurrent = args.concurrent or (0 if args.ray_address else (os.cpu_count() or 1))
+        runs = run_ray(plan, args.out, resume=args.resume, address=args.ray_address,
+                       concurrent=concurrent, gpus_per_trial=args.gpus_per_trial, keep=args.keep)
+    say(f"trained {len(runs) - kept} trials in {time.monotonic() - start:.0f} s: {args.out / 'runs'}")
+    if args.train_only:
+        return 0
+    written = write_report(plan, args.out, command=["benchmark", *sys.argv[2:]],
+                           progress=lambda n: say(f"tested {n}"))
+    say(f"report: {args.out / 'report' / 'index.html'} ({len(written)} files, "
+        f"{time.monotonic() - start:.0f} s in all)")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from eval.testing import replay
+
+    path = args.state
+    if not path.exists() or not path.with_suffix(".json").exists():
+        print(f"cosim replay: error: {path}: not a failure replay (give the state.json of a "
+              "report's replays/ folder)", file=sys.stderr)
+        return 2
+    result = replay.reload(path)
+    meta = result["meta"]
+    print(f"{meta['title']} ({meta['env']}), scenario {meta['scenario']}, {meta['label']} "
+          f"({meta['agent']}), episode {meta['episode']} seed {meta['seed']}, step {meta['step']} "
+          f"(t = {meta['ttfc']:.1f} s), first collision with a {meta['kind']} {meta['hit']}")
+    pos = result["positions"]
+    print(f"SUMO time {pos['time']:.1f} s: {len(pos['vehicles'])} vehicles, {len(pos['persons'])} persons")
+    for vid, (x, y, angle) in sorted(pos["vehicles"].items()):
+        mark = "  <- collided" if vid == meta["agent"] else ""
+        print(f"  {vid:24s} x={x:9.2f} y={y:9.2f} angle={angle:6.1f}{mark}")
+    for pid, (x, y, _) in sorted(pos["persons"].items()):
+        print(f"  {pid:24s} x={x:9.2f} y={y:9.2f} (person)")
+    print(f"largest distance from the saved positions: {result['max_deviation_m']:.3f} m")
+    if args.plot:
+        print(f"wrote {replay.plot(result, args.plot)}")
+    return 0
+
+
+def _test_command(args) -> list[str]:
+    """The `cosim test` command line the parsed options stand for (for the report)."""
+    who = ["--algos", *args.algos] if args.algos else ["--agents", str(args.agents)]
+    cmd = ["test", *who, "--envs", *args.envs, "--scenario", args.scenario,
+           "--episodes", str(args.episodes), "--steps", str(args.steps), "--seed", str(args.seed),
+           "--policy", args.policy]
+    cmd += ["--runs", str(args.runs)] if args.policy == "trained" else []
+    for item in args.checkpoint:
+        cmd += ["--checkpoint", item]
+    cmd += ["--no-replays"] * args.no_replays + ["--greedy"] * args.greedy + ["--fixed-slots"] * args.fixed_slots
+    if args.cross_play:
+        cmd += ["--cross-play", "--cross-play-group", str(args.cross_play_group)]
+    for item in args.sweep:
+        cmd += ["--sweep", item]
+    return cmd + ["--references", args.references, "--out", str(args.out)]
+
+
+def _checkpoint_slots(items: list[str], algos: list[str]) -> dict[str, Path]:
+    """``["ppo=path.pt", ...]`` (``--checkpoint``) -> ``{"ppo": Path("path.pt")}``."""
+    from eval.testing.protocol import ProtocolError
+
+    out = {}
+    for item in items:
+        algo, sep, path = item.partition("=")
+        if not sep or not path:
+            raise ProtocolError(f"--checkpoint {item!r}: write ALGO=PATH, e.g. ppo=runs/x/best.pt")
+        if algo not in algos:
+            raise ProtocolError(f"--checkpoint {item!r}: {algo!r} is not one of the ACs tested "
+                                f"({', '.join(algos)}; --agents sets how many)")
+        out[algo] = Path(path)
+    return out

@@ -1,0 +1,1 @@
+"""Reporting: the test report and its provenance, tables, figures and the studies' statistics."""

@@ -1,0 +1,400 @@
+"""The statistics of the science study (``studies/science.py``, issue 14).
+
+The study trains every (algorithm, environment, seed) with ``cosim benchmark`` and
+tests each trained policy on held-out episode seeds under the test protocol
+(collisions do not end an episode). This module turns those records into results
+over *training seeds*:
+
+- :func:`seed_means`: one value per (scenario, environment, algorithm, seed): the
+  mean over that seed's test episodes (NaN-aware: TTFC and CP only where they apply);
+- :func:`seed_table`: mean and 95% percentile-bootstrap CI over seeds
+  (:func:`eval.reporting.report.bootstrap_ci`: 2,000 resamples, fixed seed); n = seeds;
+- :func:`reference_table`: the reference rows (eval/testing/validity.py: autopilot, uniform
+  random, degenerate suite) with a CI over their episodes x ACs;
+- :func:`verdict`: issue 14's item 1 per (algorithm, environment): mean return AND
+  goal rate above every degenerate reference, the CI's lower end above its value, with
+  at least :data:`MIN_SEEDS` training seeds;
+- :func:`iqm_table`: the interquartile mean across environments per algorithm
+  (rliable-style: returns normalised per environment between uniform random (0) and
+  the autopilot (1), IQM over every (environment, seed) score, stratified bootstrap
+  CI resampling seeds within each environment);
+- :func:`convergence_curves` / :func:`convergence_figure`: training return against
+  environment steps, one panel per algorithm, one curve per environment, mean over
+  seeds with a min-max band.
+
+rliable itself (PyPI) installs here but does not import: its ``arch`` dependency
+(7.2) fails with pandas 3 (``deprecate_kwarg() missing 1 required positional
+argument``), so :func:`iqm` and :func:`stratified_bootstrap` implement its
+``aggregate_iqm`` (scipy's 25% ``trim_mean`` over all scores) and its stratified
+percentile bootstrap in numpy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from eval.labels import ENVS, env_colour  # noqa: F401 - ENVS re-exported (studies/science.py)
+from eval.reporting.report import BOOTSTRAP, CI_SEED, algo_order, bootstrap_ci, env_title
+from eval.testing.validity import DEGENERATE, POLICIES
+
+METRICS = ("return", "goal", "DISTANCE", "CV", "CO", "CP", "OS", "TTFC", "SPEED")
+"""The study's metrics (eval/testing/metrics.py names; ``goal`` is the goal rate)."""
+NAMES = {"return": "return", "goal": "goal rate", "DISTANCE": "DISTANCE (m)",
+         "TTFC": "TTFC (s)", "SPEED": "SPEED (km/h)"}
+DIGITS = {"return": 1, "goal": 2, "DISTANCE": 1, "TTFC": 2, "SPEED": 1}
+VERDICT_SCENARIO = 1
+"""The references run under Scenario 1 conditions (every AC in the traffic)."""
+MIN_SEEDS = 3
+"""Issue 14, item 1 asks for 3 training seeds: with fewer the verdict is 'not shown', whatever
+the (then degenerate or two-point) bootstrap interval says."""
+NORM_LOW, NORM_HIGH = "random", "autopilot"
+"""The IQM's normalisation: uniform random over Discrete(9) scores 0, the autopilot 1."""
+WINDOW = 20
+"""Convergence: the mean return of the most recent episodes (any AC) finished by a step."""
+
+
+# -- per seed ----------------------------------------------------------------------------
+def seed_means(per: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.DataFrame:
+    """One row per (scenario, env, algorithm, train_seed): the mean over its test episodes
+    (and ACs) of each metric; NaN where the metric never applied (CP without people,
+    TTFC without a collision)."""
+    per = per.assign(goal=per["goal"].astype(float))
+    keys = ["scenario", "env", "algorithm", "train_seed"]
+    return per.groupby(keys, sort=True)[list(metrics)].mean().reset_index()
+
+
+def fmt(metric: str, mean: float, lo: float, hi: float, n: int | None = None,
+        of: int | None = None) -> str:
+    """'mean [low, high]', with '(n=k)' when the metric applied in k of ``of`` values only;
+    '-' when it never applied ('--' for TTFC: no collision)."""
+    if not np.isfinite(mean):
+        return "--" if metric == "TTFC" else "-"
+    d = DIGITS.get(metric, 3)
+    text = f"{mean:.{d}f} [{lo:.{d}f}, {hi:.{d}f}]"
+    return text + (f" (n={n})" if n is not None and of is not None and n != of else "")
+
+
+def _row(scenario, env, kind, name, metric, values) -> dict:
+    mean, lo, hi, n = bootstrap_ci(values)
+    cell = fmt(metric, mean, lo, hi, n, len(values))
+    if kind == "algorithm" and n == 1 and np.isfinite(mean):  # one seed: no interval to show
+        cell = f"{mean:.{DIGITS.get(metric, 3)}f} (1 seed)"
+    return {"scenario": int(scenario), "env": env, "title": env_title(env), "kind": kind,
+            "name": name, "metric": metric, "mean": mean, "ci_low": lo, "ci_high": hi, "n": n,
+            "cell": cell}
+
+
+def seed_table(seeds: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.DataFrame:
+    """Long table: per (scenario, env, algorithm, metric) the mean over seeds, its 95%
+    bootstrap CI and n (the seeds where the metric applied)."""
+    rows = []
+    for (scenario, env, algo), g in seeds.groupby(["scenario", "env", "algorithm"], sort=True):
+        for m in metrics:
+            rows.append(_row(scenario, env, "algorithm", algo, m, g[m].to_numpy(float)))
+    return pd.DataFrame(rows)
+
+
+def reference_table(refs: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.DataFrame:
+    """Long table of the reference rows (eval/testing/validity.py per-(episode, AC) rows with an
+    ``env`` column): mean and CI over episodes x ACs, under Scenario 1 conditions."""
+    rows = []
+    for (env, policy), g in refs.groupby(["env", "policy"], sort=False):
+        for m in metrics:
+            rows.append(_row(VERDICT_SCENARIO, env, "reference", policy, m, g[m].to_numpy(float)))
+    return pd.DataFrame(rows)
+
+
+# -- verdict -------------------------------------------------------------------------------
+def degenerate_means(references: pd.DataFrame, env: str, metric: str,
+                     degenerate: Sequence[str] = tuple(DEGENERATE)) -> dict[str, float]:
+    """Mean ``metric`` of every degenerate reference run in ``env`` (name -> value)."""
+    r = references[(references["env"] == env) & (references["metric"] == metric)
+                   & references["name"].isin(degenerate)]
+    return dict(zip(r["name"], r["mean"].astype(float), strict=True))
+
+
+def verdict(table: pd.DataFrame, references: pd.DataFrame,
+            degenerate: Sequence[str] = tuple(DEGENERATE), min_seeds: int = MIN_SEEDS
+            ) -> pd.DataFrame:
+    """Per (algorithm, env) of Scenario 1: does the mean return AND goal rate beat every
+    degenerate reference with the 95% CI excluding the reference's value (CI low > value),
+    over at least ``min_seeds`` training seeds?
+
+    Columns: algorithm, env, n, return/goal mean and CI, the strongest degenerate reference
+    for each (name and value), return_ok, goal_ok, seeds_ok, passed, why (what failed, or '').
+    """
+    t = table[(table["kind"] == "algorithm") & (table["scenario"] == VERDICT_SCENARIO)]
+    rows = []
+    for (algo, env), g in t.groupby(["name", "env"], sort=False):
+        g = g.set_index("metric")
+        row = {"algorithm": algo, "env": env, "title": env_title(env), "n": int(g.loc["return", "n"])}
+        why = []
+        for m in ("return", "goal"):
+            mean, lo, hi = (float(g.loc[m, c]) for c in ("mean", "ci_low", "ci_high"))
+            env_refs = degenerate_means(references, env, m, degenerate)
+            if not env_refs:
+                raise ValueError(f"no degenerate reference for {env} ({m}); run the references first")
+            best = max(env_refs, key=env_refs.get)
+            # above, and not equal up to float rounding (the mean of three 0.1s is 0.10000000000000002)
+            beaten = [name for name, v in env_refs.items() if lo > v and not np.isclose(lo, v)]
+            ok = len(beaten) == len(env_refs)
+            row.update({f"{m}_mean": mean, f"{m}_ci_low": lo, f"{m}_ci_high": hi,
+                        f"{m}_best_reference": best, f"{m}_reference": env_refs[best], f"{m}_ok": ok})
+            if not ok:
+                lost = len(env_refs) - len(beaten)
+                why.append(f"{NAMES.get(m, m)} CI low {lo:.{DIGITS[m]}f} <= {best} "
+                           f"{env_refs[best]:.{DIGITS[m]}f}"
+                           + (f" (and {lost - 1} more)" if lost > 1 else ""))
+        row["seeds_ok"] = row["n"] >= min_seeds
+        if not row["seeds_ok"]:
+            why.append(f"{row['n']} seed(s), item 1 needs {min_seeds}")
+        row["passed"] = row["return_ok"] and row["goal_ok"] and row["seeds_ok"]
+        row["why"] = "; ".join(why)
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    order = {a: i for i, a in enumerate(algo_order(out["algorithm"].unique()))}
+    return out.sort_values(["algorithm", "env"], key=lambda c: c.map(order) if c.name == "algorithm"
+                           else c).reset_index(drop=True)
+
+
+# -- IQM -----------------------------------------------------------------------------------
+def iqm(scores, axis: int | None = None):
+    """Interquartile mean: the mean of the middle half after cutting floor(n/4) values at
+    each end (scipy.stats.trim_mean(x, 0.25), what rliable's ``aggregate_iqm`` returns)."""
+    x = np.asarray(scores, float)
+    if axis is None:
+        x, axis = x.ravel(), 0
+    x = np.sort(np.moveaxis(x, axis, -1), axis=-1)
+    n = x.shape[-1]
+    if n == 0:
+        raise ValueError("iqm of no scores")
+    k = int(0.25 * n)
+    return x[..., k:n - k].mean(axis=-1)
+
+
+def stratified_bootstrap(scores: Mapping[str, Sequence[float]],
+                         statistic: Callable = iqm, resamples: int = BOOTSTRAP,
+                         seed: int = CI_SEED) -> tuple[float, float, float]:
+    """(point, low, high): the statistic of every task's runs pooled, and its 95% percentile
+    interval when each task's runs (seeds) are resampled with replacement separately
+    (rliable's stratified bootstrap; tasks = environments)."""
+    tasks = [np.asarray(v, float) for v in scores.values()]
+    if not tasks or any(len(v) == 0 for v in tasks):
+        raise ValueError("stratified_bootstrap needs at least one score per task")
+    point = float(statistic(np.concatenate(tasks)))
+    rng = np.random.default_rng(seed)
+    draws = np.concatenate([v[rng.integers(0, len(v), (resamples, len(v)))] for v in tasks], axis=1)
+    stats = statistic(draws, axis=1)
+    lo, hi = np.percentile(stats, [2.5, 97.5])
+    return point, float(lo), float(hi)
+
+
+def normalise(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
+    """Scenario 1 returns per (env, algorithm, seed) as (R - random) / (autopilot - random),
+    with the references' mean returns in that environment; column ``score``. An environment
+    where the autopilot does not out-earn random cannot be normalised: its scores are NaN."""
+    s1 = seeds[seeds["scenario"] == VERDICT_SCENARIO]
+    ref = references[references["metric"] == "return"].set_index(["env", "name"])["mean"]
+    out = []
+    for env, g in s1.groupby("env", sort=True):
+        low, high = ref.get((env, NORM_LOW), np.nan), ref.get((env, NORM_HIGH), np.nan)
+        span = high - low
+        score = (g["return"] - low) / span if np.isfinite(span) and span > 0 else np.nan
+        out.append(g[["env", "algorithm", "train_seed", "return"]].assign(score=score))
+    return pd.concat(out, ignore_index=True)
+
+
+def iqm_table(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
+    """Per algorithm: IQM of the normalised Scenario 1 returns over every (env, seed), its
+    stratified-bootstrap 95% CI, the environments and runs it pools; then the degenerate
+    references' IQM over environments of their normalised mean (no seeds: no CI)."""
+    norm = normalise(seeds, references)
+    rows = []
+    for algo in algo_order(norm["algorithm"].unique()):
+        g = norm[(norm["algorithm"] == algo) & np.isfinite(norm["score"])]
+        if g.empty:
+            continue
+        by_env = {env: e["score"].to_numpy() for env, e in g.groupby("env", sort=True)}
+        point, lo, hi = stratified_bootstrap(by_env)
+        rows.append({"kind": "algorithm", "name": algo, "iqm": point, "ci_low": lo, "ci_high": hi,
+                     "envs": len(by_env), "runs": len(g)})
+    ref = references[references["metric"] == "return"].pivot(index="env", columns="name", values="mean")
+    if NORM_LOW in ref and NORM_HIGH in ref:
+        span = ref[NORM_HIGH] - ref[NORM_LOW]
+        ok = span > 0
+        for name in [p for p in POLICIES if p in ref.columns]:
+            scores = ((ref[name] - ref[NORM_LOW]) / span)[ok].to_numpy()
+            if len(scores):
+                v = float(iqm(scores))
+                rows.append({"kind": "reference", "name": name, "iqm": v, "ci_low": np.nan,
+                             "ci_high": np.nan, "envs": len(scores), "runs": len(scores)})
+    return pd.DataFrame(rows)
+
+
+# -- convergence ----------------------------------------------------------------------------
+def convergence_curve(episodes: pd.DataFrame, budget: int, points: int = 100,
+                      window: int = WINDOW) -> pd.DataFrame:
+    """One run's training return on a grid of ``points`` env steps from 0 to ``budget``: the
+    mean return of the ``window`` most recent episodes (any AC) finished by that step; NaN
+    before the first episode ends."""
+    grid = np.linspace(0, budget, points)
+    e = episodes.sort_values("env_step", kind="stable")
+    steps, returns = e["env_step"].to_numpy(float), e["return"].to_numpy(float)
+    done = np.searchsorted(steps, grid, side="right")  # episodes finished by each grid step
+    csum = np.concatenate([[0.0], np.cumsum(returns)])
+    first = np.maximum(done - window, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        value = np.where(done > 0, (csum[done] - csum[first]) / (done - first), np.nan)
+    return pd.DataFrame({"env_step": grid, "return": value})
+
+
+def convergence_curves(runs: Mapping[tuple[str, str, int], Path], points: int = 100,
+                       window: int = WINDOW) -> pd.DataFrame:
+    """Every run's curve (:func:`convergence_curve`) from its episodes.csv and config.yaml;
+    ``runs`` maps (algorithm, env, seed) to a run folder. Columns: algorithm, env, seed,
+    env_step, return."""
+    import yaml
+
+    parts = []
+    for (algo, env, seed), run in runs.items():
+        cfg = yaml.safe_load((Path(run) / "config.yaml").read_text())
+        csv = Path(run) / "episodes.csv"
+        episodes = pd.read_csv(csv) if csv.exists() and csv.stat().st_size else pd.DataFrame(
+            {"env_step": [], "return": []})
+        curve = convergence_curve(episodes, int(cfg["steps"]), points, window)
+        parts.append(curve.assign(algorithm=algo, env=env, seed=int(seed)))
+    return pd.concat(parts, ignore_index=True)
+
+
+def convergence_bands(curves: pd.DataFrame) -> pd.DataFrame:
+    """Per (algorithm, env, env_step): mean, min and max over seeds, and the seeds with a
+    value; the mean only where every seed of that (algorithm, env) has one (NaN before)."""
+    g = curves.groupby(["algorithm", "env", "env_step"], sort=True)["return"]
+    out = pd.DataFrame({"mean": g.mean(), "low": g.min(), "high": g.max(),
+                        "seeds": g.count()}).reset_index()
+    runs = curves.groupby(["algorithm", "env"])["seed"].nunique().rename("runs").reset_index()
+    out = out.merge(runs, on=["algorithm", "env"])
+    out.loc[out["seeds"] < out["runs"], ["mean", "low", "high"]] = np.nan
+    return out.drop(columns="runs")
+
+
+def convergence_figure(curves: pd.DataFrame, out: Path, stem: str = "convergence") -> list[Path]:
+    """Six panels like the paper's (one per algorithm), one curve per environment: the mean
+    training return over seeds with a min-max band over seeds. PDF and PNG."""
+    from eval.reporting.figures import PAGE_IN, _plt, _save
+
+    plt = _plt()
+    bands = convergence_bands(curves)
+    algos = algo_order(bands["algorithm"].unique())
+    envs = sorted(bands["env"].unique())
+    cols = min(3, len(algos))
+    rows = -(-len(algos) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(PAGE_IN, 1.75 * rows + 0.5), squeeze=False)
+    for ax in axes.ravel()[len(algos):]:
+        ax.set_visible(False)
+    seeds = curves.groupby(["algorithm", "env"])["seed"].nunique()
+    for ax, algo in zip(axes.ravel(), algos, strict=False):
+        for env in envs:
+            b = bands[(bands["algorithm"] == algo) & (bands["env"] == env)]
+            if b.empty:
+                continue
+            c = env_colour(env)
+            lone = int(np.isfinite(b["mean"]).sum()) == 1  # a single point draws no line
+            ax.plot(b["env_step"], b["mean"], color=c, lw=0.9, marker="o" if lone else None, ms=2)
+            if seeds.get((algo, env), 1) > 1:
+                ax.fill_between(b["env_step"], b["low"], b["high"], color=c, alpha=0.18, lw=0)
+        ax.set_title(algo.upper(), loc="left")
+        ax.grid(lw=0.3)
+        ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
+        ax.set_xlabel("environment steps")
+    for r in range(rows):
+        axes[r][0].set_ylabel("training return")
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=env_colour(e), label=env_title(e)) for e in envs]
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.legend(handles=handles, loc="lower center", ncol=len(envs), frameon=False,
+               bbox_to_anchor=(0.5, -0.01))
+    return _save(fig, Path(out), stem)
+
+
+# -- Markdown -------------------------------------------------------------------------------
+def _md(header: Sequence[str], rows: Sequence[Sequence]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCENARIO,
+                  references: pd.DataFrame | None = None,
+                  reference_names: Sequence[str] = ("autopilot", "random")) -> str:
+    """Algorithms (rows) x environments (columns) of one metric, 'mean [CI]'; reference rows
+    (Scenario 1 only) below, then the strongest degenerate reference of each environment
+    (the value an algorithm's CI must clear in the verdict, and its name)."""
+    t = table[(table["metric"] == metric) & (table["scenario"] == scenario)]
+    envs = sorted(t["env"].unique())
+    cells = t.set_index(["name", "env"])["cell"]
+    rows = [[a] + [cells.get((a, e), "") for e in envs] for a in algo_order(t["name"].unique())]
+    if references is not None and scenario == VERDICT_SCENARIO:
+        r = references[references["metric"] == metric].set_index(["name", "env"])["cell"]
+        rows += [[f"*{n}*"] + [r.get((n, e), "") for e in envs] for n in reference_names
+                 if any((n, e) in r.index for e in envs)]
+        best = []
+        for e in envs:
+            means = degenerate_means(references, e, metric)
+            name = max(means, key=means.get) if means else None
+            best.append(f"{means[name]:.{DIGITS.get(metric, 3)}f} ({name})" if name else "")
+        if any(best):
+            rows.append(["*best degenerate*", *best])
+    return _md(["algorithm", *[env_title(e) for e in envs]], rows)
+
+
+def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: int) -> str:
+    """Every metric per (environment, algorithm or reference): the full results table."""
+    t = table[table["scenario"] == scenario]
+    if scenario == VERDICT_SCENARIO:
+        t = pd.concat([t, references], ignore_index=True)
+    cells = t.set_index(["env", "kind", "name", "metric"])["cell"]
+    n = t.set_index(["env", "kind", "name", "metric"])["n"]
+    rows = []
+    for env in sorted(t["env"].unique()):
+        e = t[t["env"] == env]
+        names = [("algorithm", a) for a in algo_order(e.loc[e["kind"] == "algorithm", "name"].unique())]
+        names += [("reference", p) for p in POLICIES if p in set(e.loc[e["kind"] == "reference", "name"])]
+        for kind, name in names:
+            label = name if kind == "algorithm" else f"*{name}*"
+            rows.append([env_title(env), label, int(n.get((env, kind, name, "return"), 0))]
+                        + [cells.get((env, kind, name, m), "") for m in METRICS])
+    return _md(["environment", "policy", "n", *[NAMES.get(m, m) for m in METRICS]], rows)
+
+
+def verdict_markdown(v: pd.DataFrame) -> str:
+    rows = []
+    for _, r in v.iterrows():
+        rows.append([r["algorithm"], r["title"], r["n"],
+                     fmt("return", r["return_mean"], r["return_ci_low"], r["return_ci_high"]),
+                     f"{r['return_best_reference']} {r['return_reference']:.1f}",
+                     fmt("goal", r["goal_mean"], r["goal_ci_low"], r["goal_ci_high"]),
+                     f"{r['goal_best_reference']} {r['goal_reference']:.2f}",
+                     "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"]
+                                                 else "FAIL"), r["why"]])
+    return _md(["algorithm", "environment", "seeds", "return [95% CI]", "best degenerate return",
+                "goal rate [95% CI]", "best degenerate goal rate", "verdict", "why"], rows)
+
+
+def iqm_markdown(t: pd.DataFrame) -> str:
+    rows = []
+    for _, r in t.iterrows():
+        ci = f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]" if np.isfinite(r["ci_low"]) else "-"
+        label = r["name"] if r["kind"] == "algorithm" else f"*{r['name']}*"
+        rows.append([label, f"{r['iqm']:.2f}", ci, r["envs"], r["runs"]])
+    return _md(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
+
+
+__all__ = ["METRICS", "convergence_curve", "convergence_curves", "convergence_figure", "iqm",
+           "iqm_table", "normalise", "reference_table", "seed_means", "seed_table",
+           "stratified_bootstrap", "verdict"]

@@ -1,0 +1,1 @@
+"""Scale: the Ray session, the benchmark grid on Ray Tune and Population Based Training."""

@@ -1,0 +1,453 @@
+"""`cosim benchmark`: the whole study in one command, each (algorithm, environment, seed)
+a Ray Tune trial, then the test protocol on the trained policies and its report.
+
+A benchmark folder (``--out``)::
+
+    benchmark.json     the plan (preset, envs, algos, seeds) that --resume reads back
+    tune/grid/         Ray Tune's experiment: trial results, and checkpoints that point at
+                       the trial's run folder (a few bytes each: no copy of the run)
+    trials/<cell>/     where a trial trains (a normal run folder inside; moved once finished)
+    runs/<cell>/       the finished run folders, <env>__<algo>__<seed>__bench (what `cosim test` loads)
+    report/            the `cosim test` report: Scenario 1 and 2 in every environment
+
+A trial is the ordinary training run (:func:`eval.training.train.train`); it reports
+``env_steps`` and ``mean_return`` (the mean episodic return over each AC's last 20
+episodes) to Tune at every checkpoint. The run folder is resumable by itself
+(eval/training/runfolder.py), so Tune's checkpoint holds only its path (``run_path.txt``) and a
+restored trial continues with ``train(resume=...)`` from the folder's own last commit:
+Tune never copies checkpoints (with several nodes, ``--out`` must be a path every node
+reaches, as Tune's storage_path must). A finished run keeps what ``--keep`` says
+(eval/training/runfolder.py KEEP_POLICIES; default ``best``: one policy file per AC). ``--no-ray`` trains the
+same cells one after another in this process: same configs, same seeds, one torch
+thread per trial in both cases, so PPO, DQN, DDPG and TD3 give the same weights
+either way (A3C's learner threads apply their updates in no fixed order: with more
+than one environment it is not bit-reproducible).
+A finished cell is never trained again: ``--resume`` continues an interrupted
+benchmark from each unfinished trial's last checkpoint, and ``--resume`` with a larger
+``--seeds`` adds the new seeds to a finished benchmark (nothing else may change).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cosim.errors import CosimError
+from eval.labels import ENVS
+from eval.testing.validity import POLICIES
+from eval.training.config import COLLISION_RULES
+from eval.training.train import ALGORITHMS, TrainConfig, make_config, train
+
+log = logging.getLogger(__name__)
+
+
+
+class BenchmarkError(CosimError, ValueError):
+    """A benchmark request that cannot run; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class TestSettings:
+    """How the trained policies are tested (the `cosim test` options of a preset)."""
+
+    episodes: int
+    """Episodes per environment and scenario."""
+    steps: int
+    """Steps per test episode."""
+    references: tuple[str, ...] = ()
+    """Reference rows (eval/testing/validity.py POLICIES) added to the report."""
+
+
+QUICK_REFERENCES = ("autopilot", "autopilot-discrete", "safe-non-turner", "random")
+TEST_SETTINGS = {
+    "smoke": TestSettings(episodes=1, steps=60),
+    # the two autopilots (the discrete one is a discrete learner's ceiling), the safe
+    # non-turner (did it learn to turn?) and random (docs/task.md, "Reference policies")
+    "quick": TestSettings(episodes=3, steps=500, references=QUICK_REFERENCES),
+    # the scenarios' 600-step horizon and the whole reference suite of `cosim check-scenarios`
+    "standard": TestSettings(episodes=5, steps=600, references=POLICIES),
+    "paper": TestSettings(episodes=3, steps=500, references=QUICK_REFERENCES),
+}
+
+
+@dataclass(frozen=True)
+class BenchmarkPlan:
+    """The grid: every (algorithm, environment, seed) of a preset."""
+
+    preset: str = "standard"
+    envs: tuple[str, ...] = ENVS
+    algos: tuple[str, ...] = ALGORITHMS
+    seeds: int = 1
+    """Seeds 0..seeds-1 per (algorithm, environment)."""
+    steps: int | None = None
+    """Environment steps per trial (default: the preset's, per algorithm)."""
+    agents: int | None = None
+    """ACs each trial trains (default: the preset's)."""
+    collisions: str | None = "continue"
+    """Training episodes at a collision: "continue" (the test's rule, the default since
+    2026-11-24; docs/task.md, Training rule) or "end" (the paper's). None is what a plan
+    saved before then holds (no key): it meant, and still means, "end"."""
+
+    def __post_init__(self):
+        unknown = sorted(set(self.algos) - set(ALGORITHMS))
+        if unknown or not self.algos:
+            raise BenchmarkError(f"--algos {' '.join(unknown) or '(none)'}: choose from {' '.join(ALGORITHMS)}")
+        if self.seeds < 1:
+            raise BenchmarkError(f"--seeds must be >= 1, got {self.seeds}")
+        if not self.envs:
+            raise BenchmarkError("--envs: name at least one environment")
+        if self.agents is not None and self.agents < 1:
+            raise BenchmarkError(f"--agents must be >= 1, got {self.agents}")
+        if self.collisions is None:  # a plan saved before the default changed
+            object.__setattr__(self, "collisions", "end")
+        if self.collisions not in COLLISION_RULES:
+            raise BenchmarkError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {self.collisions!r}")
+
+    def cells(self) -> list[TrainConfig]:
+        """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
+        return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, agents=self.agents,
+                            torch_threads=1, collisions=self.collisions)
+                for env in self.envs for algo in self.algos for seed in range(self.seeds)]
+
+    def to_dict(self) -> dict[str, Any]:
+        plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
+                "seeds": self.seeds, "steps": self.steps, "collisions": self.collisions}
+        # only when set: a plan saved before --agents existed still reads back as equal
+        return {**plan, **({"agents": self.agents} if self.agents is not None else {})}
+
+
+def saved_plan(path: Path) -> dict[str, Any]:
+    """A benchmark.json as :meth:`BenchmarkPlan.to_dict` writes it today: a plan saved
+    before collisions were recorded trained under the paper's rule ("end")."""
+    return {"collisions": "end", **json.loads(Path(path).read_text())}
+
+
+def cell_name(cfg: TrainConfig | dict) -> str:
+    """``<env>__<algo>__<seed>__bench``: a run-folder name `cosim test --runs` recognises."""
+    c = cfg if isinstance(cfg, dict) else cfg.to_dict()
+    return f"{Path(c['env']).stem}__{c['algo']}__{c['seed']}__bench"
+
+
+def trial_resources(cfg: TrainConfig, max_cpus: int | None = None, gpus: float = 0.0) -> dict:
+    """CPUs a trial keeps busy: its env workers (every algorithm steps ``cfg.envs`` environments)."""
+    cpus = cfg.envs
+    if max_cpus:
+        cpus = min(cpus, max_cpus)
+    return {"cpu": cpus, "gpu": gpus}
+
+
+# -- one trial ---------------------------------------------------------------------------
+def _seed_everything(seed: int) -> None:
+    """Same global RNG state at the start of a trial, in a fresh Ray worker or in this process."""
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def train_cell(cfg: TrainConfig, folder: Path, restore_from: Path | None = None,
+               on_checkpoint: Callable[[Path, int, float], None] | None = None,
+               prepare: Callable[[Path], None] | None = None, keep: str = "all") -> Path:
+    """Train one cell in ``folder`` (wiped first), from scratch or from a copied run folder
+    (``prepare(run)`` edits the copy before it is resumed); ``keep``: what the finished run
+    keeps (eval/training/runfolder.py KEEP_POLICIES).
+
+    Returns:
+        The run folder.
+    """
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    _seed_everything(cfg.seed)
+    if restore_from is None:
+        return train(cfg, folder, quiet=True, progress=False, on_checkpoint=on_checkpoint, keep=keep)
+    run = folder / "run"
+    shutil.copytree(restore_from, run)
+    if prepare is not None:
+        prepare(run)
+    return train(None, resume=run, quiet=True, progress=False, on_checkpoint=on_checkpoint, keep=keep)
+
+
+def finite(value: float) -> float:
+    """A score Tune can rank: -inf before the first finished episode."""
+    return float(value) if np.isfinite(value) else float("-inf")
+
+
+RUN_POINTER = "run_path.txt"
+"""The one file of a grid trial's Tune checkpoint: the absolute path of its run folder."""
+
+
+def run_of_checkpoint(checkpoint) -> Path:
+    """The run folder a grid trial's Tune checkpoint points at."""
+    with checkpoint.as_directory() as restored:
+        return Path((Path(restored) / RUN_POINTER).read_text().strip())
+
+
+def _tune_trial(config: dict) -> None:
+    """Ray Tune function trainable: one cell, reporting at every checkpoint.
+
+    The checkpoint Tune keeps is a pointer to the run folder, which is resumable by
+    itself (module docstring): a restored trial resumes that folder in place."""
+    import tempfile
+
+    from ray import tune
+
+    cfg = TrainConfig(**config["cell"])
+    folder = Path(config["scratch"]) / cell_name(cfg)
+    keep = config.get("keep", "best")
+
+    def report(run: Path, env_steps: int, mean_return: float) -> None:
+        with tempfile.TemporaryDirectory() as tmp:  # tune.report persists it before returning
+            (Path(tmp) / RUN_POINTER).write_text(str(Path(run).resolve()))
+            tune.report({"env_steps": env_steps, "mean_return": finite(mean_return)},
+                        checkpoint=tune.Checkpoint.from_directory(tmp))
+
+    checkpoint = tune.get_checkpoint()
+    run = run_of_checkpoint(checkpoint) if checkpoint is not None else None
+    if run is not None and (run / "config.yaml").exists():
+        _seed_everything(cfg.seed)
+        train(None, resume=run, quiet=True, progress=False, on_checkpoint=report, keep=keep)
+    else:
+        train_cell(cfg, folder, None, report, keep=keep)
+
+
+# -- the grid ----------------------------------------------------------------------------
+def _export(run: Path, dest: Path, move: bool = False) -> None:
+    """Copy (or move) a finished run folder to ``runs/<cell>``, renamed into place last, so
+    that ``runs/<cell>`` exists only complete."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    if move:
+        shutil.move(run, tmp)
+    else:
+        shutil.copytree(run, tmp, ignore=shutil.ignore_patterns("run.lock"))
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+
+
+def _prepare(plan: BenchmarkPlan, out: Path, resume: bool) -> bool:
+    """Check ``out`` against the saved plan and save this one.
+
+    Returns:
+        True when ``--resume`` raises ``--seeds`` of a finished benchmark (the new seeds
+        train; the finished cells stay), False otherwise.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    saved = out / "benchmark.json"
+    more_seeds = False
+    if resume:
+        if not saved.exists():
+            raise BenchmarkError(f"--resume: {out} holds no benchmark (no benchmark.json); "
+                                 "start one without --resume")
+        old = saved_plan(saved)
+        more_seeds = adds_seeds(old, plan)
+        if old != plan.to_dict() and not more_seeds:
+            raise BenchmarkError(f"--resume: {saved} was started with {old}; repeat those options "
+                                 "(or drop --resume and choose another --out; only --seeds may grow)")
+        if more_seeds:
+            finished = finished_runs(plan, out)
+            unfinished = [name for name in _saved_cells(old, plan) if name not in finished]
+            if unfinished:
+                raise BenchmarkError(f"--resume --seeds {plan.seeds}: {len(unfinished)} trial(s) of the "
+                                     f"saved {old['seeds']}-seed benchmark are unfinished ({unfinished[0]}, ...); "
+                                     f"finish them first with --resume --seeds {old['seeds']}")
+    elif saved.exists():
+        raise BenchmarkError(f"{out} already holds a benchmark; continue it with --resume or "
+                             "choose another --out")
+    saved.write_text(json.dumps(plan.to_dict(), indent=2))
+    return more_seeds
+
+
+def adds_seeds(old: dict, plan: BenchmarkPlan | dict) -> bool:
+    """Whether ``plan`` (or its ``to_dict()``) is the saved plan ``old`` with more seeds and
+    nothing else changed."""
+    new = plan if isinstance(plan, dict) else plan.to_dict()
+    return (isinstance(old.get("seeds"), int) and new["seeds"] > old["seeds"]
+            and {**old, "seeds": new["seeds"]} == new)
+
+
+def finished_runs(plan: BenchmarkPlan, out: Path) -> dict[str, Path]:
+    """Cell name -> run folder of every cell of ``plan`` whose run is in ``out/runs``
+    (a cell's run is moved there only once it finished)."""
+    names = (cell_name(c) for c in plan.cells())
+    return {name: Path(out) / "runs" / name for name in names if (Path(out) / "runs" / name).exists()}
+
+
+def _saved_cells(old: dict, plan: BenchmarkPlan) -> list[str]:
+    """Cell names of the saved plan ``old`` (``plan`` with the saved seed count)."""
+    return [cell_name(c) for c in plan.cells() if c.seed < old["seeds"]]
+
+
+def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
+                   progress: Callable[[str], None] | None = None, keep: str = "best") -> dict[str, Path]:
+    """Train every cell in this process, one after another (``--no-ray``).
+
+    ``progress`` is called with each cell's name once it is trained (not for cells
+    whose run was already in ``out/runs``); ``keep``: what a finished run keeps.
+
+    Returns:
+        Cell name -> finished run folder under ``out/runs``.
+    """
+    out = Path(out)
+    _prepare(plan, out, resume)
+    done = {}
+    for cfg in plan.cells():
+        name = cell_name(cfg)
+        dest = out / "runs" / name
+        if not dest.exists():
+            folder = out / "trials" / name
+            runs = sorted(p for p in folder.glob("*") if (p / "config.yaml").exists()) if resume else []
+            if runs:  # interrupted: continue from its last checkpoint
+                _seed_everything(cfg.seed)
+                run = train(None, resume=runs[-1], quiet=True, progress=False, keep=keep)
+            else:
+                run = train_cell(cfg, folder, keep=keep)
+            _export(run, dest, move=True)
+            shutil.rmtree(folder, ignore_errors=True)
+            if progress:
+                progress(name)
+        done[name] = dest
+    return done
+
+
+def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: str | None = None,
+            concurrent: int = 2, gpus_per_trial: float = 0.0, keep: str = "best") -> dict[str, Path]:
+    """Train every cell as a Ray Tune trial, ``concurrent`` at a time; ``keep``: what a
+    finished run keeps (eval/training/runfolder.py KEEP_POLICIES).
+
+    Returns:
+        Cell name -> finished run folder under ``out/runs``.
+
+    Raises:
+        BenchmarkError: a trial failed (naming it and its error) or the run was interrupted.
+        eval.scale.raysession.RayError: Ray missing or the address does not answer.
+    """
+    import os
+
+    from eval.scale.raysession import ray_session, refuse_old_layout
+
+    out = Path(out).resolve()
+    with ray_session(address):
+        more_seeds = _prepare(plan, out, resume)
+        from ray import tune
+
+        cells = plan.cells()
+        finished = finished_runs(plan, out)
+        todo = [c for c in cells if cell_name(c) not in finished]
+        if not todo:
+            return finished
+        local_cpus = None if address else (os.cpu_count() or 1)
+        trainable = tune.with_resources(
+            _tune_trial, lambda config: trial_resources(TrainConfig(**config["cell"]), local_cpus,
+                                                        gpus_per_trial))
+        path = out / "tune" / "grid"
+        if more_seeds:  # the saved grid finished (its runs are exported): a new grid of the new seeds
+            shutil.rmtree(path, ignore_errors=True)
+        if resume and not more_seeds and tune.Tuner.can_restore(str(path)):
+            refuse_old_layout(path)
+            tuner = tune.Tuner.restore(str(path), trainable, resume_unfinished=True,
+                                       resume_errored=True)
+        else:
+            tuner = tune.Tuner(
+                trainable,
+                param_space={"cell": tune.grid_search([c.to_dict() for c in todo]),
+                             "scratch": str(out / "trials"), "keep": keep},
+                # a finished trial's worker takes the next trial: no process start and torch
+                # import per trial (each trial reseeds and sets its torch threads itself)
+                tune_config=tune.TuneConfig(max_concurrent_trials=concurrent or None, reuse_actors=True,
+                                            trial_name_creator=lambda t: cell_name(t.config["cell"]),
+                                            trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
+                run_config=tune.RunConfig(
+                    name="grid", storage_path=str(out / "tune"), verbose=0,
+                    # a checkpoint is a pointer to the run folder (_tune_trial): the last one is
+                    # all a restore needs (PBT, which clones run folders, keeps copies)
+                    checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
+                    failure_config=tune.FailureConfig(max_failures=0)),
+            )
+        grid = tuner.fit()
+    return {**finished, **_collect(grid, cells, out)}
+
+
+def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
+    """Export the finished trials' last checkpoints; fail naming any that did not finish."""
+    steps = {cell_name(c): c.steps for c in cells}
+    done, failed, unfinished = {}, [], []
+    for result in grid:
+        name = cell_name(result.config["cell"])
+        if result.error is not None:
+            failed.append(f"{name} ({type(result.error).__name__}: {str(result.error).strip().splitlines()[-1][:200]})")
+        elif result.checkpoint is None or (result.metrics or {}).get("env_steps", 0) < steps[name]:
+            unfinished.append(name)
+        else:
+            dest = out / "runs" / name
+            if not dest.exists():
+                run = run_of_checkpoint(result.checkpoint)
+                _export(run, dest, move=True)
+                shutil.rmtree(out / "trials" / name, ignore_errors=True)
+            done[name] = dest
+    if failed:
+        raise BenchmarkError(f"{len(failed)} trial(s) failed: {'; '.join(failed)}")
+    if unfinished:
+        raise BenchmarkError(f"interrupted with {len(unfinished)} trial(s) unfinished "
+                             f"({', '.join(unfinished[:4])}{', ...' if len(unfinished) > 4 else ''}); "
+                             f"continue with the same command and --resume (--out {out})")
+    return done
+
+
+# -- the test protocol and its report ----------------------------------------------------
+def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
+                 progress: Callable[[str], None] | None = None) -> list[Path]:
+    """Scenario 1 and 2 in every environment with that environment's trained policies
+    (every seed's, pooled, episodes numbered apart), on held-out episode seeds (from
+    eval.testing.validity.HELD_OUT_SEED; training uses small ones), the references of the
+    preset, and the `cosim test` report."""
+    import pandas as pd
+
+    from eval.reporting.report import provenance, write_paper_report
+    from eval.testing import selection
+    from eval.testing.protocol import ProtocolPlan, policy_factory, reference_rows, run_protocol
+    from eval.testing.validity import HELD_OUT_SEED
+
+    out = Path(out)
+    settings = TEST_SETTINGS[plan.preset]
+    algos = list(plan.algos)
+    frames, rows, first = [], [], {}
+    for env in plan.envs:
+        for seed in range(plan.seeds):
+            ckpts = {}
+            for algo in algos:
+                run = out / "runs" / f"{Path(env).stem}__{algo}__{seed}__bench"
+                chosen = selection.choose(run)
+                if chosen is None:
+                    raise BenchmarkError(f"{run}: no checkpoint; rerun with --resume")
+                ckpts[algo] = chosen.path
+                first.setdefault(algo, chosen.path)
+                rows.append(f"| {env} | {algo} | {seed} | `{chosen.path.relative_to(out)}` |")
+            test_plan = ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
+                                     seed=HELD_OUT_SEED, agents=len(algos))
+            records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
+            # seeds are pooled: number their episodes apart, or the metrics would merge
+            # seed 0's episode 0 with seed 1's episode 0
+            frames.append(records.assign(train_seed=seed,
+                                         episode=records["episode"] + seed * settings.episodes))
+            if progress:
+                progress(f"{env} seed {seed}")
+    records = pd.concat(frames, ignore_index=True)
+    whole = ProtocolPlan(envs=tuple(plan.envs), episodes=settings.episodes, steps=settings.steps,
+                         seed=HELD_OUT_SEED, agents=len(algos))
+    refs = reference_rows(whole, list(settings.references)) if settings.references else None
+    prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
+                      command=list(command))
+    extra = ("\n## Benchmark grid\n\nEvery environment is tested with its own trained policies, "
+             f"{plan.seeds} seed(s) pooled (`cosim benchmark --preset {plan.preset}`); the "
+             "checkpoints listed under provenance are the first environment's.\n\n"
+             "| environment | algorithm | seed | checkpoint |\n|---|---|---|---|\n" + "\n".join(rows) + "\n")
+    return write_paper_report(records, out / "report", prov=prov, references=refs, extra_md=extra)

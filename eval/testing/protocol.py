@@ -1,0 +1,329 @@
+"""The test protocol (SPEC §6): it runs the episodes and records every step; the report
+(SPEC §7) is written from those records by :mod:`eval.reporting.report`.
+
+Scenario 1 (multi-agent): the trained ACs, one per algorithm, drive together in
+each environment among background cars (and pedestrians in env_2/env_3);
+discrete and continuous agents share one environment.
+Scenario 2 (single-agent): each AC alone, no other vehicles, no pedestrians.
+
+In Scenario 1 the algorithms take turns at the spawn points: in episode ``e`` the
+algorithm at position ``i`` of the order drives slot ``ac_{(i + e) mod N}``
+(:func:`slot_order`), so no algorithm is tied to one spawn (in env_1 with 6 ACs ``ac_0``
+starts 25 m behind ``ac_4`` and ``ac_2`` 25 m behind ``ac_5`` in the same lane; the other
+slots have a free lane ahead).
+With a multiple of N episodes every algorithm starts from every spawn equally often.
+``ProtocolPlan(rotate=False)`` keeps algorithm ``i`` in ``ac_i``.
+
+Collisions do not end an episode in testing (the metrics count steps in
+collision). Every step of every AC is recorded (:mod:`eval.testing.records`); metrics,
+tables and plots are computed from those records.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from agents import registry
+from agents.observations import image_space, is_nav_space
+from cosim.errors import CosimError
+from eval.labels import ENVS
+from eval.testing import selection
+from eval.testing.metrics import METRICS, episode_metrics, scenario_dt, success_rates, summarize
+from eval.testing.rollout import (
+    AutopilotPolicy,
+    NavPolicy,
+    RandomPolicy,
+    SampledPolicy,
+    StackedPolicy,
+    run_episodes,
+)
+
+log = logging.getLogger(__name__)
+
+ALGO_ORDER = tuple(registry.ALGORITHMS)  # the catalogue's order (agents/registry.py)
+CONTINUOUS = registry.CONTINUOUS
+SAMPLED = registry.STOCHASTIC
+"""Algorithms whose learned policy is a distribution (the catalogue's ``stochastic``: PPO,
+A3C, IMPALA): the test samples it (their training maximised the return of the sampled
+policy; its mode is a different policy: two IMPALA modes crawled at 8-14 km/h and reached no goal where their samples drove;
+docs/results/2026-11-23-greedy-vs-sampled/README.md). DQN, DDPG and TD3 learn a
+deterministic policy and act greedily (no epsilon, no action noise). ``cosim test
+--greedy`` takes every policy's mode."""
+
+
+class ProtocolError(CosimError, ValueError):
+    """The test cannot run as asked; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class ProtocolPlan:
+    envs: tuple[str, ...] = ENVS
+    scenarios: tuple[int, ...] = (1, 2)
+    episodes: int = 3
+    steps: int = 500
+    seed: int = 0
+    agents: int = 6
+    rotate: bool = True
+    greedy: bool = False  # True: every policy's mode, also for SAMPLED algorithms
+
+
+def rules(plan: ProtocolPlan) -> dict[str, str]:
+    """How the plan places ACs and picks actions, in words (report provenance, science plan)."""
+    return {
+        "scenario_1_slots": ("rotated: algorithm i drives ac_{(i + episode) mod N}" if plan.rotate
+                             else "fixed: algorithm i drives ac_i"),
+        "slot_checkpoints": "a run's AC trained in a slot drives that slot; other slots the "
+                            "checkpoint listed (eval.testing.protocol.slot_checkpoint)",
+        "actions": ("every policy's mode (--greedy)" if plan.greedy else
+                    f"{', '.join(SAMPLED)} sample their policy; {', '.join(registry.DETERMINISTIC)} "
+                    "greedy (eval.testing.protocol.SAMPLED)"),
+    }
+
+
+def slot_order(algos: Sequence[str], episode: int, rotate: bool = True) -> list[str]:
+    """The algorithm of each Scenario 1 slot (``ac_0``, ``ac_1``, ...) in ``episode``:
+    algorithm ``i`` drives slot ``(i + episode) mod N`` (module docstring)."""
+    algos = list(algos)
+    r = episode % len(algos) if rotate and algos else 0
+    return algos[len(algos) - r:] + algos[: len(algos) - r]
+
+
+def find_checkpoints(runs: Path, algos: Sequence[str]) -> dict[str, Path]:
+    """The newest run of each algorithm under `runs`; the checkpoint of the AC that represents
+    it (eval/testing/selection.py: best training score, best.pt else latest.pt)."""
+    found: dict[str, Path] = {}
+    runs = Path(runs)
+    folders = sorted(runs.glob("*__*__*__*"), key=lambda p: p.stat().st_mtime, reverse=True) if runs.exists() else []
+    for algo in algos:
+        for run in folders:
+            if run.name.split("__")[1] != algo:
+                continue
+            chosen = selection.choose(run)  # which AC represents the run: eval/testing/selection.py
+            if chosen is not None:
+                found[algo] = chosen.path
+                break
+    missing = [a for a in algos if a not in found]
+    if missing:
+        raise ProtocolError(
+            f"no trained checkpoint under {runs} for {', '.join(missing)}; train them with "
+            f"`cosim train --algo {missing[0]}` (or --algo all), or test a reference with "
+            "--policy autopilot / --policy random"
+        )
+    return found
+
+
+PolicyFactory = Callable[[object, str, str], object]  # (env, agent id, algorithm) -> policy
+
+
+def load_for_slot(path: Path, algo: str, image_size: int = 84):
+    """Load the checkpoint given for `algo`'s AC, refusing one that cannot drive it
+    (a checkpoint trained on K stacked frames is tested on K, one trained on the nav
+    observation with its measurements: :func:`drive`).
+
+    Raises:
+        agents.CheckpointError: the file is missing or corrupt.
+        ProtocolError: it holds another algorithm, an action space of the other kind
+            (a continuous actor in a discrete slot) or another camera size; the
+            message names the file.
+    """
+    import gymnasium
+
+    import agents
+
+    agent = agents.load(path)
+    if agent.algo != algo:
+        raise ProtocolError(
+            f"checkpoint {path} holds a {agent.algo} agent, but it was given for the {algo} AC; "
+            f"give it as {agent.algo}, or a {algo} checkpoint for {algo}"
+        )
+    discrete = isinstance(agent.action_space, gymnasium.spaces.Discrete)
+    if discrete != (algo not in CONTINUOUS):
+        want = "continuous Box(-1, 1, (2,))" if algo in CONTINUOUS else "discrete Discrete(9)"
+        raise ProtocolError(
+            f"checkpoint {path} acts in {agent.action_space}, but the {algo} AC needs a {want} "
+            "action space; give a checkpoint trained with that action type"
+        )
+    shape = tuple(image_space(agent.observation_space).shape)
+    if len(shape) != 3 or shape[:2] != (image_size, image_size) or shape[2] % 3 or not shape[2]:
+        raise ProtocolError(
+            f"checkpoint {path} sees observations of shape {shape}, the test environments give "
+            f"{(image_size, image_size, 3)} camera images (or K of them stacked, "
+            f"{(image_size, image_size, '3K')}); give a checkpoint trained on them"
+        )
+    return agent
+
+
+def frame_stack_of(agent) -> int:
+    """Camera frames a checkpoint's agent observes at once: its image channels / 3
+    (a run trained with ``frame_stack`` K has 84x84x3K images)."""
+    return int(image_space(agent.observation_space).shape[-1]) // 3
+
+
+def obs_of(agent) -> str:
+    """The observation variant a checkpoint's agent was trained on (``cosim train --obs``):
+    "nav" for a ``Dict(image, measurements)`` observation space, else "image"."""
+    return "nav" if is_nav_space(agent.observation_space) else "image"
+
+
+def drive(agent, sample_seed: int | None = None, env=None, slot: str | None = None):
+    """The policy of one AC from a loaded checkpoint: the agent itself (or, with
+    ``sample_seed``, a :class:`~eval.testing.rollout.SampledPolicy` drawing its actions) for
+    one frame; for a nav-trained agent inside a :class:`~eval.testing.rollout.NavPolicy` that
+    builds the measurements of AC ``slot`` of ``env``; inside a
+    :class:`~eval.testing.rollout.StackedPolicy` with that AC's own frame history when it was
+    trained on K frames. Both read from the checkpoint, so ACs of every variant share one
+    test environment.
+
+    Raises:
+        ProtocolError: a nav-trained agent without the env and slot it drives.
+    """
+    k = frame_stack_of(agent)
+    policy = agent if sample_seed is None else SampledPolicy(agent, sample_seed)
+    if obs_of(agent) == "nav":
+        if env is None or slot is None:
+            raise ProtocolError(f"{agent.algo} was trained with --obs nav: give drive() the test env and "
+                                "the AC slot it drives, to build that AC's measurements")
+        policy = NavPolicy(policy, env, slot)
+    return StackedPolicy(policy, k) if k > 1 else policy
+
+
+def slot_checkpoint(path: Path, slot: str) -> Path:
+    """The checkpoint that drives ``slot`` for an algorithm represented by ``path``: the
+    AC of the same run trained in that slot when there is one (its route: the camera
+    carries no route command, so an image-trained AC knows only the turns it was trained on), else
+    ``path`` itself (eval/testing/selection.py's choice)."""
+    path = Path(path)
+    if path.parent.parent.name != "checkpoints":
+        return path
+    own = selection.checkpoint_of(path.parent.parent.parent, slot)
+    return own if own is not None else path
+
+
+def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
+                   fixed: Collection[str] = (), greedy: bool = False) -> PolicyFactory:
+    """How each AC gets its policy: trained checkpoints, the autopilot, or random.
+
+    Trained: slot ``ac_k`` of algorithm ``a`` is driven by :func:`slot_checkpoint`
+    (the run's own ``ac_k`` where it trained one), except for the algorithms in
+    ``fixed`` (given with ``--checkpoint``), whose checkpoint drives every slot. The
+    :data:`SAMPLED` algorithms draw their actions from their policy (seeded per slot
+    and episode) unless ``greedy``; the others act greedily."""
+    if kind == "trained":
+        checkpoints = dict(checkpoints or {})
+        # the given ones load now: a bad file fails before any episode runs
+        loaded: dict[Path, object] = {p: load_for_slot(p, a) for a, p in checkpoints.items()}
+
+        def make(env, agent, algo):
+            path = checkpoints[algo] if algo in fixed else slot_checkpoint(checkpoints[algo], agent)
+            if path not in loaded:
+                loaded[path] = load_for_slot(path, algo)
+            seed = int(agent.rsplit("_", 1)[1]) if algo in SAMPLED and not greedy else None
+            return drive(loaded[path], seed, env, agent)  # one frame history (and draw stream) per AC
+
+        return make
+    if kind == "autopilot":
+        return lambda env, agent, algo: AutopilotPolicy(env, agent)
+    if kind == "random":
+        return lambda env, agent, algo: RandomPolicy(env.action_space(agent), seed=hash(agent) % 1000)
+    raise ProtocolError(f"unknown policy kind {kind!r}; valid: trained, autopilot, random")
+
+
+def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence[str] = ALGO_ORDER,
+                 progress: Callable[[str], None] | None = None) -> pd.DataFrame:
+    """Run Scenario 1 and/or 2 in every environment of the plan; return all records."""
+    from cosim.env import CosimParallelEnv
+
+    algos = list(algos)[: plan.agents] if 1 in plan.scenarios else list(algos)
+    frames = []
+    seeds = [plan.seed + e for e in range(plan.episodes)]
+    for env_name in plan.envs:
+        if 1 in plan.scenarios:
+            # one environment per slot order (the action types follow the algorithms)
+            by_order: dict[tuple[str, ...], list[int]] = {}
+            for e in range(plan.episodes):
+                by_order.setdefault(tuple(slot_order(algos, e, plan.rotate)), []).append(e)
+            for order, episodes in by_order.items():
+                types = ["continuous" if a in CONTINUOUS else "discrete" for a in order]
+                env = CosimParallelEnv(env_name, num_agents=len(order), action_types=types,
+                                       terminate_on_collision=False, horizon=plan.steps)
+                try:
+                    agent_algo = dict(zip(env.possible_agents, order, strict=True))
+                    policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
+                    rec = run_episodes(env, policies, [seeds[e] for e in episodes],
+                                       algorithms=agent_algo)
+                finally:
+                    env.close()
+                rec["episode"] = rec["episode"].map(dict(enumerate(episodes)))
+                frames.append(rec.assign(env=env_name, scenario=1))
+            if progress:
+                progress(f"{env_name} scenario 1")
+        if 2 in plan.scenarios:
+            for algo in algos:
+                env = CosimParallelEnv(
+                    env_name, num_agents=1,
+                    action_types="continuous" if algo in CONTINUOUS else "discrete",
+                    terminate_on_collision=False, horizon=plan.steps,
+                    background=False, pedestrians=False,
+                )
+                try:
+                    policies = {"ac_0": make_policy(env, "ac_0", algo)}
+                    rec = run_episodes(env, policies, seeds, algorithms={"ac_0": algo})
+                finally:
+                    env.close()
+                frames.append(rec.assign(env=env_name, scenario=2))
+                if progress:
+                    progress(f"{env_name} scenario 2 {algo}")
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def metrics_table(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
+    """Per (scenario, env, algorithm): mean over episodes of every SPEC §4 metric (``dt``:
+    seconds per step; None: each environment's scenario's, eval.testing.metrics.scenario_dt)."""
+    parts = []
+    for (scenario, env), g in records.groupby(["scenario", "env"], sort=True):
+        per = episode_metrics(g, scenario_dt(env) if dt is None else dt)
+        s = summarize(per, by=["algorithm"])
+        parts.append(s.assign(scenario=scenario, env=env))
+    out = pd.concat(parts, ignore_index=True)
+    return success_rates(out)
+
+
+# -- what the report (eval/reporting/report.py) reads -------------------------------------
+def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
+                   progress: Callable[[str], None] | None = None) -> pd.DataFrame:
+    """The reference policies of eval.testing.validity (the continuous and discrete autopilots, the
+    safe non-turner, random and the degenerate policies) under the plan's Scenario 1
+    conditions: same environments, AC count, steps and episodes."""
+    from eval.testing import validity
+
+    frames = []
+    for env_name in plan.envs:
+        rows = validity.check_scenario(env_name, plan.agents, plan.episodes, plan.steps,
+                                       policies=tuple(policies))
+        frames.append(validity.summarize(rows).reset_index().assign(env=env_name))
+        if progress:
+            progress(f"{env_name} references")
+    return pd.concat(frames, ignore_index=True)
+
+
+def references_markdown(refs: pd.DataFrame) -> str:
+    from eval.testing import validity
+
+    parts = ["## Reference rows (Scenario 1 conditions, scripted policies)\n",
+             "Fixed policies on the same environments, AC count, steps and episodes "
+             "(docs/scenarios.md): a trained AC should beat every degenerate row; "
+             "autopilot-discrete is the ceiling of a discrete learner, and a learner that "
+             "beats safe-non-turner learned to turn (docs/task.md, \"Reference policies\").\n"]
+    for env, g in refs.groupby("env", sort=False):
+        parts.append(f"\n### {env}\n\n" + validity.format_table(g.set_index("policy")) + "\n")
+    return "\n".join(parts)
+
+
+__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "load_for_slot",
+           "metrics_table", "obs_of", "policy_factory", "reference_rows", "references_markdown", "rules", "run_protocol",
+           "slot_checkpoint", "slot_order"]

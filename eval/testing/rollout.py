@@ -1,0 +1,194 @@
+"""Run policies in an environment for fixed-seed episodes and collect per-step records.
+
+A policy is anything with ``act(obs, deterministic=True)`` (every trained agent)
+or a callable ``policy(obs) -> action``. :class:`RandomPolicy` and
+:class:`AutopilotPolicy` are the two references; :class:`StackedPolicy` feeds a
+policy trained on stacked frames its own frame history, :class:`NavPolicy` one trained on
+the ``nav`` observation its own measurements.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from cosim.controller import Autopilot
+from eval.testing.records import record_row, to_frame
+
+
+class RandomPolicy:
+    """Uniform random actions from the agent's action space (seeded)."""
+
+    name = "random"
+
+    def __init__(self, space, seed: int = 0):
+        self.space = space
+        self.space.seed(seed)
+
+    def act(self, obs, deterministic: bool = True):
+        return self.space.sample()
+
+
+class AutopilotPolicy:
+    """The scripted lane follower as a policy of one AC of a cosim env (privileged)."""
+
+    name = "autopilot"
+
+    def __init__(self, env, agent: str):
+        self.env = env
+        self.agent = agent
+        self.discrete = env.action_types[agent] == "discrete"
+        self._pilot = None
+
+    def act(self, obs, deterministic: bool = True):
+        world = self.env.world
+        if self._pilot is None or self._pilot.world is not world:
+            self._pilot = Autopilot(world, self.agent)
+        return self._pilot.act_discrete() if self.discrete else self._pilot.act()
+
+    def reset(self) -> None:
+        self._pilot = None
+
+
+class StackedPolicy:
+    """A policy trained on ``k`` stacked camera frames, driving one AC of a test env.
+
+    It keeps that AC's frame history itself (cosim.wrappers.FrameHistory, the stacking the
+    training env's FrameStack does), so ACs of runs with different ``k`` share one test
+    environment; ``reset()`` (called by :func:`run_episodes` at every episode start)
+    clears it, and the first frame of an episode fills all ``k`` slots, as in training.
+    """
+
+    def __init__(self, policy, k: int):
+        from cosim.wrappers import FrameHistory
+
+        self.policy, self.history = policy, FrameHistory(k)
+        self.algo = getattr(policy, "algo", None)
+        self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    @property
+    def frame_stack(self) -> int:
+        return self.history.k
+
+    def reset(self) -> None:
+        self.history.clear()
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def act(self, obs, deterministic: bool = True):
+        return _act(self.policy, self.history.push(obs))
+
+
+class NavPolicy:
+    """A policy trained on the ``nav`` observation (cosim.wrappers.NavObservation), driving AC
+    ``agent`` of a test env that gives camera images only.
+
+    It builds that AC's measurements itself, as the training env's NavObservation does: from
+    the AC's route (cosim.wrappers.RouteGuide, read again after every ``reset()``) and the
+    speed and distance to the goal in the env's infos of the step that gave the image
+    (``CosimParallelEnv.last_infos``). So ACs trained on either observation share one test
+    environment. Inside a :class:`StackedPolicy` it gets the stacked frames as its image.
+    """
+
+    def __init__(self, policy, env, agent: str):
+        self.policy, self.env, self.agent = policy, env, agent
+        self.guide = None
+        self.algo = getattr(policy, "algo", None)
+        self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    def reset(self) -> None:
+        self.guide = None
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def act(self, obs, deterministic: bool = True):
+        from cosim.wrappers import RouteGuide
+
+        if self.guide is None:
+            self.guide = RouteGuide.of_agent(self.env, self.agent)
+        return _act(self.policy, self.guide.observe(obs, self.env.unwrapped.last_infos[self.agent]))
+
+
+class SampledPolicy:
+    """A stochastic-policy agent (PPO, A3C, IMPALA) tested by sampling its action
+    distribution, the policy its training optimised, instead of taking the mode.
+
+    Draws come from this wrapper's own torch generator, seeded with ``seed`` and the
+    episode count at every ``reset()``: the same test gives the same draws, and two
+    slots driven by one checkpoint do not share a stream.
+    """
+
+    def __init__(self, agent, seed: int):
+        import torch
+
+        self.agent, self.seed, self.episodes = agent, int(seed), 0
+        self.algo = getattr(agent, "algo", None)
+        self.generator = torch.Generator(device=getattr(agent, "device", "cpu"))
+        self.generator.manual_seed(self.seed)
+
+    def reset(self) -> None:
+        self.generator.manual_seed(self.seed * 100_003 + self.episodes)
+        self.episodes += 1
+
+    def act(self, obs, deterministic: bool = True):
+        own, self.agent.generator = self.agent.generator, self.generator
+        try:
+            return self.agent.act(obs, deterministic=False)
+        finally:
+            self.agent.generator = own
+
+
+def _act(policy, obs):
+    if hasattr(policy, "act"):
+        return policy.act(obs, deterministic=True)
+    return policy(obs)
+
+
+def run_episodes(env, policies: Mapping[str, object], seeds: Sequence[int],
+                 algorithms: Mapping[str, str] | None = None, progress=None) -> pd.DataFrame:
+    """Run one episode per seed with the given policies; return the per-step records.
+
+    Args:
+        env: a cosim ParallelEnv (its agents must all have policies).
+        policies: agent id -> policy.
+        seeds: one episode per seed (fixed seeds make evaluations comparable).
+        algorithms: agent id -> algorithm name for the records (default: policy.algo/name).
+        progress: optional callable(episode_index) for progress bars.
+    """
+    missing = [a for a in env.possible_agents if a not in policies]
+    if missing:
+        raise ValueError(f"no policy for agent(s) {missing}")
+    names = dict(algorithms or {})
+    for a, p in policies.items():
+        names.setdefault(a, getattr(p, "algo", None) or getattr(p, "name", type(p).__name__))
+    rows: list[dict] = []
+    for episode, seed in enumerate(seeds):
+        obs, infos = env.reset(seed=int(seed))
+        for p in policies.values():
+            if hasattr(p, "reset"):
+                p.reset()
+        step = 0
+        while env.agents:
+            actions = {a: _act(policies[a], obs[a]) for a in env.agents}
+            obs, rewards, terms, truncs, infos = env.step(actions)
+            step += 1
+            for a in rewards:
+                rows.append(record_row(
+                    episode=episode, seed=int(seed), step=step, agent=a, algorithm=names[a],
+                    info=infos[a], reward=rewards[a], terminated=terms[a], truncated=truncs[a],
+                ))
+        if progress is not None:
+            progress(episode)
+    return to_frame(rows)
+
+
+def mean_return(records: pd.DataFrame) -> float:
+    """Mean over (episode, agent) of the undiscounted return."""
+    if records.empty:
+        return float("nan")
+    return float(records.groupby(["episode", "agent"])["reward"].sum().mean())
+
+
+__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "StackedPolicy", "mean_return", "run_episodes", "np"]

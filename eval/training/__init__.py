@@ -1,0 +1,1 @@
+"""Training: one `train()`, its config and presets, the run folder and log, checkpoints, validation."""

@@ -1,0 +1,233 @@
+"""Training configuration: :class:`TrainConfig`, resolved from a preset by
+:func:`make_config`, with ``--set FIELD=VALUE`` hyperparameter changes
+(:func:`parse_set`, :func:`parse_hyper`).
+
+Algorithm names, action kinds and training loops come from the catalogue
+(agents/registry.py); presets from eval/training/presets.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import yaml
+
+from agents import registry
+from cosim.errors import CosimError
+from cosim.wrappers import OBS_VARIANTS
+from eval.training.presets import load_presets
+
+__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DISCRETE_ALGOS",
+           "OBS_VARIANTS", "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
+
+ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
+DISCRETE_ALGOS = registry.DISCRETE
+CONTINUOUS_ALGOS = registry.CONTINUOUS
+ASYNC_ALGOS = registry.ASYNC
+COLLISION_RULES = ("continue", "end")
+"""``--collisions``: the episode goes on after a collision as in the test (the default) or a
+collision ends the AC's training episode (the paper's rule); TrainConfig.collisions_end_episode
+and docs/task.md, "Training rule"."""
+
+
+VALIDATION_EPISODES = 2
+"""Validation episodes per checkpoint unless ``--validation-episodes`` says otherwise."""
+VALIDATION_STEPS = 300
+"""Steps per validation episode (at most the preset's horizon) unless ``--validation-steps``."""
+
+
+class TrainError(CosimError, ValueError):
+    """A training request that cannot run; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (written to config.yaml)."""
+
+    algo: str
+    env: str = "env_1"
+    agents: int = 3
+    steps: int = 10_000
+    seed: int = 0
+    preset: str = "quick"
+    horizon: int = 300
+    checkpoint_every: int = 2_000
+    workers: int = 2
+    """The preset's default ``envs`` for A3C and IMPALA (recorded; ``envs`` is what runs)."""
+    image_size: int = 84
+    agent_config: dict[str, Any] = field(default_factory=dict)
+    envs: int = 1
+    """Environments stepped together (one vector env, agents/vector.py), each in its own
+    process when > 1; every algorithm (A3C: one learner thread per environment)."""
+    device: str = "auto"
+    """Torch device of the learners: auto (cuda when available), cpu or cuda."""
+    torch_threads: int = 0
+    """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers (all
+    with one env) divided among the learner threads, at least 1 (A3C: 1)."""
+    learner_threads: int = 0
+    """Threads running the ACs' updates at once (agents.loop.run_vector_loop; each AC has its
+    own networks, so the result is the same for any value); 0: one per AC up to the CPUs
+    (OMP_NUM_THREADS when set, as Ray sets it per trial)."""
+    frame_stack: int = 1
+    """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
+    1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)
+    and every test of a checkpoint does too, read from its observation shape."""
+    obs: str = "image"
+    """What an AC observes: ``image``, its camera frames (the paper's observation), or ``nav``,
+    those beside the measurements vector (speed, route command, distance to the goal;
+    cosim.wrappers.NavObservation). Checkpoints record it as their observation space (Box or
+    Dict), and every test of a checkpoint builds it for that AC (docs/task.md, "Observation")."""
+    collisions_end_episode: bool = False
+    """False (the default, ``--collisions continue``): the test's rule, the episode goes on after
+    a collision and the car pays the collision reward every step it stays in contact, until the
+    goal, leaving the region or the horizon. True (``--collisions end``): a collision ends the
+    AC's training episode (the paper's training protocol), which makes crashing worth more than
+    waiting when 71 or more steps remain (docs/task.md, "Training rule")."""
+
+    validation_episodes: int = 0
+    """Held-out episodes the run's ACs drive under the test's rules at every checkpoint; each
+    AC's best.pt is its checkpoint with the highest mean validation return (eval/training/validation.py;
+    docs/task.md, "Checkpoint selection"). 0: no validation, best.pt by training return (also
+    what a config.yaml written before the option reads as). make_config gives 2."""
+    validation_steps: int = 300
+    """Steps per validation episode (default: 300, or the preset's horizon when shorter)."""
+
+    @property
+    def action_type(self) -> str:
+        return "discrete" if self.algo in DISCRETE_ALGOS else "continuous"
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents: int | None = None,
+                steps: int | None = None, seed: int = 0, action_type: str | None = None,
+                image_size: int = 84, agent_preset: str | None = None,
+                hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
+                torch_threads: int = 0, frame_stack: int | None = None, obs: str = "image",
+                learner_threads: int = 0, collisions: str = "continue",
+                validation_episodes: int | None = None, validation_steps: int | None = None) -> TrainConfig:
+    """Resolve a training request into a TrainConfig, refusing what cannot work.
+
+    ``hyper`` changes agent hyperparameters last, field name -> value as text
+    (``cosim train --set actor_learning_rate=1e-4``). ``envs`` and ``frame_stack``
+    default to the preset's (for A3C and IMPALA ``envs`` defaults to the preset's
+    ``workers``: A3C runs one learner thread per environment, IMPALA acts in all).
+    ``validation_episodes`` / ``validation_steps``: the held-out episodes that pick each AC's
+    best.pt (TrainConfig.validation_episodes; 0 episodes: by training return).
+    ``collisions``: "continue" (the default, the test's rule: the episode goes on and every
+    contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
+    ``obs``: "image" (the default) or "nav" (TrainConfig.obs).
+
+    Raises:
+        TrainError: unknown algorithm or preset (listing the valid ones), an action
+            type the algorithm cannot use (with the reason), bad numbers.
+        cosim.errors.ScenarioError: unknown environment (listing the valid ones).
+    """
+    from cosim.scenario import load_scenario
+
+    if algo not in ALGORITHMS:
+        raise TrainError(f"unknown algorithm {algo!r}; choose one of {', '.join(ALGORITHMS)} (or 'all')")
+    presets = load_presets()
+    if preset not in presets:
+        raise TrainError(f"unknown preset {preset!r}; choose one of {', '.join(presets)}")
+    natural = "discrete" if algo in DISCRETE_ALGOS else "continuous"
+    if action_type is not None and action_type != natural:
+        why = ("it picks among a finite set of actions (Discrete(9))" if natural == "discrete"
+               else "its actor outputs continuous values (Box(-1, 1, (2,)))")
+        raise TrainError(
+            f"{algo} cannot train with {action_type} actions: {why}; use --action-type {natural} "
+            f"or a {'continuous' if natural == 'discrete' else 'discrete'} algorithm "
+            f"({', '.join(CONTINUOUS_ALGOS if natural == 'discrete' else DISCRETE_ALGOS)})"
+        )
+    scenario = load_scenario(env)
+    p = presets[preset]
+    n = p.agents if agents is None else int(agents)
+    if not 1 <= n <= scenario.max_agents:
+        raise TrainError(f"--agents must be 1..{scenario.max_agents} for {env}, got {n}")
+    total = p.steps[algo] if steps is None else int(steps)
+    if total < 1:
+        raise TrainError(f"--steps must be >= 1, got {total}")
+    if envs is None:  # A3C and IMPALA: the preset's workers, one environment (and A3C thread) each
+        envs = p.envs if algo not in ASYNC_ALGOS else p.workers
+    frame_stack = p.frame_stack if frame_stack is None else int(frame_stack)
+    if frame_stack < 1:
+        raise TrainError(f"--frame-stack must be >= 1 (1: a single camera frame), got {frame_stack}")
+    if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
+        raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
+                         f"{envs}, {torch_threads} and {learner_threads}")
+    if validation_episodes is None:
+        validation_episodes = VALIDATION_EPISODES if p.validation_episodes is None else p.validation_episodes
+    validation_steps = min(VALIDATION_STEPS, p.horizon) if validation_steps is None else int(validation_steps)
+    validation_episodes = int(validation_episodes)
+    if validation_episodes < 0 or validation_steps < 1:
+        raise TrainError(f"--validation-episodes must be >= 0 (0: off) and --validation-steps >= 1, got "
+                         f"{validation_episodes} and {validation_steps}")
+    if obs not in OBS_VARIANTS:
+        raise TrainError(f"--obs must be {' or '.join(OBS_VARIANTS)}, got {obs!r}")
+    if collisions not in COLLISION_RULES:
+        raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
+    if device not in ("auto", "cpu", "cuda"):
+        raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
+    config_cls = registry.get_agent_class(algo).config_class
+    chosen = agent_preset or p.agent_preset
+    try:
+        base = config_cls.preset(chosen, **{"reward_scale": p.reward_scale, **p.overrides.get(algo, {})})
+        agent_config = base.replace(**parse_hyper(base.to_dict(), hyper or {}, algo)).to_dict()
+    except ValueError as exc:
+        raise TrainError(f"{algo} hyperparameters: {exc}") from exc
+    return TrainConfig(
+        algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
+        horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
+        image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
+        torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs,
+        learner_threads=int(learner_threads),
+        collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
+        validation_steps=validation_steps,
+    )
+
+
+def parse_set(items: list[str]) -> dict[str, str]:
+    """``["lr=3e-4", ...]`` (``--set`` arguments) -> ``{"lr": "3e-4"}``; values stay text."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise TrainError(f"--set {item!r}: write FIELD=VALUE, e.g. --set learning_rate=3e-4")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def parse_hyper(current: Mapping[str, Any], hyper: Mapping[str, str], algo: str) -> dict[str, Any]:
+    """Typed values for hyperparameter overrides given as text, checked against ``current``.
+
+    A value must have the type of the field's current value; ints are accepted for
+    floats and lists for tuples. (YAML reads "1e-4" as text, hence float().)
+
+    Raises:
+        ValueError: an unknown field (listing the valid ones) or a value of the wrong type.
+    """
+    out: dict[str, Any] = {}
+    for key, text in hyper.items():
+        if key not in current:
+            raise ValueError(f"--set {key}: {algo} has no such hyperparameter; valid: {', '.join(sorted(current))}")
+        old = current[key]
+        try:
+            value = yaml.safe_load(text)
+            if isinstance(old, float) and not isinstance(value, bool):
+                value = float(value)
+            elif isinstance(old, tuple) and isinstance(value, list):
+                value = tuple(value)
+            ok = type(value) is type(old)
+        except (TypeError, ValueError, yaml.YAMLError):
+            ok = False
+        if not ok:
+            kind = type(old).__name__
+            raise ValueError(
+                f"--set {key}={text}: expected {'an' if kind[0] in 'aeiou' else 'a'} {kind} like {old!r}"
+            )
+        out[key] = value
+    return out

@@ -1,0 +1,309 @@
+"""The trainer (SPEC §6, "Scenario 1, train"): N ACs of ONE algorithm, each with its
+own network, learning together in a driving environment among background cars.
+
+Algorithms that train in the sync loop (agents/registry.py) step ``--envs N``
+environments through :func:`agents.loop.run_vector_loop`: one in this process, or
+N worker processes (``agents/vector.py``), each AC acting in all of them in one
+forward pass; each environment's episodes become CSV rows. The async ones (A3C,
+IMPALA) step the same vector env of ``--envs N`` environments (libsumo allows one
+simulation per process): A3C with one learner thread per environment, IMPALA's
+learner acting in all of them (agents/async_env.py). The run folder, resuming and the
+lock are eval/training/runfolder.py; the CSV, TensorBoard and checkpoints eval/training/runlog.py.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from cosim.env import EPISODE_INFO
+from eval.training.config import ASYNC_ALGOS, TrainConfig, TrainError
+from eval.training.plots import plot_convergence
+from eval.training.runfolder import (
+    RunLock,
+    load_run_config,
+    new_run_dir,
+    prune_finished,
+    read_state,
+    recover_checkpoints,
+)
+from eval.training.runlog import RunLog
+
+log = logging.getLogger(__name__)
+
+
+def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = None,
+          quiet: bool = False, progress: bool = True,
+          on_checkpoint: Callable[[Path, int, float], None] | None = None, keep: str = "all") -> Path:
+    """Run (or resume) one training run; return its folder.
+
+    ``on_checkpoint(run, env_steps, mean_return)`` is called after each committed
+    checkpoint (how Ray Tune trials report, eval/scale/benchmark.py and eval/scale/pbt.py).
+    ``keep`` is what the folder keeps once the run is finished (eval/training/runfolder.py
+    KEEP_POLICIES; ``"all"``, the library default, deletes nothing).
+
+    Raises:
+        TrainError: the run folder is held by another process (naming its PID), or
+            its config.yaml / state.json is unreadable (naming the file and the key).
+    """
+    if resume is not None:
+        run = Path(resume)
+        cfg = load_run_config(run)
+        lock = RunLock(run)
+        try:
+            state = read_state(run)
+            recover_checkpoints(run, None if state is None else int(state["env_steps"]))
+            if state is None:  # stopped before its first checkpoint: start again from step 0
+                log.info("resume: %s has no checkpoint yet; restarting it from step 0", run)
+                shutil.rmtree(run / "tb", ignore_errors=True)
+        except BaseException:
+            lock.release()
+            raise
+    else:
+        run = new_run_dir(out, cfg)
+        lock = RunLock(run)
+        state = None
+    try:
+        _train_locked(cfg, run, state, quiet, progress, on_checkpoint)
+        finished = read_state(run)
+        if keep != "all" and finished is not None and int(finished["env_steps"]) >= cfg.steps:
+            freed = prune_finished(run, keep)
+            log.info("run %s finished: --keep %s freed %.1f MB", run, keep, freed / 1e6)
+    finally:
+        lock.release()
+    return run
+
+
+
+def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, progress: bool,
+                  on_checkpoint: Callable[[Path, int, float], None] | None = None) -> None:
+    runlog = RunLog(run, cfg, state)
+    runlog.on_checkpoint = on_checkpoint
+    log.info("training %s on %s with %d ACs for %d steps -> %s", cfg.algo, cfg.env, cfg.agents,
+             cfg.steps, run)
+    try:
+        if runlog.env_steps >= cfg.steps:
+            log.info("run %s is already complete (%d steps)", run, runlog.env_steps)
+        elif cfg.algo in ASYNC_ALGOS:
+            _train_async(cfg, runlog, state is not None, quiet, progress)
+        else:
+            _train_sync(cfg, runlog, state is not None, quiet, progress)
+    finally:
+        runlog.close()
+        plot_convergence(run)
+
+
+def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space,
+                   device: str = "cpu") -> dict:
+    import agents as agents_pkg
+    from agents.base import check_observations
+    from agents.registry import get_agent_class
+
+    cls = get_agent_class(cfg.algo)
+    config = cls.config_class.from_dict(cfg.agent_config)
+    out = {}
+    for k in range(cfg.agents):
+        aid = f"ac_{k}"
+        latest = run / "checkpoints" / aid / "latest.pt"
+        if resumed and latest.exists():
+            out[aid] = agents_pkg.load(latest, device=device)  # saved from any device, loads on any
+            try:  # a config.yaml edited to another --obs or --frame-stack than the checkpoints'
+                check_observations(out[aid].observation_space, obs_space, f"checkpoint {latest}")
+            except ValueError as exc:
+                raise TrainError(str(exc)) from None
+        else:
+            out[aid] = cls.from_spaces(obs_space, act_space, config, seed=cfg.seed + k, device=device)
+    return out
+
+
+def _bar(cfg: TrainConfig, runlog: RunLog, quiet: bool, progress: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=cfg.steps, initial=runlog.env_steps, unit="step", dynamic_ncols=True,
+                desc=f"{cfg.env} {cfg.algo}", disable=quiet or not progress, smoothing=0.05)
+
+
+def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_log: list) -> None:
+    mean = runlog.mean_recent()
+    bar.set_postfix_str(f"return {mean:8.1f}", refresh=False)
+    now = time.monotonic()
+    if quiet and now - last_log[0] > 30:
+        rate = (step - last_log[1]) / (now - last_log[0])
+        last_log[0], last_log[1] = now, step
+        print(f"[{cfg.algo} {cfg.env}] step {step}/{cfg.steps} recent mean return {mean:.1f} "
+              f"({rate:.0f} steps/s)", flush=True)
+
+
+def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    """PPO, DQN, DDPG, TD3: ``cfg.envs`` environments (worker processes when > 1), one
+    batched forward pass per AC per step (agents.loop.run_vector_loop, docs/agents.md)."""
+
+    from agents.base import resolve_device
+    from agents.loop import run_vector_loop
+    from agents.vector import make_vector_env
+
+    n = cfg.envs
+    _set_torch_threads(cfg)
+    try:
+        device = resolve_device(cfg.device)
+    except ValueError as exc:
+        raise TrainError(str(exc)) from None
+    start_step = runlog.env_steps
+    # env i of N: seed + i (env 0 is the one-env run's env)
+    fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(n)]
+    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, env.env_step))
+    env.env_step = start_step
+    last = [start_step]
+    bar = _bar(cfg, runlog, quiet, progress)
+    last_log = [time.monotonic(), start_step]
+    try:
+        agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
+                                   env.action_space("ac_0"), device)
+
+        def callback(step: int, stats, metrics) -> bool:
+            now = start_step + step
+            before, last[0] = last[0], now
+            for aid, m in metrics.items():
+                runlog.metrics(aid, m, now)
+            bar.update(now - before)
+            if now // cfg.checkpoint_every > before // cfg.checkpoint_every or now >= cfg.steps:
+                runlog.checkpoint(agent_map, now, stats.summary())
+            _report(bar, runlog, cfg, now, quiet, last_log)
+            return now >= cfg.steps
+
+        # episodes after a resume get fresh seeds: seed + 100003 * (episodes so far)
+        first_seed = cfg.seed + 100_003 * sum(runlog.episodes.values())
+        run_vector_loop(agent_map, env, total_steps=cfg.steps - start_step, callback=callback,
+                        seed=first_seed, learner_threads=_learner_threads(cfg))
+    finally:
+        bar.close()
+        env.close()
+
+
+def _cpus() -> int:
+    """CPUs this run may use: OMP_NUM_THREADS when set (Ray sets it per trial), else all."""
+    return int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1
+
+
+def _learner_threads(cfg: TrainConfig) -> int:
+    """``cfg.learner_threads``, or one per AC up to the CPUs (the ACs' updates are independent)."""
+    return cfg.learner_threads or min(cfg.agents, _cpus())
+
+
+def _set_torch_threads(cfg: TrainConfig) -> None:
+    """``cfg.torch_threads``, or the CPUs the env workers leave (all when the env runs in this
+    process) shared among the learner threads, at least 1; A3C's learner threads are its
+    parallelism (1 torch thread). IMPALA's one learner gets the same share as the
+    parallel ACs would (1 on 2 cores): more OpenMP threads were not measured to help. Two OpenMP threads per update on a busy 2-core machine
+    made a forward pass ~20x slower (docs/benchmarks.md#where-ppos-cpu-goes-with-1-and-2-envs): parallel ACs, not
+    parallel ops, use the cores here."""
+    import torch
+
+    from agents import registry
+
+    spare = max(1, _cpus() - cfg.envs) if cfg.envs > 1 else _cpus()
+    threads = cfg.torch_threads or (1 if registry.get(cfg.algo).thread_per_env
+                                    else max(1, spare // _learner_threads(cfg)))
+    torch.set_num_threads(threads)
+
+
+def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    """A3C, IMPALA on one vector env of ``cfg.envs`` environments (worker processes when > 1):
+    A3C runs one learner thread per environment, IMPALA's learner acts in all of them."""
+    from agents.registry import get_agent_class, get_async_trainer
+
+    trainer = get_async_trainer(cfg.algo)  # agents.a3c.train_a3c, agents.impala.train_impala
+    probe = make_env(cfg.to_dict())
+    obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
+    probe.close()
+    start_step = runlog.env_steps
+    initial = _load_or_build(cfg, runlog.run, resumed, obs_space, act_space) if resumed else None
+    config = get_agent_class(cfg.algo).config_class.from_dict(cfg.agent_config)
+    bar = _bar(cfg, runlog, quiet, progress)
+    last = {"step": start_step, "ckpt": start_step}
+    last_log = [time.monotonic(), start_step]
+
+    def callback(p) -> bool:
+        now = start_step + int(p.env_steps)
+        for ep in p.episodes:
+            for aid, stats in getattr(ep, "extras", {}).items():
+                runlog.episode(aid, stats, now)
+        metrics = p.metrics or {}
+        if metrics and all(isinstance(v, dict) for v in metrics.values()):
+            for aid, m in metrics.items():  # per-agent metrics
+                runlog.metrics(aid, {k: v for k, v in m.items() if np.isscalar(v)}, now)
+        elif metrics:  # shared metrics (e.g. policy lag)
+            scalars = {k: v for k, v in metrics.items() if np.isscalar(v)}
+            for aid in p.agents:
+                runlog.metrics(aid, scalars, now)
+        bar.update(max(now - last["step"], 0))
+        last["step"], last["timing"] = now, p.timing
+        if now - last["ckpt"] >= cfg.checkpoint_every or now >= cfg.steps:
+            runlog.checkpoint(p.agents, now, p.timing)
+            last["ckpt"] = now
+        _report(bar, runlog, cfg, now, quiet, last_log)
+        return now >= cfg.steps
+
+    _set_torch_threads(cfg)
+    kwargs = {} if initial is None else {"agents": initial}
+    fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(cfg.envs)]
+    try:  # env i of N: seed + i, as in _train_sync
+        trained = trainer(
+            fns, obs_space, act_space,
+            agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=config,
+            total_steps=cfg.steps - start_step, seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
+            callback=callback, **kwargs,
+        )
+        runlog.checkpoint(trained, max(last["step"], runlog.env_steps), last.get("timing"))
+    finally:
+        bar.close()
+
+
+def make_env(cfg_dict: dict, worker_seed: int | None = None):
+    """Build the training env of a config (top-level, so worker processes can pickle it);
+    with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack),
+    with ``obs`` "nav" beside its measurements (cosim.wrappers.NavObservation); collisions end
+    an AC's episode unless ``collisions_end_episode`` is off."""
+    from cosim.env import CosimParallelEnv
+    from cosim.wrappers import observation_wrappers
+
+    cfg = TrainConfig(**cfg_dict)
+    env = CosimParallelEnv(
+        cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
+        seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
+        horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
+    )
+    return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs)
+
+
+class _EpisodeTap:
+    """Forwards a ParallelEnv and hands each agent's final ``info[EPISODE_INFO]`` to a callback."""
+
+    def __init__(self, env, on_episode: Callable[[str, dict], None]):
+        self.env, self.on_episode = env, on_episode
+        self.env_step = 0  # env steps so far (a vector env: summed over the envs it stepped)
+
+    def __getattr__(self, name):  # reset, agents, spaces, close: the env's own
+        return getattr(self.env, name)
+
+    def step(self, actions):
+        return self._tap(self.env.step(actions))
+
+    def step_wait(self, *envs):  # a vector env's second half of step (agents/vector.py)
+        return self._tap(self.env.step_wait(*envs))
+
+    def _tap(self, out):
+        # a vector env gives one info dict per environment
+        self.env_step += int(out.stepped.sum()) if hasattr(out, "stepped") else 1
+        for infos in (out.infos if hasattr(out, "env_reset") else [out[4]]):
+            for agent, info in infos.items():
+                if EPISODE_INFO in info:
+                    self.on_episode(agent, info[EPISODE_INFO])
+        return out

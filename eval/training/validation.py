@@ -1,0 +1,89 @@
+"""Held-out validation episodes under the test's rules: how a training run picks the
+checkpoint that represents each AC (docs/task.md, "Checkpoint selection").
+
+At every checkpoint the run's ACs drive ``validation_episodes`` short episodes together, in
+their own spawn slots, under the test protocol's rules: collisions do not end an episode,
+every contact step is charged, rewards unscaled, PPO, A3C and IMPALA sample their policy
+and DQN, DDPG and TD3 act greedily (eval/testing/protocol.py), on seeds no training episode or test
+uses (:func:`validation_seeds`). Each AC's score is its mean undiscounted return over those
+episodes; its ``best.pt`` is the checkpoint with the highest score so far
+(eval/training/runlog.py RunLog.checkpoint), and the run's ``selection.json`` records the rule, the
+seeds and every checkpoint's scores.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+
+import numpy as np
+
+from agents.registry import DETERMINISTIC, STOCHASTIC
+from eval.training.config import TrainConfig
+
+log = logging.getLogger(__name__)
+
+VALIDATION_SEED = 1_999_000_000
+"""First validation seed. Training episodes reset with ``seed + episode`` (+ 100,003 x the
+episodes before a resume, below 10^9 for runs of under 10,000 episodes); the test protocol
+uses ``--seed`` + episode and the validity suite 10,000 and up; SUMO takes seeds < 2^31."""
+
+RULE = ("per AC, the checkpoint with the highest mean undiscounted return over the run's "
+        "validation episodes, driven under the test's rules (collisions go on and every contact "
+        f"step is charged; {', '.join(STOCHASTIC)} sample, {', '.join(DETERMINISTIC)} greedy) on "
+        "held-out seeds; the run is represented by the AC with the highest such score")
+
+
+def validation_seeds(cfg: TrainConfig) -> list[int]:
+    """The run's validation seeds: the same at every checkpoint, so scores compare."""
+    return [VALIDATION_SEED + 100 * int(cfg.seed) + j for j in range(cfg.validation_episodes)]
+
+
+class Validator:
+    """Runs a config's validation episodes with the current weights of its ACs.
+
+    The environment is built on first use and kept (:meth:`close` ends it); it runs beside
+    the training environment (a second SUMO in one process goes through TraCI).
+    """
+
+    def __init__(self, cfg: TrainConfig):
+        self.cfg = cfg
+        self.seeds = validation_seeds(cfg)
+        self.steps = int(cfg.validation_steps)
+        self._env = None
+
+    def _make_env(self):
+        from cosim.env import CosimParallelEnv
+        from cosim.wrappers import observation_wrappers
+
+        cfg = self.cfg
+        env = CosimParallelEnv(cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
+                               seed=self.seeds[0], image_size=cfg.image_size, horizon=self.steps,
+                               terminate_on_collision=False)
+        return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs)
+
+    def scores(self, agents: Mapping[str, object]) -> dict[str, float]:
+        """Each AC's mean return over the validation episodes (AC id -> score)."""
+        from eval.testing.protocol import SAMPLED
+        from eval.testing.rollout import SampledPolicy, run_episodes
+
+        if self._env is None:
+            self._env = self._make_env()
+        policies = {}
+        for aid, agent in agents.items():
+            sample = self.cfg.algo in SAMPLED
+            policies[aid] = SampledPolicy(agent, int(aid.rsplit("_", 1)[1])) if sample else agent
+        saved = {aid: getattr(a, "_cache", None) for aid, a in agents.items()}  # act()'s memo
+        try:
+            records = run_episodes(self._env, policies, self.seeds)
+        finally:
+            for aid, a in agents.items():
+                if saved[aid] is not None:
+                    a._cache = saved[aid]
+        returns = records.groupby(["agent", "episode"])["reward"].sum().groupby("agent").mean()
+        return {aid: float(returns.get(aid, np.nan)) for aid in agents}
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None
