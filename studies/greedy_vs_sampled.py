@@ -20,9 +20,9 @@ if str(ROOT) not in sys.path:
 
 import pandas as pd  # noqa: E402
 
-from cosim.env import CosimParallelEnv  # noqa: E402
 from eval.reporting.report import per_episode  # noqa: E402
 from eval.testing import selection  # noqa: E402
+from eval.testing.conditions import TestConditions  # noqa: E402
 from eval.testing.protocol import SAMPLED, drive, load_for_slot  # noqa: E402
 from eval.testing.rollout import run_episodes  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
@@ -42,9 +42,7 @@ def main(argv=None) -> int:
         if algo not in SAMPLED or path is None:
             continue
         agent = load_for_slot(path, algo)
-        env = CosimParallelEnv(args.env, num_agents=1, action_types="discrete",
-                               terminate_on_collision=False, horizon=args.steps,
-                               background=False, pedestrians=False)
+        env = TestConditions.of(2, args.steps).env(args.env, ["discrete"])
         try:
             for mode, policy in (("greedy", drive(agent)), ("sampled", drive(agent, 0))):
                 seeds = [HELD_OUT_SEED + e for e in range(args.episodes)]

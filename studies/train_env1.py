@@ -26,8 +26,8 @@ import numpy as np
 import yaml
 
 import agents
-import cosim
 from cosim.scenario import load_scenario, nets_dir
+from eval.testing.conditions import TestConditions
 from eval.testing.metrics import episode_metrics
 from eval.testing.protocol import drive
 from eval.testing.rollout import AutopilotPolicy, RandomPolicy, run_episodes
@@ -39,8 +39,7 @@ COLUMNS = ["return", "DISTANCE", "OS", "goal", "CV", "CO", "SPEED"]
 
 def evaluate(policies_for, action_type: str, episodes: int, horizon: int, num_agents: int,
              scenario: str = "env_1") -> dict:
-    env = cosim.parallel_env(scenario, num_agents=num_agents, action_types=action_type,
-                             terminate_on_collision=False, horizon=horizon)
+    env = TestConditions.of(1, horizon).env(scenario, action_type, num_agents)
     try:
         records = run_episodes(env, policies_for(env), HELD_OUT_SEEDS[:episodes])
     finally:

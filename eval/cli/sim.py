@@ -88,16 +88,14 @@ def cmd_view(args) -> int:
     from tqdm import tqdm
 
     from cosim.controller import Autopilot
-    from cosim.env import CosimParallelEnv
     from cosim.viz import mosaic, save_gif, save_png, side_by_side
+    from eval.testing.conditions import TestConditions
 
     output_folder(args.out, "--out")
-    env = CosimParallelEnv(
-        args.scenario, num_agents=args.agents, action_types="continuous", seed=args.seed,
-        image_size=args.image_size, background=not args.no_background,
-        pedestrians=not args.no_pedestrians, terminate_on_collision=False,
-        render_mode="rgb_array",
-    )
+    # the test's rules (collisions do not end the run), the scenario's horizon, the autopilot
+    env = TestConditions(background=not args.no_background, pedestrians=not args.no_pedestrians).env(
+        args.scenario, "continuous", args.agents, seed=args.seed, image_size=args.image_size,
+        render_mode="rgb_array")
     counts: Counter = Counter()
     final = {}
     rng = np.random.default_rng(args.seed)

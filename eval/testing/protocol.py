@@ -33,6 +33,7 @@ from agents.observations import image_space, is_nav_space
 from cosim.errors import CosimError
 from eval.labels import ENVS
 from eval.testing import selection
+from eval.testing.conditions import TestConditions, action_kinds
 from eval.testing.metrics import METRICS, episode_metrics, scenario_dt, success_rates, summarize
 from eval.testing.rollout import (
     AutopilotPolicy,
@@ -236,8 +237,6 @@ def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
 def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence[str] = ALGO_ORDER,
                  progress: Callable[[str], None] | None = None) -> pd.DataFrame:
     """Run Scenario 1 and/or 2 in every environment of the plan; return all records."""
-    from cosim.env import CosimParallelEnv
-
     algos = list(algos)[: plan.agents] if 1 in plan.scenarios else list(algos)
     frames = []
     seeds = [plan.seed + e for e in range(plan.episodes)]
@@ -248,9 +247,7 @@ def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence
             for e in range(plan.episodes):
                 by_order.setdefault(tuple(slot_order(algos, e, plan.rotate)), []).append(e)
             for order, episodes in by_order.items():
-                types = ["continuous" if a in CONTINUOUS else "discrete" for a in order]
-                env = CosimParallelEnv(env_name, num_agents=len(order), action_types=types,
-                                       terminate_on_collision=False, horizon=plan.steps)
+                env = TestConditions.of(1, plan.steps).env(env_name, action_kinds(order))
                 try:
                     agent_algo = dict(zip(env.possible_agents, order, strict=True))
                     policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
@@ -264,12 +261,7 @@ def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence
                 progress(f"{env_name} scenario 1")
         if 2 in plan.scenarios:
             for algo in algos:
-                env = CosimParallelEnv(
-                    env_name, num_agents=1,
-                    action_types="continuous" if algo in CONTINUOUS else "discrete",
-                    terminate_on_collision=False, horizon=plan.steps,
-                    background=False, pedestrians=False,
-                )
+                env = TestConditions.of(2, plan.steps).env(env_name, action_kinds([algo]))
                 try:
                     policies = {"ac_0": make_policy(env, "ac_0", algo)}
                     rec = run_episodes(env, policies, seeds, algorithms={"ac_0": algo})

@@ -63,25 +63,11 @@ def sumo_positions(ls) -> dict:
     return {"vehicles": veh, "persons": per, "time": float(ls.simulation.getTime())}
 
 
-def _make_env(env_name: str, scenario: int, algos: Sequence[str], steps: int):
-    from cosim.env import CosimParallelEnv
-    from eval.testing.protocol import CONTINUOUS
-
-    if scenario == 1:
-        types = ["continuous" if a in CONTINUOUS else "discrete" for a in algos]
-        return CosimParallelEnv(env_name, num_agents=len(algos), action_types=types,
-                                terminate_on_collision=False, horizon=steps)
-    (algo,) = algos
-    return CosimParallelEnv(env_name, num_agents=1,
-                            action_types="continuous" if algo in CONTINUOUS else "discrete",
-                            terminate_on_collision=False, horizon=steps,
-                            background=False, pedestrians=False)
-
-
 def capture(plan: ProtocolPlan, make_policy: Callable, algos: Sequence[str], records: pd.DataFrame, out: Path,
             labels: dict | None = None, progress: Callable[[str], None] | None = None) -> list[dict]:
     """Clips and SUMO states of every first collision (module docstring); one dict each."""
     from eval.labels import env_title
+    from eval.testing.conditions import TestConditions, action_kinds
     from eval.testing.protocol import slot_order
     from eval.testing.rollout import _act
 
@@ -98,7 +84,7 @@ def capture(plan: ProtocolPlan, make_policy: Callable, algos: Sequence[str], rec
         for sub in runs:
             env_algos = (slot_order(algos, int(_episode), plan.rotate) if scenario == 1
                          else [sub["algorithm"].iloc[0]])
-            env = _make_env(env_name, int(scenario), env_algos, plan.steps)
+            env = TestConditions.of(int(scenario), plan.steps).env(env_name, action_kinds(env_algos))
             try:
                 agent_algo = dict(zip(env.possible_agents, env_algos, strict=True))
                 policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}

@@ -27,7 +27,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import pandas as pd
 
-from eval.testing.protocol import CONTINUOUS, ProtocolError
+from eval.testing.conditions import TestConditions, action_kinds
+from eval.testing.protocol import ProtocolError
 from eval.testing.rollout import AutopilotPolicy, run_episodes
 
 SWEEP_KINDS = ("density", "camera_noise", "action_noise", "dropout")
@@ -87,17 +88,6 @@ class Perturbed:
         return action
 
 
-def _env(scenario, types: list[str], steps: int):
-    from cosim.env import CosimParallelEnv
-
-    return CosimParallelEnv(scenario, num_agents=len(types), action_types=types,
-                            terminate_on_collision=False, horizon=steps)
-
-
-def _kind(name: str) -> str:
-    return "continuous" if name in CONTINUOUS else "discrete"
-
-
 def run_cross_play(plan, make_policy: Callable, algos: Sequence[str], group: int = 3,
                    progress: Callable[[str], None] | None = None) -> pd.DataFrame:
     """Records of every (ego, partner) pair in every environment of the plan."""
@@ -107,8 +97,8 @@ def run_cross_play(plan, make_policy: Callable, algos: Sequence[str], group: int
     for env_name in plan.envs:
         for ego in algos:
             for partner in partners:
-                types = [_kind(ego)] + [_kind(partner) if partner != "autopilot" else "continuous"] * (group - 1)
-                env = _env(env_name, types, plan.steps)
+                kinds = action_kinds([ego] + [partner] * (group - 1))
+                env = TestConditions.of(1, plan.steps).env(env_name, kinds)
                 try:
                     names = {a: (ego if i == 0 else partner) for i, a in enumerate(env.possible_agents)}
                     policies = {a: make_policy(env, a, ego) if i == 0 else
@@ -138,7 +128,7 @@ def run_sweep(plan, make_policy: Callable, algos: Sequence[str], kind: str, leve
             if kind == "density":
                 sc = sc.with_overrides(background=dataclasses.replace(
                     sc.background, scale=sc.background.scale * level))
-            env = _env(sc, [_kind(a) for a in algos], plan.steps)
+            env = TestConditions.of(1, plan.steps).env(sc, action_kinds(algos))
             try:
                 names = dict(zip(env.possible_agents, algos, strict=True))
                 policies = {}

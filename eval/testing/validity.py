@@ -21,7 +21,6 @@ rendering): a whole environment takes seconds to a minute.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -31,6 +30,7 @@ from cosim.controller import Autopilot, NonTurner
 from cosim.dynamics import discrete_controls
 from cosim.scenario import Scenario, load_scenario
 from cosim.world import World
+from eval.testing.conditions import TestConditions
 
 AUTOPILOT_MIN_GOAL = 0.9
 DEGENERATE_MAX_GOAL = 0.2
@@ -79,18 +79,11 @@ def _controller(name: str, world: World, rng: np.random.Generator) -> Callable[[
     return lambda ac: fixed
 
 
-def protocol_rules(scenario: Scenario, steps: int | None = None) -> Scenario:
-    """The scenario under the test protocol: collisions do not end an episode."""
-    term = dataclasses.replace(scenario.termination, on_collision=False)
-    horizon = scenario.horizon if steps is None else int(steps)
-    return dataclasses.replace(scenario, termination=term, horizon=horizon)
-
-
 def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
                steps: int | None = None, seed: int = HELD_OUT_SEED) -> pd.DataFrame:
     """One row per (episode, AC): return, goal, DISTANCE, the step fractions CV..RL, TTFC
     (s to the first collision, NaN without one) and SPEED (mean forward speed, km/h)."""
-    sc = protocol_rules(scenario, steps)
+    sc = TestConditions.of(1, steps).scenario(scenario)
     rows = []
     with World(sc, num_agents) as world:
         for ep in range(episodes):

@@ -53,13 +53,13 @@ class Validator:
         self._env = None
 
     def _make_env(self):
-        from cosim.env import CosimParallelEnv
         from cosim.wrappers import observation_wrappers
+        from eval.testing.conditions import TestConditions
 
         cfg = self.cfg
-        env = CosimParallelEnv(cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
-                               seed=self.seeds[0], image_size=cfg.image_size, horizon=self.steps,
-                               terminate_on_collision=False)
+        # the run's own action kind (--action-type), one per AC: the ACs under validation
+        env = TestConditions.of(1, self.steps).env(cfg.env, cfg.action_type, cfg.agents,
+                                                    seed=self.seeds[0], image_size=cfg.image_size)
         return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs)
 
     def scores(self, agents: Mapping[str, object]) -> dict[str, float]:
