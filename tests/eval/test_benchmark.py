@@ -267,6 +267,7 @@ def _return_at(checkpoint: Path) -> float:
 
 
 @needs_ray
+@pytest.mark.timeout(1000)  # the run's own budget is 900 s (2 min on a quiet machine, ~10 at load 13)
 def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperparameters(tmp_path, ray_tmp):
     import pandas as pd
     import torch
@@ -332,10 +333,11 @@ BENCH = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", 
 @needs_ray
 @pytest.mark.slow  # ~50 s: with the PBT test the default run would pass its ~2 minute budget
 def test_benchmark_with_ray_and_without_gives_the_same_checkpoints(tmp_path, ray_tmp):
-    with_ray = cosim([*BENCH, "--train-only", "--concurrent", "2", "--out", str(tmp_path / "ray")],
-                     ray_tmp)
+    # --keep all: a finished run keeps latest.pt (weights, optimiser moments, targets) to compare
+    with_ray = cosim([*BENCH, "--train-only", "--keep", "all", "--concurrent", "2", "--out",
+                      str(tmp_path / "ray")], ray_tmp)
     assert with_ray.returncode == 0, with_ray.stderr[-3000:]
-    without = cosim([*BENCH, "--train-only", "--no-ray", "--out", str(tmp_path / "seq")])
+    without = cosim([*BENCH, "--train-only", "--keep", "all", "--no-ray", "--out", str(tmp_path / "seq")])
     assert without.returncode == 0, without.stderr[-3000:]
     files = sorted((tmp_path / "ray" / "runs").glob("*/checkpoints/ac_*/latest.pt"))
     assert len(files) == 3 * 2  # three cells, two ACs each
