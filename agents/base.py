@@ -378,12 +378,12 @@ class Agent(abc.ABC):
                 optimizer.load_state_dict(state["optimizers"][name])
         self._load_extra_state(state.get("extra", {}))
 
-    def save(self, path, policy_only: bool = False) -> None:
+    def save(self, path, policy_only: bool = False, policy_dtype: str = "float32") -> None:
         """Write a self-describing checkpoint (see :func:`agents.checkpoint.save_checkpoint`);
-        ``policy_only`` keeps only what acting needs."""
+        ``policy_only`` keeps only what acting needs, its float weights as ``policy_dtype``."""
         from agents.checkpoint import save_checkpoint
 
-        save_checkpoint(path, self, policy_only=policy_only)
+        save_checkpoint(path, self, policy_only=policy_only, policy_dtype=policy_dtype)
 
     @classmethod
     def load(cls, path, device: str = "cpu") -> Agent:

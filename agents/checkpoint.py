@@ -20,11 +20,14 @@ Two kinds (``"kind"`` in the payload): a *full* checkpoint holds every network,
 optimizer state and counter, all that resuming training needs; a *policy*
 checkpoint (``save_checkpoint(..., policy_only=True)``) holds only the networks
 that choose actions (``agents.registry.POLICY_NETWORKS``: no optimizer moments,
-no target networks, no critic of DDPG/TD3) and the counters, 1/3 to 1/20 of the
-size (its weights byte-shuffled and zlib'ed, lossless: ~85% of float32). A policy
-checkpoint loads into an agent that acts exactly as the full one would; its ``policy_only`` attribute is True and training it is refused where a
-loader asks for a full checkpoint (``require_full=True``). Weights are stored
-as float32 either way: nothing is rounded.
+no target networks; DDPG/TD3 keep the critic whose CNN their actor acts on) and the
+counters, 1/3 to 1/5 of the size (its weights byte-shuffled and zlib'ed, lossless: ~85% of
+float32). A policy checkpoint loads into an agent that acts exactly as the full one would;
+its ``policy_only`` attribute is True and training it is refused where a loader asks for a
+full checkpoint (``require_full=True``). Weights are stored as float32 unless a policy file
+is asked for float16 (``policy_dtype``, :data:`POLICY_DTYPES`: half the bytes, rounded, so
+its actions can differ; the ``smoke`` run preset's choice); a full checkpoint is always
+float32.
 """
 
 from __future__ import annotations
@@ -41,12 +44,14 @@ import numpy as np
 import torch
 
 from agents.errors import AgentError
+from agents.registry import POLICY_DTYPES
 
 __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     "CheckpointError",
     "load_checkpoint",
+    "POLICY_DTYPES",
     "policy_state",
     "save_checkpoint",
     "space_from_dict",
@@ -117,37 +122,48 @@ def space_from_dict(data: dict[str, Any]) -> gymnasium.Space:
     raise ValueError(f"unknown space type {data['type']!r}")
 
 
-def pack_tensor(tensor: torch.Tensor) -> dict[str, Any]:
-    """A tensor compressed losslessly: its bytes grouped by significance (byte shuffle, as
-    Blosc and HDF5 do: the exponent bytes of float weights are alike) and zlib'ed.
-    Trained float32 weights shrink to ~85%; :func:`unpack_tensor` gives the same bits back."""
+def pack_tensor(tensor: torch.Tensor, dtype: str = "float32") -> dict[str, Any]:
+    """A tensor compressed: its bytes grouped by significance (byte shuffle, as Blosc and HDF5
+    do: the exponent bytes of float weights are alike) and zlib'ed. Trained float32 weights
+    shrink to ~85%; :func:`unpack_tensor` gives the same bits back. ``dtype`` "float16" first
+    rounds float32 weights to float16 (lossy; :data:`POLICY_DTYPES`) and records the dtype
+    that :func:`unpack_tensor` restores."""
     array = tensor.detach().cpu().contiguous().numpy()
+    cast_from = None
+    if dtype == "float16" and array.dtype == np.float32:
+        cast_from, array = array.dtype.str, array.astype(np.float16)
     shuffled = array.reshape(-1).view(np.uint8).reshape(-1, array.itemsize).T.tobytes()
     data = torch.frombuffer(bytearray(zlib.compress(shuffled, 6)), dtype=torch.uint8)
-    return {"packed": "shuffle-zlib", "dtype": array.dtype.str, "shape": list(array.shape), "data": data}
+    packed = {"packed": "shuffle-zlib", "dtype": array.dtype.str, "shape": list(array.shape), "data": data}
+    if cast_from is not None:
+        packed["cast_from"] = cast_from
+    return packed
 
 
 def unpack_tensor(packed: dict[str, Any]) -> torch.Tensor:
-    """The tensor :func:`pack_tensor` packed, bit for bit."""
+    """The tensor :func:`pack_tensor` packed, bit for bit (float16-stored weights come back
+    as the float32 values of their float16 rounding)."""
     dtype = np.dtype(packed["dtype"])
     raw = np.frombuffer(zlib.decompress(packed["data"].numpy().tobytes()), dtype=np.uint8)
     array = raw.reshape(dtype.itemsize, -1).T.copy().view(dtype).reshape(packed["shape"])
+    if "cast_from" in packed:
+        array = array.astype(np.dtype(packed["cast_from"]))
     return torch.from_numpy(array)
 
 
-def policy_state(agent) -> dict[str, Any]:
-    """The part of ``agent.state_dict()`` that acting needs: the policy networks (packed
-    losslessly, :func:`pack_tensor`) and counters."""
+def policy_state(agent, dtype: str = "float32") -> dict[str, Any]:
+    """The part of ``agent.state_dict()`` that acting needs: the policy networks (packed,
+    :func:`pack_tensor`, float weights as ``dtype``) and counters."""
     from agents.registry import POLICY_NETWORKS
 
     state = agent.state_dict()
     keep = POLICY_NETWORKS[agent.algo]
-    return {"networks": {k: {name: pack_tensor(t) for name, t in v.items()}
+    return {"networks": {k: {name: pack_tensor(t, dtype) for name, t in v.items()}
                          for k, v in state["networks"].items() if k in keep},
             "optimizers": {}, "extra": state.get("extra", {})}
 
 
-def save_checkpoint(path, agent, policy_only: bool = False) -> None:
+def save_checkpoint(path, agent, policy_only: bool = False, policy_dtype: str = "float32") -> None:
     """Write ``agent`` to ``path`` as one self-describing file.
 
     The file is written to a temporary name and renamed, so an interrupted save
@@ -158,7 +174,19 @@ def save_checkpoint(path, agent, policy_only: bool = False) -> None:
         agent: An :class:`agents.base.Agent`.
         policy_only: Keep only what acting needs (module docstring), not what
             resuming training needs.
+        policy_dtype: How a policy file stores its float weights (:data:`POLICY_DTYPES`):
+            "float32" (exact) or "float16" (half the bytes, rounded). A full checkpoint
+            resumes training exactly, so it is always float32.
+
+    Raises:
+        ValueError: ``policy_dtype`` not one of :data:`POLICY_DTYPES`, or "float16" for a
+            full checkpoint.
     """
+    if policy_dtype not in POLICY_DTYPES:
+        raise ValueError(f"policy_dtype must be one of {', '.join(POLICY_DTYPES)}, got {policy_dtype!r}")
+    if policy_dtype != "float32" and not policy_only:
+        raise ValueError("policy_dtype float16 is for policy files (policy_only=True): a full "
+                         "checkpoint keeps float32 so that training resumes exactly")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
@@ -170,7 +198,7 @@ def save_checkpoint(path, agent, policy_only: bool = False) -> None:
         "observation_space": space_to_dict(agent.observation_space),
         "action_space": space_to_dict(agent.action_space),
         "seed": agent.seed,
-        "state": policy_state(agent) if policy_only else agent.state_dict(),
+        "state": policy_state(agent, policy_dtype) if policy_only else agent.state_dict(),
         "versions": {
             "torch": str(torch.__version__),
             "numpy": str(np.__version__),

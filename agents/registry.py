@@ -73,6 +73,12 @@ DETERMINISTIC: tuple[str, ...] = tuple(a.name for a in CATALOGUE if not a.stocha
 POLICY_NETWORKS: dict[str, tuple[str, ...]] = {a.name: a.policy for a in CATALOGUE}
 """name -> the networks a policy checkpoint keeps."""
 
+POLICY_DTYPES = ("float32", "float16")
+"""How a policy checkpoint (agents/checkpoint.py, ``policy_only``) stores float weights:
+float32, bit for bit (the default), or float16, half the bytes, rounded (a loaded policy acts
+on the rounded weights, so its actions can differ from the trained network's; the ``smoke``
+run preset's choice, whose numbers check the pipeline, not the algorithms)."""
+
 
 def available() -> list[str]:
     """Names of the registered algorithms, sorted."""

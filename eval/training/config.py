@@ -94,6 +94,9 @@ class TrainConfig:
     what a config.yaml written before the option reads as). make_config gives 2."""
     validation_steps: int = 300
     """Steps per validation episode (default: 300, or the preset's horizon when shorter)."""
+    policy_dtype: str = "float32"
+    """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
+    bytes, rounded; the smoke preset's): the preset's policy_dtype (eval/training/presets.py)."""
 
     @property
     def action_type(self) -> str:
@@ -186,7 +189,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs,
         learner_threads=int(learner_threads),
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
-        validation_steps=validation_steps,
+        validation_steps=validation_steps, policy_dtype=p.policy_dtype,
     )
 
 

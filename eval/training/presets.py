@@ -19,7 +19,7 @@ from typing import Any
 
 import yaml
 
-from agents.registry import ALGORITHMS
+from agents.registry import ALGORITHMS, POLICY_DTYPES
 from cosim.errors import CosimError
 
 __all__ = ["HYPERPARAMS", "PresetError", "TrainPreset", "load_presets", "preset_names"]
@@ -60,6 +60,12 @@ class TrainPreset:
     """Every algorithm learns on reward x this: the driving reward is worth up to ~24
     per step and -50 per collision, so unscaled returns run to thousands and the value
     loss swamps the policy's gradients in the shared CNN (PPO collapsed without it)."""
+    policy_dtype: str = "float32"
+    """How each AC's best.pt (the policy the test drives) stores its float weights: float32,
+    exact, or float16, half the bytes and rounded (agents.checkpoint.POLICY_DTYPES). Only the
+    smoke preset takes float16: its 60 policy files would otherwise be ~385 MB for numbers that
+    check the pipeline, not the algorithms (docs/benchmarks.md#disk-per-run-and-per-preset)."""
+
 
 
 _ALGO_KEYS = ("steps", "hyperparameters")
@@ -135,5 +141,8 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
                                         f"steps, got {entry['steps']!r}") from None
             if entry.get("hyperparameters"):
                 overrides[algo] = dict(entry["hyperparameters"])
+        if settings.get("policy_dtype", "float32") not in POLICY_DTYPES:
+            raise PresetError(folder / "runs.yaml", f"{name}: policy_dtype must be one of "
+                                                    f"{', '.join(POLICY_DTYPES)}, got {settings['policy_dtype']!r}")
         presets[name] = TrainPreset(steps=steps, overrides=overrides, **settings)
     return presets

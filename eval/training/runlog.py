@@ -165,8 +165,11 @@ class RunLog:
             for name in names:
                 pending = folder / pending_name(name, env_step)
                 # latest.pt resumes training (everything); best.pt is what the test drives (the
-                # policy only: a third to a twentieth of the size, agents/checkpoint.py)
-                agent.save(pending, policy_only=name == "best.pt")  # written to a temp name, renamed
+                # policy only, a third to a fifth of the size, agents/checkpoint.py; float16 in
+                # the smoke preset, TrainConfig.policy_dtype)
+                policy = name == "best.pt"
+                agent.save(pending, policy_only=policy,  # written to a temp name, renamed
+                           policy_dtype=self.cfg.policy_dtype if policy else "float32")
                 staged.append((pending, folder / name))
         state = {"env_steps": env_step, "episodes": self.episodes, "best": best,
                  "best_step": best_step, "validation": validation,

@@ -101,6 +101,47 @@ def test_every_policy_network_is_an_agent_network_and_the_camera_policy_fits_the
     assert (tmp_path / "best.pt").stat().st_size <= 10e6
 
 
+@pytest.mark.parametrize("algo", ["ppo", "ddpg"])
+def test_a_float16_policy_file_is_half_the_size_and_acts_on_the_rounded_weights(algo, tmp_path):
+    """policy_dtype float16 (the smoke preset's best.pt): about half the bytes; the loaded
+    networks are float32 holding exactly the float16 rounding of the trained weights, so the
+    policy acts as the trained agent would with rounded weights; a full checkpoint refuses it."""
+    import gymnasium as gym
+
+    cls = get_agent_class(algo)
+    action = gym.spaces.Box(-1, 1, (2,), np.float32) if algo == "ddpg" else gym.spaces.Discrete(9)
+    agent = cls.from_spaces(gym.spaces.Box(0, 255, (84, 84, 12), np.uint8), action, seed=3)
+    gen = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for net in agent.networks.values():
+            for p in net.parameters():
+                p.add_(0.05 * torch.randn(p.shape, generator=gen))
+    agent.save(tmp_path / "f32.pt", policy_only=True)
+    agent.save(tmp_path / "f16.pt", policy_only=True, policy_dtype="float16")
+    assert (tmp_path / "f16.pt").stat().st_size < 0.6 * (tmp_path / "f32.pt").stat().st_size
+    policy = agents.load(tmp_path / "f16.pt")
+    for name in POLICY_NETWORKS[algo]:
+        trained, loaded = agent.networks[name].state_dict(), policy.networks[name].state_dict()
+        for key, value in trained.items():
+            assert loaded[key].dtype == value.dtype
+            expected = value.half().to(value.dtype) if value.is_floating_point() else value
+            assert torch.equal(loaded[key], expected), (name, key)
+    rounded = cls.from_spaces(agent.observation_space, action, seed=3)
+    with torch.no_grad():
+        for name, net in rounded.networks.items():
+            for p, q in zip(net.parameters(), agent.networks[name].parameters(), strict=True):
+                p.copy_(q.half().float())
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        obs = rng.integers(0, 256, size=(84, 84, 12), dtype=np.uint8)
+        np.testing.assert_allclose(policy.act(obs, deterministic=True), rounded.act(obs, deterministic=True),
+                                   rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="full checkpoint keeps float32"):
+        agent.save(tmp_path / "full16.pt", policy_dtype="float16")
+    with pytest.raises(ValueError, match="policy_dtype must be one of float32, float16, got 'bf16'"):
+        agent.save(tmp_path / "x.pt", policy_only=True, policy_dtype="bf16")
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.uint8])
 def test_packed_tensors_come_back_bit_for_bit(dtype):
     from agents.checkpoint import pack_tensor, unpack_tensor

@@ -380,3 +380,19 @@ def test_an_unknown_preset_key_is_refused_listing_the_valid_ones(tmp_path):
     (tmp_path / "td3.yaml").write_text(yaml.safe_dump(td3))
     with pytest.raises(ValueError, match="td3.yaml: quick: unknown key"):
         presets.load_presets(tmp_path)
+
+
+def test_only_the_smoke_preset_rounds_its_policy_files_and_a_bad_dtype_is_refused(tmp_path):
+    """best.pt as float16 saves the smoke benchmark half its disk; every preset that measures
+    something keeps exact float32 policies (agents.registry.POLICY_DTYPES)."""
+    loaded = presets.load_presets()
+    assert {name: p.policy_dtype for name, p in loaded.items()} == {
+        "smoke": "float16", "quick": "float32", "standard": "float32", "paper": "float32"}
+    assert config.make_config("ppo", preset="smoke").policy_dtype == "float16"
+    for path in presets.HYPERPARAMS.glob("*.yaml"):
+        (tmp_path / path.name).write_text(path.read_text())
+    runs = yaml.safe_load((tmp_path / "runs.yaml").read_text())
+    runs["quick"]["policy_dtype"] = "float8"
+    (tmp_path / "runs.yaml").write_text(yaml.safe_dump(runs))
+    with pytest.raises(ValueError, match=r"runs.yaml: quick: policy_dtype must be one of float32, float16, got 'float8'"):
+        presets.load_presets(tmp_path)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import agents
 from eval.cli import main
@@ -39,6 +40,10 @@ def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
             assert sorted(p.name for p in (run / "checkpoints" / ac).iterdir()) == ["best.pt"]
             agent = agents.load(run / "checkpoints" / ac / "best.pt")
             assert agent.algo == algo and agent.policy_only
+            stored = torch.load(run / "checkpoints" / ac / "best.pt", weights_only=True)["state"]["networks"]
+            dtypes = {t["dtype"] for net in stored.values() for t in net.values()}
+            assert dtypes == {"<f2"}, dtypes  # the smoke preset's policy_dtype: float16 on disk
+            assert all(p.dtype == torch.float32 for net in agent.networks.values() for p in net.parameters())
             action = agent.act(obs, deterministic=True)
             assert agent.action_space.contains(
                 np.asarray(action, dtype=agent.action_space.dtype) if algo in ("ddpg", "td3") else int(action)
