@@ -83,11 +83,13 @@ def main() -> None:
     p.add_argument("--preset", default="quick", help="preset of the run folders (default quick: 6 ACs)")
     p.add_argument("--steps", type=int, default=300, help="env steps of each run folder")
     p.add_argument("--skip-benchmark", action="store_true", help="only the run folders")
+    p.add_argument("--skip-runs", action="store_true", help="only the smoke benchmark")
     p.add_argument("--out", type=Path, default=None, help="also write the figures as JSON")
     args = p.parse_args()
     figures = {"keep": args.keep}
     with tempfile.TemporaryDirectory(prefix="cosim-disk") as tmp:
-        figures["runs"] = run_folders(Path(tmp), args.preset, args.steps, args.keep)
+        if not args.skip_runs:
+            figures["runs"] = run_folders(Path(tmp), args.preset, args.steps, args.keep)
         if not args.skip_benchmark:
             figures["smoke_benchmark_mb"] = benchmark(Path(tmp), args.keep)
     if args.out:
