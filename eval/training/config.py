@@ -118,8 +118,8 @@ class TrainConfig:
                 raise TrainError(f"'agent_config': {exc}") from None
             object.__setattr__(self, "agent_config", agent_config)
         elif type(agent_config) is not config_class:
-            raise TrainError(f"'agent_config': {self.algo} needs a {config_class.__name__}, "
-                             f"got {type(agent_config).__name__}")
+            raise TrainError(f"'agent_config': {self.algo}'s config class is {config_class.__name__}, "
+                             f"got a {type(agent_config).__name__}")
 
     @property
     def action_type(self) -> str:
