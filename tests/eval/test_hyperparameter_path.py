@@ -156,3 +156,26 @@ def test_the_design_doc_path_is_at_most_five_hops_of_real_functions():
     for _, path, function in hops:
         source = (ROOT / path).read_text()
         assert re.search(rf"^\s*def {function.split('.')[-1]}\(", source, flags=re.MULTILINE), (path, function)
+
+
+def test_pbts_explore_writes_the_perturbed_config_into_the_run_it_resumes(tmp_path):
+    """``apply_hyper`` (before a PBT trial resumes a run): config.yaml, each checkpoint's config
+    and its optimiser's learning rate get the typed config's values."""
+    import gymnasium
+    import numpy as np
+
+    import agents
+    from agents.ppo import PPO
+    from eval.scale.pbt import apply_hyper, with_hyper
+    from eval.training.runfolder import load_run_config
+    from eval.training.train import make_config
+
+    cfg = make_config("ppo", "env_1", "smoke")
+    space = gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32)
+    PPO.from_spaces(space, gymnasium.spaces.Discrete(9), cfg.agent_config).save(tmp_path / "checkpoints/ac_0/latest.pt")
+    new = with_hyper(cfg, {"learning_rate": 5e-5, "ent_coef": 0.02})
+    apply_hyper(tmp_path, new)
+    assert load_run_config(tmp_path) == new
+    loaded = agents.load(tmp_path / "checkpoints/ac_0/latest.pt")
+    assert loaded.config == new.agent_config and type(loaded.config) is PPOConfig
+    assert loaded.optimizers["optimizer"].param_groups[0]["lr"] == 5e-5
