@@ -4,8 +4,9 @@ This package sees only Gymnasium spaces and numpy arrays; it never imports the
 simulator. ``agents/base.py`` defines the interface, ``agents/loop.py`` the
 environment loop that documents the contract, ``agents/checkpoint.py`` the
 self-describing checkpoint format, ``agents/registry.py`` the name -> class
-table that :func:`load` uses and ``agents/errors.py`` the root of every error this
-package raises on purpose (imported without torch, hence the lazy imports below).
+table that :func:`load` uses, ``agents/configs.py`` the six algorithms' hyperparameter
+dataclasses and ``agents/errors.py`` the root of every error this package raises on
+purpose (these three are imported without torch, hence the lazy imports below).
 """
 
 import importlib
@@ -13,21 +14,22 @@ import importlib
 # Submodules are imported on first use (PEP 562), so ``import agents.errors`` (which
 # the command line imports to catch AgentError) does not import torch.
 _EXPORTS = {
-    "Agent": "agents.base", "AgentConfig": "agents.base",
+    "Agent": "agents.base", "AgentConfig": "agents.configs",
     "CheckpointError": "agents.checkpoint", "load_checkpoint": "agents.checkpoint",
     "save_checkpoint": "agents.checkpoint",
     "AgentError": "agents.errors",
-    "DDPG": "agents.ddpg", "DDPGConfig": "agents.ddpg",
-    "DQN": "agents.dqn", "DQNConfig": "agents.dqn",
+    "DDPG": "agents.ddpg", "DDPGConfig": "agents.configs",
+    "DQN": "agents.dqn", "DQNConfig": "agents.configs",
     "LoopStats": "agents.loop", "evaluate": "agents.loop", "run_loop": "agents.loop",
     "run_vector_loop": "agents.loop",
     "VectorEnv": "agents.vector", "InProcessVectorEnv": "agents.vector", "make_vector_env": "agents.vector",
     "polyak_update": "agents.networks",
-    "PPO": "agents.ppo", "PPOConfig": "agents.ppo",
+    "PPO": "agents.ppo", "PPOConfig": "agents.configs",
+    "A3CConfig": "agents.configs", "IMPALAConfig": "agents.configs",
     "ALGORITHMS": "agents.registry", "available": "agents.registry",
     "get_agent_class": "agents.registry",
     "gae": "agents.returns", "nstep_returns": "agents.returns", "vtrace": "agents.returns",
-    "TD3": "agents.td3", "TD3Config": "agents.td3",
+    "TD3": "agents.td3", "TD3Config": "agents.configs",
 }
 
 
@@ -42,6 +44,7 @@ def __getattr__(name: str):
 
 __all__ = [
     "ALGORITHMS",
+    "A3CConfig",
     "DDPG",
     "DQN",
     "PPO",
@@ -52,6 +55,7 @@ __all__ = [
     "AgentError",
     "DDPGConfig",
     "DQNConfig",
+    "IMPALAConfig",
     "InProcessVectorEnv",
     "LoopStats",
     "PPOConfig",

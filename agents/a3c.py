@@ -25,7 +25,6 @@ norm clipped before the shared step.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
@@ -36,7 +35,8 @@ import torch
 from torch import nn
 
 from agents.async_env import ThreadRun, run_threads, vector_env
-from agents.base import Agent, AgentConfig, check_observation_space, check_range
+from agents.base import Agent, check_observation_space
+from agents.configs import A3CConfig, AgentConfig
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import gae
 from agents.workers import Rollout, RolloutBuilder, TrainProgress, agents_for
@@ -44,65 +44,6 @@ from agents.workers import Rollout, RolloutBuilder, TrainProgress, agents_for
 __all__ = ["A3C", "A3CConfig", "SharedAdam", "a3c_loss", "train_a3c"]
 
 logger = logging.getLogger(__name__)
-
-
-# ----------------------------------------------------------------------------- config
-
-
-@dataclasses.dataclass(frozen=True)
-class A3CConfig(AgentConfig):
-    """A3C hyperparameters. ``preset("paper")`` is the paper's Table 3."""
-
-    learning_rate: float = 1e-3
-    """Adam step size of the shared optimizer."""
-    gamma: float = 0.99
-    """Discount factor."""
-    gae_lambda: float = 1.0
-    """GAE lambda; 1.0 gives the plain n-step returns of the A3C paper."""
-    n_steps: int = 20
-    """Env steps per thread segment between two updates (the n of n-step returns)."""
-    vf_coef: float = 0.5
-    """Weight of the value loss."""
-    ent_coef: float = 0.01
-    """Weight of the entropy bonus."""
-    max_grad_norm: float = 0.5
-    """Global gradient-norm clip applied by each learner thread before its shared step."""
-    adam_eps: float = 1e-5
-    """Adam epsilon."""
-    anneal_lr: bool = True
-    """Decay the learning rate linearly to 0 over ``total_steps`` (asynchronous training only)."""
-    hidden: tuple[int, ...] = (64, 64)
-    """Hidden sizes of the MLP encoder (image observations use the Nature CNN)."""
-
-    PRESETS: ClassVar = {
-        "default": {},
-        # Table 3 of the paper; n_steps 10 is RLlib 0.8's A3C rollout length,
-        # which the paper did not change.
-        "paper": {
-            "learning_rate": 5e-3,
-            "vf_coef": 1.0,
-            "ent_coef": 0.01,
-            "gae_lambda": 1.0,
-            "max_grad_norm": 30.0,
-            "gamma": 0.99,
-            "n_steps": 10,
-            "adam_eps": 1e-8,
-            "anneal_lr": False,
-        },
-    }
-
-    def __post_init__(self):
-        super().__post_init__()
-        check_range("learning_rate", self.learning_rate, 0.0, low_inclusive=False)
-        check_range("gamma", self.gamma, 0.0, 1.0)
-        check_range("gae_lambda", self.gae_lambda, 0.0, 1.0)
-        check_range("n_steps", self.n_steps, 1)
-        check_range("vf_coef", self.vf_coef, 0.0)
-        check_range("ent_coef", self.ent_coef, 0.0)
-        check_range("max_grad_norm", self.max_grad_norm, 0.0, low_inclusive=False)
-        check_range("adam_eps", self.adam_eps, 0.0, low_inclusive=False)
-        if not self.hidden or any(int(h) < 1 for h in self.hidden):
-            raise ValueError(f"hidden={self.hidden!r} must be a non-empty tuple of positive sizes")
 
 
 # ----------------------------------------------------------------------------- shared optimizer

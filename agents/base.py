@@ -21,7 +21,8 @@ observed since the last call are due (so an update-to-data ratio such as DQN's
 ``gradient_steps / train_freq`` per transition holds for any N).
 
 Hyperparameters live in one frozen :class:`AgentConfig` dataclass per
-algorithm, with named presets (``"default"``, ``"paper"``). Checkpoints are
+algorithm, with named presets (``"default"``, ``"paper"``), in ``agents/configs.py``
+(no torch there; re-exported here and by each algorithm's module). Checkpoints are
 self-describing (``agents/checkpoint.py``).
 """
 
@@ -29,7 +30,6 @@ from __future__ import annotations
 
 import abc
 import contextlib
-import dataclasses
 import logging
 from collections.abc import Mapping
 from typing import Any, ClassVar
@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from agents import observations
+from agents.configs import AgentConfig, check_range
 from agents.errors import AgentError
 from agents.networks import obs_to_tensor
 from agents.observations import image_space, is_nav_space
@@ -47,83 +48,6 @@ __all__ = ["Agent", "AgentConfig", "ObservationError", "check_frames", "check_ob
            "check_observations", "check_range", "check_variant", "due", "resolve_device", "seeded_init"]
 
 logger = logging.getLogger(__name__)
-
-
-def check_range(
-    name: str,
-    value: float,
-    low: float | None = None,
-    high: float | None = None,
-    *,
-    low_inclusive: bool = True,
-    high_inclusive: bool = True,
-) -> None:
-    """Raise ``ValueError`` naming ``name`` and the valid range if ``value`` is outside it."""
-    bad = value != value  # NaN
-    if low is not None:
-        bad |= value < low if low_inclusive else value <= low
-    if high is not None:
-        bad |= value > high if high_inclusive else value >= high
-    if bad:
-        left = "-inf" if low is None else f"{'[' if low_inclusive else '('}{low}"
-        right = "inf" if high is None else f"{high}{']' if high_inclusive else ')'}"
-        raise ValueError(f"{name}={value!r} is out of range; valid range is {left}, {right}")
-
-
-@dataclasses.dataclass(frozen=True)
-class AgentConfig:
-    """Base class of the per-algorithm hyperparameter dataclasses.
-
-    Subclasses declare fields (each with a one-line docstring under it), validate
-    them in ``__post_init__`` and list named presets in ``PRESETS`` as
-    ``{name: {field: value}}`` overrides of the field defaults.
-    """
-
-    PRESETS: ClassVar[Mapping[str, Mapping[str, Any]]] = {"default": {}}
-
-    reward_scale: float = 1.0
-    """Every reward is multiplied by this before the agent learns from it (returns
-    in the thousands make value targets, and so the shared encoder's gradients, huge)."""
-
-    def __post_init__(self):
-        check_range("reward_scale", self.reward_scale, 0, low_inclusive=False)
-
-    @classmethod
-    def preset(cls, name: str = "default", **overrides: Any) -> AgentConfig:
-        """Build the named preset, optionally with some fields changed.
-
-        Args:
-            name: A key of ``PRESETS`` (``"default"``, ``"paper"``, ...).
-            **overrides: Field values that replace the preset's.
-
-        Raises:
-            ValueError: For an unknown preset or field name (the message lists the valid ones).
-        """
-        if name not in cls.PRESETS:
-            raise ValueError(f"unknown {cls.__name__} preset {name!r}; valid presets: {sorted(cls.PRESETS)}")
-        return cls.from_dict({**cls.PRESETS[name], **overrides})
-
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> AgentConfig:
-        """Build a config from a plain dict (YAML, a checkpoint), rejecting unknown keys."""
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - set(fields))
-        if unknown:
-            raise ValueError(f"unknown {cls.__name__} field(s) {unknown}; valid fields: {sorted(fields)}")
-        # YAML and some serialisers turn tuples into lists; tuple fields take them back.
-        clean = {
-            k: tuple(v) if isinstance(v, list) and "tuple" in str(fields[k].type) else v
-            for k, v in values.items()
-        }
-        return cls(**clean)
-
-    def replace(self, **changes: Any) -> AgentConfig:
-        """Return a copy with some fields changed (validated again)."""
-        return type(self).from_dict({**dataclasses.asdict(self), **changes})
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-dict view (``dataclasses.asdict``) for logs and checkpoints."""
-        return dataclasses.asdict(self)
 
 
 def resolve_device(name: str = "auto") -> str:

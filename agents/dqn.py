@@ -9,9 +9,8 @@ option, off in the paper preset. Reads top to bottom: config, schedule, agent.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import logging
-from typing import Any, ClassVar
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -20,80 +19,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from agents import observations
-from agents.base import Agent, AgentConfig, check_observation_space, check_range, due
+from agents.base import Agent, check_observation_space, due
 from agents.buffers import ReplayBuffer
+from agents.configs import DQNConfig
 from agents.networks import DuelingQNetwork, obs_to_tensor
 
 __all__ = ["DQN", "DQNConfig", "linear_schedule"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclasses.dataclass(frozen=True)
-class DQNConfig(AgentConfig):
-    """DQN hyperparameters. ``preset("paper")`` gives SPEC section 5 (the paper's Table 3).
-
-    The paper's replay of 400 transitions holds less than one episode of driving,
-    so it cannot decorrelate updates; the default keeps 100k transitions. The
-    other defaults were tuned on CartPole-v1 (bench/agents_reference.py) and
-    checked on the ColourBar image task (bench/agents_image_task.py).
-    """
-
-    learning_rate: float = 1e-3
-    """Adam learning rate (paper: 1e-4)."""
-    buffer_size: int = 100_000
-    """replay capacity in transitions (paper: 400, which prevents learning)."""
-    batch_size: int = 128
-    """minibatch size per gradient step."""
-    gamma: float = 0.99
-    """discount factor."""
-    learning_starts: int = 1_000
-    """transitions collected before the first gradient step."""
-    train_freq: int = 4
-    """env steps between gradient steps."""
-    gradient_steps: int = 2
-    """gradient steps each time training happens."""
-    target_update_interval: int = 250
-    """env steps between hard target-network copies."""
-    exploration_initial_eps: float = 1.0
-    """epsilon at step 0."""
-    exploration_final_eps: float = 0.02
-    """epsilon after the annealing period."""
-    exploration_steps: int = 16_000
-    """env steps over which epsilon falls linearly to its final value."""
-    max_grad_norm: float = 40.0
-    """global gradient-norm clip."""
-    huber_delta: float = 10.0
-    """TD error beyond which the Huber loss turns linear (RLlib/SB3: 1.0; see the class docstring)."""
-    double_q: bool = True
-    """pick next actions with the online network (Double DQN; off in the paper preset)."""
-    hidden: tuple[int, ...] = (256, 256)
-    """MLP hidden sizes for vector observations (images use the Nature CNN)."""
-
-    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
-        "default": {},
-        # SPEC section 5, Table 3. Unlisted fields keep the defaults above.
-        "paper": {
-            "learning_rate": 1e-4, "buffer_size": 400, "exploration_final_eps": 0.02, "max_grad_norm": 40.0,
-            "huber_delta": 1.0, "double_q": False,
-        },
-    }
-
-    def __post_init__(self):
-        super().__post_init__()
-        check_range("learning_rate", self.learning_rate, 0, 1, low_inclusive=False)
-        check_range("buffer_size", self.buffer_size, 2)
-        check_range("batch_size", self.batch_size, 1)
-        check_range("gamma", self.gamma, 0, 1)
-        check_range("learning_starts", self.learning_starts, 0)
-        check_range("train_freq", self.train_freq, 1)
-        check_range("gradient_steps", self.gradient_steps, 1)
-        check_range("target_update_interval", self.target_update_interval, 1)
-        check_range("exploration_initial_eps", self.exploration_initial_eps, 0, 1)
-        check_range("exploration_final_eps", self.exploration_final_eps, 0, 1)
-        check_range("exploration_steps", self.exploration_steps, 1)
-        check_range("max_grad_norm", self.max_grad_norm, 0, None, low_inclusive=False)
-        check_range("huber_delta", self.huber_delta, 0, None, low_inclusive=False)
 
 
 def linear_schedule(start: float, end: float, duration: int, step: int) -> float:

@@ -28,7 +28,6 @@ Loss per batch (means over steps; RLlib 0.8, which the paper used, sums):
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -40,7 +39,8 @@ import torch
 from torch import nn
 
 from agents.async_env import EpisodeTracker, Unrolls, act_for, check_agents, record, vector_env
-from agents.base import Agent, AgentConfig, check_observation_space, check_range
+from agents.base import Agent, check_observation_space
+from agents.configs import AgentConfig, IMPALAConfig
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import vtrace
 from agents.workers import (
@@ -55,81 +55,6 @@ from agents.workers import (
 __all__ = ["IMPALA", "IMPALAConfig", "impala_loss", "train_impala"]
 
 logger = logging.getLogger(__name__)
-
-
-# ----------------------------------------------------------------------------- config
-
-
-@dataclasses.dataclass(frozen=True)
-class IMPALAConfig(AgentConfig):
-    """IMPALA hyperparameters. ``preset("paper")`` is the paper's Table 3."""
-
-    learning_rate: float = 1e-3
-    """Adam step size of the learner."""
-    gamma: float = 0.99
-    """Discount factor."""
-    unroll_length: int = 20
-    """Env steps per actor trajectory (the T of V-trace)."""
-    batch_size: int = 4
-    """Trajectories per agent in one learner update."""
-    vf_coef: float = 0.5
-    """Weight of the value (baseline) loss."""
-    ent_coef: float = 0.01
-    """Weight of the entropy bonus."""
-    rho_bar: float = 1.0
-    """V-trace truncation of the importance weights (rho-bar)."""
-    c_bar: float = 1.0
-    """V-trace truncation of the trace coefficients (c-bar)."""
-    max_grad_norm: float = 0.5
-    """Global gradient-norm clip of the learner."""
-    adam_eps: float = 1e-5
-    """Adam epsilon."""
-    anneal_lr: bool = True
-    """Decay the learning rate linearly to 0 over ``total_steps`` (asynchronous training only)."""
-    hidden: tuple[int, ...] = (64, 64)
-    """Hidden sizes of the MLP encoder (image observations use the Nature CNN)."""
-
-    PRESETS: ClassVar = {
-        "default": {},
-        # Table 3 of the paper; unroll 50 x batch 10 (500 steps per update) are
-        # RLlib 0.8's IMPALA defaults, which the paper did not change.
-        "paper": {
-            "learning_rate": 1e-4,
-            "vf_coef": 0.5,
-            "ent_coef": 0.01,
-            "rho_bar": 1.0,
-            "c_bar": 1.0,
-            "max_grad_norm": 30.0,
-            "gamma": 0.99,
-            "unroll_length": 50,
-            "batch_size": 10,
-            "adam_eps": 1e-8,
-            "anneal_lr": False,
-        },
-    }
-
-    # Fields of the actor-process design (before IMPALA ran on the vector env); checkpoints
-    # and config.yaml files written then still carry them: they are dropped on load.
-    RETIRED: ClassVar = ("actor_sync_every", "queue_size")
-
-    @classmethod
-    def from_dict(cls, values) -> IMPALAConfig:
-        return super().from_dict({k: v for k, v in values.items() if k not in cls.RETIRED})
-
-    def __post_init__(self):
-        super().__post_init__()
-        check_range("learning_rate", self.learning_rate, 0.0, low_inclusive=False)
-        check_range("gamma", self.gamma, 0.0, 1.0)
-        check_range("unroll_length", self.unroll_length, 1)
-        check_range("batch_size", self.batch_size, 1)
-        check_range("vf_coef", self.vf_coef, 0.0)
-        check_range("ent_coef", self.ent_coef, 0.0)
-        check_range("rho_bar", self.rho_bar, 0.0, low_inclusive=False)
-        check_range("c_bar", self.c_bar, 0.0, low_inclusive=False)
-        check_range("max_grad_norm", self.max_grad_norm, 0.0, low_inclusive=False)
-        check_range("adam_eps", self.adam_eps, 0.0, low_inclusive=False)
-        if not self.hidden or any(int(h) < 1 for h in self.hidden):
-            raise ValueError(f"hidden={self.hidden!r} must be a non-empty tuple of positive sizes")
 
 
 # ----------------------------------------------------------------------------- loss

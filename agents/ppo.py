@@ -14,9 +14,8 @@ change with N), and GAE runs over each environment's column separately.
 from __future__ import annotations
 
 import collections
-import dataclasses
 import logging
-from typing import Any, ClassVar
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -25,72 +24,15 @@ from torch import nn
 from torch.distributions import Categorical, kl_divergence
 
 from agents import observations
-from agents.base import Agent, AgentConfig, check_observation_space, check_range
+from agents.base import Agent, check_observation_space
 from agents.buffers import RolloutBuffer
+from agents.configs import PPOConfig
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import gae
 
 __all__ = ["PPO", "PPOConfig"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclasses.dataclass(frozen=True)
-class PPOConfig(AgentConfig):
-    """PPO hyperparameters. ``preset("paper")`` gives SPEC section 5 (the paper's Table 3)."""
-
-    learning_rate: float = 3e-4
-    """Adam learning rate."""
-    rollout_steps: int = 2048
-    """transitions collected per training iteration (per agent, summed over environments)."""
-    batch_size: int = 128
-    """SGD minibatch size."""
-    epochs: int = 10
-    """passes over each rollout."""
-    gamma: float = 0.99
-    """discount factor."""
-    gae_lambda: float = 0.95
-    """GAE lambda (bias/variance trade-off of the advantages)."""
-    clip_coef: float = 0.2
-    """surrogate clipping range epsilon."""
-    kl_coef: float = 0.2
-    """initial coefficient of the KL penalty (0 disables it)."""
-    kl_target: float = 0.01
-    """KL divergence the adaptive coefficient aims for."""
-    vf_coef: float = 0.5
-    """value-loss coefficient."""
-    ent_coef: float = 0.0
-    """entropy-bonus coefficient."""
-    max_grad_norm: float = 0.5
-    """global gradient-norm clip."""
-    norm_adv: bool = True
-    """normalise advantages per minibatch."""
-    hidden: tuple[int, ...] = (64, 64)
-    """MLP hidden sizes for vector observations (images use the Nature CNN)."""
-
-    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
-        "default": {},
-        # SPEC section 5, Table 3. Unlisted fields keep the defaults above.
-        "paper": {
-            "learning_rate": 1e-3, "epochs": 8, "vf_coef": 1.0, "ent_coef": 0.01, "clip_coef": 0.3,
-            "kl_coef": 0.3, "kl_target": 0.03, "gae_lambda": 0.99,
-        },
-    }
-
-    def __post_init__(self):
-        super().__post_init__()
-        check_range("learning_rate", self.learning_rate, 0, 1, low_inclusive=False)
-        check_range("rollout_steps", self.rollout_steps, 1)
-        check_range("batch_size", self.batch_size, 1, self.rollout_steps)
-        check_range("epochs", self.epochs, 1)
-        check_range("gamma", self.gamma, 0, 1)
-        check_range("gae_lambda", self.gae_lambda, 0, 1)
-        check_range("clip_coef", self.clip_coef, 0, None, low_inclusive=False)
-        check_range("kl_coef", self.kl_coef, 0)
-        check_range("kl_target", self.kl_target, 0, None, low_inclusive=False)
-        check_range("vf_coef", self.vf_coef, 0)
-        check_range("ent_coef", self.ent_coef, 0)
-        check_range("max_grad_norm", self.max_grad_norm, 0, None, low_inclusive=False)
 
 
 class PPO(Agent):

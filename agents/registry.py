@@ -14,7 +14,7 @@ import importlib
 from dataclasses import dataclass
 
 __all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DETERMINISTIC", "DISCRETE", "POLICY_NETWORKS", "STOCHASTIC",
-           "Algorithm", "available", "get", "get_agent_class", "get_async_trainer"]
+           "Algorithm", "available", "get", "get_agent_class", "get_async_trainer", "get_config_class"]
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,9 @@ class Algorithm:
     return of its samples, so an evaluation samples it (``act(obs)``; eval.testing.protocol.SAMPLED);
     False: a deterministic policy (greedy in Q, or a deterministic actor) whose exploration
     (epsilon, action noise) is training-only, so an evaluation acts greedily."""
+    config: str = ""
+    """The hyperparameter dataclass, ``"agents.configs:Class"`` (torch-free, so the layers above
+    hold a typed config without importing the algorithm); the agent class's ``config_class``."""
     async_trainer: str = ""
     """``loop == "async"``: the training function, ``"module:function"``, that runs its
     worker processes (``agents.a3c:train_a3c``)."""
@@ -49,15 +52,19 @@ class Algorithm:
 # ---------------------------------------------------------------------------------------
 # THE CATALOGUE: one line per algorithm, in the paper's order (SPEC §5 tables).
 CATALOGUE: tuple[Algorithm, ...] = (
-    Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync", ("net",), stochastic=True),
+    Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync", ("net",), stochastic=True,
+              config="agents.configs:PPOConfig"),
     Algorithm("a3c", "agents.a3c:A3C", "discrete", "async", ("actor_critic",), stochastic=True,
-              async_trainer="agents.a3c:train_a3c", thread_per_env=True),
+              config="agents.configs:A3CConfig", async_trainer="agents.a3c:train_a3c", thread_per_env=True),
     Algorithm("impala", "agents.impala:IMPALA", "discrete", "async", ("actor_critic",), stochastic=True,
-              async_trainer="agents.impala:train_impala"),
-    Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",), stochastic=False),
+              config="agents.configs:IMPALAConfig", async_trainer="agents.impala:train_impala"),
+    Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",), stochastic=False,
+              config="agents.configs:DQNConfig"),
     # DDPG/TD3: the actor acts on the critic's encoder (critic.encode), so the critic is policy too
-    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor", "critic"), stochastic=False),
-    Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor", "critic"), stochastic=False),
+    Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor", "critic"), stochastic=False,
+              config="agents.configs:DDPGConfig"),
+    Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor", "critic"), stochastic=False,
+              config="agents.configs:TD3Config"),
 )
 # ---------------------------------------------------------------------------------------
 
@@ -109,6 +116,16 @@ def get_agent_class(name: str):
         KeyError: If no algorithm has that name (the message lists the valid ones).
     """
     return _load(get(name).target)
+
+
+def get_config_class(name: str):
+    """The hyperparameter dataclass of ``name`` (:attr:`Algorithm.config`), without importing
+    the algorithm (or torch): ``get_agent_class(name).config_class`` is the same class.
+
+    Raises:
+        KeyError: If no algorithm has that name (the message lists the valid ones).
+    """
+    return _load(get(name).config)
 
 
 def get_async_trainer(name: str):

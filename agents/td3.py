@@ -11,7 +11,6 @@ Reads top to bottom: config, agent (act / observe / update), losses.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import logging
 from typing import Any, ClassVar
 
@@ -21,8 +20,9 @@ import torch
 import torch.nn.functional as F
 
 from agents import observations
-from agents.base import Agent, AgentConfig, check_observation_space, check_range, due
+from agents.base import Agent, check_observation_space, due
 from agents.buffers import ReplayBuffer
+from agents.configs import AgentConfig, TD3Config
 from agents.networks import (
     DeterministicActor,
     QEnsemble,
@@ -37,88 +37,6 @@ logger = logging.getLogger(__name__)
 
 SATURATED = float(np.arctanh(0.99))
 """|pre-tanh| above which an action component counts as pinned at a bound (|tanh| > 0.99)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class TD3Config(AgentConfig):
-    """TD3 hyperparameters. ``preset("paper")`` gives SPEC section 5 (the paper's Table 3).
-
-    The paper's replay of 500 transitions and tau of 0.0002 (a target network
-    that moves ~5000x slower than the online one over a short run) prevent
-    learning; the default keeps 100k transitions and the usual tau 0.005.
-    """
-
-    actor_learning_rate: float = 1e-3
-    """Adam learning rate of the actor."""
-    critic_learning_rate: float = 1e-3
-    """Adam learning rate of the critic(s)."""
-    buffer_size: int = 100_000
-    """replay capacity in transitions (paper: 500, which prevents learning)."""
-    batch_size: int = 128
-    """minibatch size per gradient step."""
-    gamma: float = 0.99
-    """discount factor."""
-    tau: float = 0.005
-    """Polyak factor of the target networks (paper: 0.0002)."""
-    learning_starts: int = 5_000
-    """transitions before learning starts (acting uniformly at random until then)."""
-    random_steps: int = 0
-    """transitions of uniform random actions at the start, per agent (the TD3 paper's
-    ``start_timesteps``); the random phase lasts max(random_steps, learning_starts)
-    transitions, so 0 keeps the warm-up of ``learning_starts`` alone. Learning starts at
-    ``learning_starts`` either way: a longer phase trains the critic on random data first."""
-    random_low: tuple[float, ...] = ()
-    """lower end of the random phase's uniform draw, per action component (empty: the
-    action space's low). The driving presets raise the throttle/brake floor to -0.6:
-    drawn over [-1, 1] the car brakes harder (8 m/s^2) than it accelerates (3.5), so it
-    stands still most of the phase (docs/guide.md#exploration-that-moves-the-car-ddpg-td3)."""
-    train_freq: int = 1
-    """env steps between training phases."""
-    gradient_steps: int = 1
-    """gradient steps per training phase."""
-    exploration_noise: float = 0.1
-    """std of the Gaussian exploration noise, as a fraction of the action half-range (paper sigma: 0.2)."""
-    target_policy_noise: float = 0.2
-    """std of the target-policy smoothing noise, as a fraction of the half-range (0 disables)."""
-    target_noise_clip: float = 0.5
-    """clip of the target-policy smoothing noise, as a fraction of the half-range."""
-    policy_delay: int = 2
-    """critic updates per actor (and target) update."""
-    n_critics: int = 2
-    """number of critics; the target uses their minimum."""
-    hidden: tuple[int, ...] = (256, 256)
-    """hidden sizes of the MLPs (after the Nature CNN for images)."""
-    pre_tanh_penalty: float = 0.0
-    """weight of the actor's mean squared pre-tanh output in its loss: keeps the tanh
-    out of saturation, where its gradient vanishes and the actor sticks at a bound."""
-
-    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
-        "default": {},
-        # SPEC section 5, Table 3. Unlisted fields keep the defaults above.
-        "paper": {
-            "actor_learning_rate": 1e-3, "critic_learning_rate": 1e-3, "tau": 0.0002,
-            "exploration_noise": 0.2, "target_policy_noise": 0.2, "buffer_size": 500,
-        },
-    }
-
-    def __post_init__(self):
-        super().__post_init__()
-        check_range("actor_learning_rate", self.actor_learning_rate, 0, 1, low_inclusive=False)
-        check_range("critic_learning_rate", self.critic_learning_rate, 0, 1, low_inclusive=False)
-        check_range("buffer_size", self.buffer_size, 2)
-        check_range("batch_size", self.batch_size, 1)
-        check_range("gamma", self.gamma, 0, 1)
-        check_range("tau", self.tau, 0, 1, low_inclusive=False)
-        check_range("learning_starts", self.learning_starts, 0)
-        check_range("random_steps", self.random_steps, 0)
-        check_range("train_freq", self.train_freq, 1)
-        check_range("gradient_steps", self.gradient_steps, 1)
-        check_range("exploration_noise", self.exploration_noise, 0)
-        check_range("target_policy_noise", self.target_policy_noise, 0)
-        check_range("target_noise_clip", self.target_noise_clip, 0)
-        check_range("policy_delay", self.policy_delay, 1)
-        check_range("n_critics", self.n_critics, 1)
-        check_range("pre_tanh_penalty", self.pre_tanh_penalty, 0)
 
 
 class TD3(Agent):

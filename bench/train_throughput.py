@@ -25,6 +25,7 @@ the trainer's own clock from the first reset (agents/workers.py TrainProgress.ti
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import tempfile
@@ -43,7 +44,7 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
     from agents.vector import make_vector_env
 
     cfg = make_config("ppo", "env_1", "quick", agents=agents, steps=steps, seed=seed, envs=n)
-    venv = make_vector_env([functools.partial(make_env, cfg.to_dict(), seed + i) for i in range(n)])
+    venv = make_vector_env([functools.partial(make_env, cfg, seed + i) for i in range(n)])
     rng = np.random.default_rng(seed)
     try:
         t0 = time.perf_counter()
@@ -64,8 +65,8 @@ def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
                agents: int = AGENTS) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
                       envs=n, device="cpu", torch_threads=threads)
-    if "learning_starts" in cfg.agent_config:
-        cfg.agent_config["learning_starts"] = 200
+    if hasattr(cfg.agent_config, "learning_starts"):
+        cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(learning_starts=200))
     t0 = time.monotonic()
     run = train(cfg, Path(out), quiet=True, progress=False)
     wall = time.monotonic() - t0

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from agents.configs import AgentConfig
 from eval.scale.benchmark import finite, train_cell
 from eval.training.train import TrainConfig, TrainError
 
@@ -68,11 +69,12 @@ MUTATIONS: dict[str, dict[str, tuple]] = {
 }
 
 
-def mutation_space(algo: str, agent_config: dict[str, Any]) -> dict[str, list]:
-    """The values PBT may give each mutated hyperparameter of ``algo`` (typed like the config)."""
+def mutation_space(algo: str, agent_config: AgentConfig) -> dict[str, list]:
+    """The values PBT may give each mutated hyperparameter of ``algo`` (typed like the config's
+    field); Ray Tune's search space, the one place PBT's values are a dict (Ray's boundary)."""
     space = {}
     for name, values in MUTATIONS[algo].items():
-        base = agent_config[name]
+        base = getattr(agent_config, name)
         if values and values[0] == "x":
             values = [type(base)(base * f) for f in values[1]]
         space[name] = sorted({type(base)(v) for v in values})
@@ -80,16 +82,14 @@ def mutation_space(algo: str, agent_config: dict[str, Any]) -> dict[str, list]:
 
 
 def with_hyper(cfg: TrainConfig, hyper: dict[str, Any]) -> TrainConfig:
-    """``cfg`` with some agent hyperparameters changed (validated by the agent's config class)."""
-    from agents.registry import get_agent_class
-
-    agent = get_agent_class(cfg.algo).config_class.from_dict({**cfg.agent_config, **hyper})
-    return dataclasses.replace(cfg, agent_config=agent.to_dict())
+    """``cfg`` with some agent hyperparameters changed: ``dataclasses.replace`` on its typed
+    agent config (``AgentConfig.replace``, validated again by the agent's config class)."""
+    return dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(**hyper))
 
 
-def _lr_field(optimizer_name: str, config: dict) -> str:
+def _lr_field(optimizer_name: str, config: AgentConfig) -> str:
     for part in ("actor", "critic"):
-        if part in optimizer_name and f"{part}_learning_rate" in config:
+        if part in optimizer_name and hasattr(config, f"{part}_learning_rate"):
             return f"{part}_learning_rate"
     return "learning_rate"
 
@@ -103,10 +103,10 @@ def apply_hyper(run: Path, cfg: TrainConfig) -> None:
     (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     for path in sorted((run / "checkpoints").glob("ac_*/*.pt")):
         payload = torch.load(path, map_location="cpu", weights_only=True)
-        payload["config"] = dict(cfg.agent_config)
+        payload["config"] = cfg.agent_config.to_dict()  # its serialised form (agents/checkpoint.py)
         for name, state in payload["state"].get("optimizers", {}).items():
             for group in state.get("param_groups", []):
-                group["lr"] = float(cfg.agent_config[_lr_field(name, cfg.agent_config)])
+                group["lr"] = float(getattr(cfg.agent_config, _lr_field(name, cfg.agent_config)))
         tmp = path.with_name(path.name + ".tmp")
         torch.save(payload, tmp)
         tmp.replace(path)
@@ -133,6 +133,8 @@ def _pbt_trial(config: dict) -> None:
     trial = tune.get_context().get_trial_id()
     pbt = Path(config["pbt_dir"])
     hyper = {k: v for k, v in config.items() if k not in ("train", "pbt_dir")}
+    # Ray's boundary: a trial's config is a dict (param_space); TrainConfig builds the typed
+    # agent config from it once, and the trial's values change it by dataclasses.replace
     cfg = with_hyper(TrainConfig(**config["train"]), hyper)
     own = pbt / "hyper" / f"{trial}.json"
     previous = json.loads(own.read_text()) if own.exists() else None

@@ -3,19 +3,24 @@
 (:func:`parse_set`, :func:`parse_hyper`).
 
 Algorithm names, action kinds and training loops come from the catalogue
-(agents/registry.py); presets from eval/training/presets.py.
+(agents/registry.py); presets from eval/training/presets.py. A TrainConfig holds its
+algorithm's typed hyperparameters (``agent_config``, a ``PPOConfig`` ... from the torch-free
+agents/configs.py), which :func:`make_config` builds and training hands to the algorithm's
+constructor unchanged (docs/design.md, "One hyperparameter from the command line to the
+optimiser").
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import yaml
 
 from agents import registry
+from agents.configs import AgentConfig
 from cosim.errors import CosimError
 from cosim.wrappers import OBS_VARIANTS
 from eval.training.presets import load_presets
@@ -58,7 +63,12 @@ class TrainConfig:
     workers: int = 2
     """The preset's default ``envs`` for A3C and IMPALA (recorded; ``envs`` is what runs)."""
     image_size: int = 84
-    agent_config: dict[str, Any] = field(default_factory=dict)
+    agent_config: AgentConfig | None = None
+    """The algorithm's hyperparameters, its config class from the catalogue
+    (``agents.registry.get_config_class``: a ``PPOConfig`` for PPO, ...), handed to the agents'
+    constructor as it is. Given as a mapping (its serialised form: config.yaml, pbt.json, a Ray
+    trial's config) it is built into that class here (``from_dict``, which checks every key and
+    value); None: the class's defaults. ``to_dict`` writes it back as a mapping."""
     envs: int = 1
     """Environments stepped together (one vector env, agents/vector.py), each in its own
     process when > 1; every algorithm (A3C: one learner thread per environment)."""
@@ -97,6 +107,22 @@ class TrainConfig:
     policy_dtype: str = "float32"
     """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
     bytes, rounded; the smoke preset's): the preset's policy_dtype (eval/training/presets.py)."""
+
+    def __post_init__(self):
+        try:
+            config_class = registry.get_config_class(self.algo)
+        except KeyError:
+            raise TrainError(f"unknown algorithm {self.algo!r}; choose one of {', '.join(ALGORITHMS)}") from None
+        agent_config = self.agent_config
+        if agent_config is None or isinstance(agent_config, Mapping):  # deserialising
+            try:
+                agent_config = config_class.from_dict(agent_config or {})
+            except (TypeError, ValueError) as exc:
+                raise TrainError(f"'agent_config': {exc}") from None
+            object.__setattr__(self, "agent_config", agent_config)
+        elif type(agent_config) is not config_class:
+            raise TrainError(f"'agent_config': {self.algo}'s config class is {config_class.__name__}, "
+                             f"got a {type(agent_config).__name__}")
 
     @property
     def action_type(self) -> str:
@@ -175,11 +201,11 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
-    config_cls = registry.get_agent_class(algo).config_class
+    config_cls = registry.get_config_class(algo)  # PPOConfig, ... (agents/configs.py, no torch)
     chosen = agent_preset or p.agent_preset
-    try:
+    try:  # the preset's typed config (with its YAML's changes), then the --set changes
         base = config_cls.preset(chosen, **{"reward_scale": p.reward_scale, **p.overrides.get(algo, {})})
-        agent_config = base.replace(**parse_hyper(base.to_dict(), hyper or {}, algo)).to_dict()
+        agent_config = base.replace(**parse_hyper(base, hyper or {}, algo))
     except ValueError as exc:
         raise TrainError(f"{algo} hyperparameters: {exc}") from exc
     return TrainConfig(
@@ -204,8 +230,9 @@ def parse_set(items: list[str]) -> dict[str, str]:
     return out
 
 
-def parse_hyper(current: Mapping[str, Any], hyper: Mapping[str, str], algo: str) -> dict[str, Any]:
-    """Typed values for hyperparameter overrides given as text, checked against ``current``.
+def parse_hyper(current: AgentConfig, hyper: Mapping[str, str], algo: str) -> dict[str, Any]:
+    """Typed values for hyperparameter overrides given as text, checked against the fields of
+    ``current`` (an algorithm's config, e.g. a ``PPOConfig``), for ``current.replace(**...)``.
 
     A value must have the type of the field's current value; ints are accepted for
     floats and lists for tuples. (YAML reads "1e-4" as text, hence float().)
@@ -213,11 +240,12 @@ def parse_hyper(current: Mapping[str, Any], hyper: Mapping[str, str], algo: str)
     Raises:
         ValueError: an unknown field (listing the valid ones) or a value of the wrong type.
     """
+    names = [f.name for f in dataclasses.fields(current)]
     out: dict[str, Any] = {}
     for key, text in hyper.items():
-        if key not in current:
-            raise ValueError(f"--set {key}: {algo} has no such hyperparameter; valid: {', '.join(sorted(current))}")
-        old = current[key]
+        if key not in names:
+            raise ValueError(f"--set {key}: {algo} has no such hyperparameter; valid: {', '.join(sorted(names))}")
+        old = getattr(current, key)
         try:
             value = yaml.safe_load(text)
             if isinstance(old, float) and not isinstance(value, bool):

@@ -4,7 +4,7 @@
 episode horizon, checkpoint interval, agent preset, workers, envs, frame stack);
 ``eval/training/hyperparams/<algo>.yaml`` holds, per preset, the algorithm's step budget and
 the hyperparameters it changes on top of the agent preset (the agent config
-dataclass's ``PRESETS``, e.g. ``TD3Config`` in agents/td3.py). Adding an algorithm
+dataclass's ``PRESETS``, e.g. ``TD3Config`` in agents/configs.py). Adding an algorithm
 to the catalogue (agents/registry.py) means adding its YAML here; unknown keys
 are refused with the list of valid ones.
 """

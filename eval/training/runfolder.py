@@ -122,22 +122,19 @@ def load_run_config(run: Path) -> TrainConfig:
     for key, f in fields.items():
         if key not in data or key == "algo":
             continue
-        kind = {"int": int, "str": str, "bool": bool, "dict[str, Any]": dict}.get(str(f.type), object)
+        kind = dict if key == "agent_config" else {"int": int, "str": str, "bool": bool}.get(str(f.type), object)
         value = data[key]
         if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
             raise TrainError(f"{path}: '{key}' must be {kind.__name__}, got {value!r}; {fix}")
-    cfg = TrainConfig(**data)
+    try:  # builds agent_config, the algorithm's typed config, from its mapping (checking each key)
+        cfg = TrainConfig(**data)
+    except TrainError as exc:
+        raise TrainError(f"{path}: {exc}") from None
     if cfg.obs not in OBS_VARIANTS:
         raise TrainError(f"{path}: 'obs' must be {' or '.join(OBS_VARIANTS)}, got {cfg.obs!r}; {fix}")
     if min(cfg.agents, cfg.steps, cfg.horizon, cfg.checkpoint_every, cfg.workers, cfg.image_size) < 1:
         raise TrainError(f"{path}: agents, steps, horizon, checkpoint_every, workers and image_size "
                          f"must be >= 1; {fix}")
-    from agents.registry import get_agent_class
-
-    try:
-        get_agent_class(cfg.algo).config_class.from_dict(cfg.agent_config)
-    except (TypeError, ValueError) as exc:
-        raise TrainError(f"{path}: 'agent_config': {exc}") from None
     return cfg
 
 

@@ -107,7 +107,6 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
     from agents.registry import get_agent_class
 
     cls = get_agent_class(cfg.algo)
-    config = cls.config_class.from_dict(cfg.agent_config)
     out = {}
     for k in range(cfg.agents):
         aid = f"ac_{k}"
@@ -119,7 +118,8 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
             except ValueError as exc:
                 raise TrainError(str(exc)) from None
         else:
-            out[aid] = cls.from_spaces(obs_space, act_space, config, seed=cfg.seed + k, device=device)
+            # the typed config make_config built (a PPOConfig, ...), as it is
+            out[aid] = cls.from_spaces(obs_space, act_space, cfg.agent_config, seed=cfg.seed + k, device=device)
     return out
 
 
@@ -157,7 +157,7 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
         raise TrainError(str(exc)) from None
     start_step = runlog.env_steps
     # env i of N: seed + i (env 0 is the one-env run's env)
-    fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(n)]
+    fns = [functools.partial(make_env, cfg, cfg.seed + i) for i in range(n)]
     env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, env.env_step))
     env.env_step = start_step
     last = [start_step]
@@ -217,15 +217,14 @@ def _set_torch_threads(cfg: TrainConfig) -> None:
 def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
     """A3C, IMPALA on one vector env of ``cfg.envs`` environments (worker processes when > 1):
     A3C runs one learner thread per environment, IMPALA's learner acts in all of them."""
-    from agents.registry import get_agent_class, get_async_trainer
+    from agents.registry import get_async_trainer
 
     trainer = get_async_trainer(cfg.algo)  # agents.a3c.train_a3c, agents.impala.train_impala
-    probe = make_env(cfg.to_dict())
+    probe = make_env(cfg)
     obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
     probe.close()
     start_step = runlog.env_steps
     initial = _load_or_build(cfg, runlog.run, resumed, obs_space, act_space) if resumed else None
-    config = get_agent_class(cfg.algo).config_class.from_dict(cfg.agent_config)
     bar = _bar(cfg, runlog, quiet, progress)
     last = {"step": start_step, "ckpt": start_step}
     last_log = [time.monotonic(), start_step]
@@ -253,11 +252,11 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
 
     _set_torch_threads(cfg)
     kwargs = {} if initial is None else {"agents": initial}
-    fns = [functools.partial(make_env, cfg.to_dict(), cfg.seed + i) for i in range(cfg.envs)]
+    fns = [functools.partial(make_env, cfg, cfg.seed + i) for i in range(cfg.envs)]
     try:  # env i of N: seed + i, as in _train_sync
         trained = trainer(
             fns, obs_space, act_space,
-            agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=config,
+            agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=cfg.agent_config,
             total_steps=cfg.steps - start_step, seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
             callback=callback, **kwargs,
         )
@@ -266,15 +265,16 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
         bar.close()
 
 
-def make_env(cfg_dict: dict, worker_seed: int | None = None):
-    """Build the training env of a config (top-level, so worker processes can pickle it);
+def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
+    """Build the training env of a config, a TrainConfig or its ``to_dict()`` (top-level, so
+    worker processes can pickle it; a TrainConfig pickles without torch);
     with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack),
     with ``obs`` "nav" beside its measurements (cosim.wrappers.NavObservation); collisions end
     an AC's episode unless ``collisions_end_episode`` is off."""
     from cosim.env import CosimParallelEnv
     from cosim.wrappers import observation_wrappers
 
-    cfg = TrainConfig(**cfg_dict)
+    cfg = cfg if isinstance(cfg, TrainConfig) else TrainConfig(**cfg)
     env = CosimParallelEnv(
         cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,

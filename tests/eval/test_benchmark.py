@@ -231,7 +231,8 @@ def test_pbt_mutations_are_fields_of_each_agent_config():
         assert space and all(len(v) >= 3 for v in space.values()), (algo, space)
         for name, values in space.items():  # every value is valid for the agent's config class
             for value in values:
-                assert with_hyper(cfg, {name: value}).agent_config[name] == value
+                changed = with_hyper(cfg, {name: value}).agent_config
+                assert type(changed) is type(cfg.agent_config) and getattr(changed, name) == value
 
 
 # -- Ray -------------------------------------------------------------------------------

@@ -362,7 +362,7 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
         assert 14 <= minutes <= 16, (algo, standard.steps[algo], rate, minutes)
     assert (standard.agents, standard.horizon, standard.envs, standard.frame_stack) == (6, 600, 1, 4)  # 4 frames: docs/task.md, "Observation"
     td3 = config.make_config("td3", preset="standard").agent_config
-    assert (td3["random_steps"], td3["random_low"]) == (2000, (-0.6, -1.0))
+    assert (td3.random_steps, td3.random_low) == (2000, (-0.6, -1.0))
 
 
 def test_an_unknown_preset_key_is_refused_listing_the_valid_ones(tmp_path):

@@ -157,9 +157,9 @@ def test_unwritable_output_fails_before_training(tmp_path, capsys):
 
 def test_hyperparameter_overrides_are_typed_and_checked(capsys):
     cfg = make_config("td3", hyper={"actor_learning_rate": "1e-4", "buffer_size": "5000", "hidden": "[64, 64]"})
-    assert cfg.agent_config["actor_learning_rate"] == 1e-4
-    assert cfg.agent_config["buffer_size"] == 5000 and cfg.agent_config["hidden"] == (64, 64)
-    assert cfg.agent_config["reward_scale"] == 0.01  # the preset's, untouched
+    assert cfg.agent_config.actor_learning_rate == 1e-4
+    assert cfg.agent_config.buffer_size == 5000 and cfg.agent_config.hidden == (64, 64)
+    assert cfg.agent_config.reward_scale == 0.01  # the preset's, untouched
     with pytest.raises(TrainError, match="td3 has no such hyperparameter; valid: .*actor_learning_rate"):
         make_config("td3", hyper={"learning_rate": "1e-4"})
     with pytest.raises(TrainError, match=r"buffer_size=lots: expected an int like 20000"):
