@@ -270,7 +270,7 @@ def provenance_markdown(prov: Mapping) -> list[str]:
                          trained, f"`{c['checkpoint']}`", c.get("sha256", "-"), c.get("ac") or "-",
                          c.get("chosen_by") or "-", _scores(c.get("scores"))])
         md.append(_md_table(["tested in", "seed", "column", "trained in", "checkpoint", "SHA-256", "AC",
-                             "chosen by", "validation scores per AC"], rows))
+                             "chosen by", "scores per AC"], rows))
     return md
 
 
