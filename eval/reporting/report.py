@@ -1,22 +1,27 @@
-"""The paper-ready report of ``cosim test`` (issue 13).
+"""The paper-ready report of ``cosim test`` and ``cosim benchmark`` (issues 13, 28).
 
 From the per-step records of the test protocol (eval/testing/protocol.py) this writes:
 
 - Table RQ1 as one table shaped like the paper's: the environment (its scenario
   ``title``: Straight, Three-way, ...) as a row group, the metrics CV, CO, CP, OS,
-  RL, TTFC (then SPEED, DISTANCE) as rows, algorithms as columns in the paper's
-  order, Scenario 1 | Scenario 2 side by side. Each cell is the mean over episodes
-  with a 95% bootstrap confidence interval (percentile, 2,000 resamples, fixed
-  seed: the same records give the same table); ``n`` is the number of episodes.
+  RL, TTFC (then SPEED, DISTANCE, return, goal rate) as rows, algorithms as columns in
+  the paper's order, Scenario 1 | Scenario 2 side by side, and the reference policies'
+  columns beside Scenario 1's algorithms when references ran. Each cell is the mean over
+  episodes and its 95% bootstrap confidence interval printed as its two ends
+  ``[low, high]`` (percentile, 2,000 resamples, fixed seed: the same records give the
+  same table; the interval need not be symmetric, so never ``±``); one episode has no
+  interval ("n = 1: no interval"); ``n`` is the number of episodes.
   "-": the metric does not apply (CV with no other vehicle, CP with no
   pedestrian); "--": TTFC of an AC that never collided. Files: ``rq1.md``,
   ``rq1_long.csv`` (one row per cell: mean, ci_low, ci_high, n),
   ``rq1_wide.csv`` (the table as printed) and ``rq1.tex`` (booktabs + multirow,
   scaled to the page width: ``\\usepackage{booktabs,multirow,graphicx}``).
 - Figures (eval/reporting/figures.py), each as PDF and PNG.
-- ``index.md`` and ``index.html``: everything above with its provenance
-  (``provenance.json``: runs and checkpoints with SHA-256, the rule that chose each
-  AC, cosim version, git commit, seeds, the command line, the policy).
+- ``index.md`` and ``index.html`` (eval/reporting/page.py): what was tested and how much
+  on the first screen, then everything above with a legend and its provenance as tables
+  (``provenance.json``: every checkpoint with SHA-256, the run it came from and how that
+  was trained, the rule that chose each AC, the task version, cosim version, git commit,
+  seeds, the command line, the policy, the date).
 """
 
 from __future__ import annotations
