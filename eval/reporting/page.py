@@ -49,10 +49,10 @@ PAGE_TERMS = {
 def kind(prov: Mapping) -> str:
     """What produced the report: ``benchmark``, ``test`` or ``science study``, from its command."""
     words = str(prov.get("command") or "").split()
-    if "benchmark" in prov or words[1:2] == ["benchmark"]:
-        return "benchmark"
     if any("science" in w for w in words[:2]):
         return "science study"
+    if "benchmark" in prov or words[1:2] == ["benchmark"]:
+        return "benchmark"
     return "test"
 
 
@@ -134,7 +134,7 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
         + ["Scenario 2 (each AC alone)"] * (2 in scen))
     trained = _trained(prov)
     budget = budget_rows(prov, algos, labels)
-    if kind(prov) == "benchmark":
+    if bench:  # a benchmark or a science study: trained here, each environment its own policies
         steps_of = {r[0]: r[2] for r in budget}
         per_algo = ("" if len(set(steps_of.values())) != 1 else f"{next(iter(steps_of.values()))} "
                     "environment steps per trial")
