@@ -158,8 +158,9 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
           f"at commit {_commit(prov)}.\n"]
     rows = [["produced by", f"`{prov.get('command', '')}`"]]
     if bench:
-        rows.append(["preset", f"{bench.get('preset')} (training seeds 0..{int(bench.get('seeds', 1)) - 1}, "
-                               f"training episodes at a collision: {bench.get('collisions')})"])
+        n_seeds = int(bench.get("seeds", 1))
+        rows.append(["preset", f"{bench.get('preset')} (training seed{'s 0..' if n_seeds > 1 else ' '}"
+                               f"{n_seeds - 1}, training episodes at a collision: {bench.get('collisions')})"])
     rows.append(["training budget", "; ".join(f"{r[0]} {r[2]} env steps x {r[3]} ACs" for r in budget
                                               if r[2] != "-") or "-"])
     rows.append(["test", f"{plan.get('agents')} ACs, {episodes} episode(s) x {steps} steps per "
@@ -363,6 +364,10 @@ def index_markdown(prov: Mapping, rq1_md: str, *, figures: Sequence[str], refere
     return re.sub(r"\n{3,}", "\n\n", "\n".join(md)) + "\n"
 
 
+NUMBER = re.compile(r"^(-?[\d.,]+( \[[^\]]*\])?( \([^)]*\))?|-{1,2}|\d+ AC-episodes)$")
+"""A table cell that is a number (a value, its interval, its n; "-", "--"): right-aligned."""
+
+
 def markdown_to_html(text: str, title: str) -> str:
     """The small Markdown subset index.md uses (headings, tables, lists, links, images)."""
 
@@ -381,7 +386,8 @@ def markdown_to_html(text: str, title: str) -> str:
         if table:
             cells = [[c.strip() for c in r.strip("|").split("|")] for r in table if not set(r) <= set("|-")]
             body.append("<table>" + "".join(
-                "<tr>" + "".join(f"<{'th' if i == 0 else 'td'}>{inline(c)}</{'th' if i == 0 else 'td'}>"
+                "<tr>" + "".join(f"<th>{inline(c)}</th>" if i == 0 else
+                                 f"<td class='n'>{inline(c)}</td>" if NUMBER.match(c) else f"<td>{inline(c)}</td>"
                                  for c in r) + "</tr>" for i, r in enumerate(cells)) + "</table>")
             table = []
         if line.startswith("- "):
@@ -398,8 +404,9 @@ def markdown_to_html(text: str, title: str) -> str:
             body.append(f"<h{level}>{inline(line[level:].strip())}</h{level}>")
         elif line.strip():
             body.append(f"<p>{inline(line)}</p>")
-    style = ("body{font-family:sans-serif;max-width:1400px;margin:auto}table{border-collapse:collapse;"
-             "font-size:12px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
-             "td:first-child,th:first-child{text-align:left}img{max-width:100%}")
+    style = ("body{font-family:sans-serif;max-width:1400px;margin:auto;padding:0 8px}"
+             "table{border-collapse:collapse;font-size:12px;margin-bottom:8px}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;text-align:left}td.n{text-align:right}"
+             "img{max-width:100%}")
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
             f"<style>{style}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
