@@ -144,9 +144,10 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
                 f"`{bench.get('preset')}` preset ({per_algo or 'budget per algorithm below'}, "
                 f"{acs} ACs per trial), then tested each environment's own trained policies in {tested}")
     elif prov.get("policy", "trained") == "trained":
-        where = {e for runs in trained.values() for r in runs for e in [r.get("env")]}
-        what = (f"`{prov.get('command')}` tested checkpoints of {_names(algos, labels)} (trained in "
-                f"{', '.join(sorted(map(str, where))) or 'unknown environments'}) in {len(envs)} "
+        where = {r["env"] for runs in trained.values() for r in runs if r.get("env")}
+        trained_in = (f"trained in {', '.join(env_title(e) for e in sorted(map(str, where)))}" if where
+                      else "where they were trained is unknown: their run folders hold no config.yaml")
+        what = (f"`{prov.get('command')}` tested checkpoints of {_names(algos, labels)} ({trained_in}) in {len(envs)} "
                 f"environment(s) ({', '.join(titles)}) in {tested}")
     else:
         what = (f"`{prov.get('command')}` drove every AC with the {prov.get('policy')} reference policy "
@@ -162,12 +163,12 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
         rows.append(["preset", f"{bench.get('preset')} (training seed{'s 0..' if n_seeds > 1 else ' '}"
                                f"{n_seeds - 1}, training episodes at a collision: {bench.get('collisions')})"])
     rows.append(["training budget", "; ".join(f"{r[0]} {r[2]} env steps x {r[3]} ACs" for r in budget
-                                              if r[2] != "-") or "-"])
+                                              if r[2] != "-") or "unknown (no run config.yaml)"])
     rows.append(["test", f"{plan.get('agents')} ACs, {episodes} episode(s) x {steps} steps per "
                          f"environment and scenario; episode seeds {seed_text}"])
     rows.append(["task version", "; ".join(
         f"{task.get(e, {}).get('title', e)} ({e}) {task.get(e, {}).get('sha256', '?')}" for e in envs)])
-    obs = _one(r[5] for r in budget if r[5] != "-") if any(r[5] != "-" for r in budget) else "-"
+    obs = _one(r[5] for r in budget if r[5] != "-") if any(r[5] != "-" for r in budget) else "observation unknown"
     acts = {}
     for r in budget:
         acts.setdefault(r[6], []).append(r[0])
