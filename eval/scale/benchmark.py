@@ -447,7 +447,7 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                          seed=HELD_OUT_SEED, agents=len(algos))
     refs = reference_rows(whole, list(settings.references)) if settings.references else None
     if progress and refs is not None:
-        progress(f"references ({', '.join(settings.references)})")
+        progress(f"references ({len(settings.references)} policies)")
     # every environment's checkpoints, each with its AC and scores (the report's provenance)
     prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
                       selections={t["algorithm"]: t["selection"] for t in tested if t["env"] == plan.envs[0]
