@@ -474,12 +474,14 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
                          episodes=t["episodes"], steps=t["steps"], seed=HELD_OUT_SEED,
                          agents=len(plan.algos))
     first = checkpoints(plan, bench, plan.envs[0], 0)
+    every = [{"env": e, "seed": s, "algorithm": a, "path": p} for e in plan.envs
+             for s in range(seeds_of[e]) for a, p in checkpoints(plan, bench, e, s).items()]
     prov = provenance(policy="trained", plan=whole, algos=list(plan.algos), checkpoints=first,
-                      command=command.split()[1:])
+                      command=command.split()[1:], env_checkpoints=every, benchmark=plan.to_dict())
     write_paper_report(pooled, out / "report", prov=prov, extra_md=(
         f"\n## Science study\n\nTraining seeds pooled ({per_env}): episode = seed x "
-        f"{t['episodes']} + test episode. The checkpoints under provenance are "
-        f"{plan.envs[0]}'s, seed 0; science.json lists every one.\n"))
+        f"{t['episodes']} + test episode. Provenance lists every checkpoint (environment, "
+        "seed, algorithm); science.json too.\n"))
     study["checkpoints"] = {f"{e}__seed{s}": {a: str(p.relative_to(out)) for a, p in
                                               checkpoints(plan, bench, e, s).items()}
                             for e in plan.envs for s in range(seeds_of[e])}

@@ -65,19 +65,25 @@ def bar_figure(long: pd.DataFrame, metrics: list[tuple[str, str]], out: Path, st
         for s in scenarios:
             ax = axes[r][0]
             sub = long[(long["metric"] == metric) & (long["scenario"] == s)].set_index(["env", "algorithm"])
+            top = max([float(v) for v in sub["mean"] if np.isfinite(v)] + [1e-9])
             for k, a in enumerate(algos):
                 xs, ys, err = [], [], [[], []]
                 for i, e in enumerate(envs):
+                    x = i + (k - (len(algos) - 1) / 2) * width
                     if (e, a) not in sub.index or not np.isfinite(sub.loc[(e, a), "mean"]):
+                        _mark(ax, x, top, "n/a")  # told apart from a bar of height zero
                         continue
                     row = sub.loc[(e, a)]
-                    xs.append(i + (k - (len(algos) - 1) / 2) * width)
+                    xs.append(x)
                     ys.append(row["mean"])
-                    err[0].append(max(0.0, row["mean"] - row["ci_low"]))
-                    err[1].append(max(0.0, row["ci_high"] - row["mean"]))
+                    one = row["n"] < 2  # one value has no interval: no zero-width error bar
+                    err[0].append(0.0 if one else max(0.0, row["mean"] - row["ci_low"]))
+                    err[1].append(0.0 if one else max(0.0, row["ci_high"] - row["mean"]))
+                    if row["mean"] == 0:
+                        _mark(ax, x, top, "0", colour(a))  # a zero bar is visible as its label
                 if xs:
-                    ax.bar(xs, ys, width, color=colour(a), yerr=err, capsize=1.2,
-                           error_kw={"lw": 0.6})
+                    ax.bar(xs, ys, width, color=colour(a), yerr=err if any(map(any, err)) else None,
+                           capsize=1.2, error_kw={"lw": 0.6})
             ax.set_xticks(range(len(envs)))
             ax.set_xticklabels([titles[e] for e in envs])
             ax.set_ylabel(name)
@@ -89,6 +95,13 @@ def bar_figure(long: pd.DataFrame, metrics: list[tuple[str, str]], out: Path, st
     fig.tight_layout(rect=(0, 0.06 if len(algos) <= 3 else 0.1, 1, 1))
     _legend(fig, algos, labels)
     return _save(fig, out, stem)
+
+
+def _mark(ax, x: float, top: float, text: str, color: str = "#444444") -> None:
+    """A small label at the foot of a bar's place: "0" for a bar of height zero, "n/a" where
+    the metric does not apply (so that neither reads as the other, nor as a missing bar)."""
+    ax.text(x, 0.02 * top, text, ha="center", va="bottom", fontsize=5, rotation=90 if len(text) > 1 else 0,
+            color=color)
 
 
 def speed_grid(records: pd.DataFrame, out: Path, labels: Mapping[str, str],

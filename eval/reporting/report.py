@@ -1,28 +1,32 @@
-"""The paper-ready report of ``cosim test`` (issue 13).
+"""The paper-ready report of ``cosim test`` and ``cosim benchmark`` (issues 13, 28).
 
 From the per-step records of the test protocol (eval/testing/protocol.py) this writes:
 
 - Table RQ1 as one table shaped like the paper's: the environment (its scenario
   ``title``: Straight, Three-way, ...) as a row group, the metrics CV, CO, CP, OS,
-  RL, TTFC (then SPEED, DISTANCE) as rows, algorithms as columns in the paper's
-  order, Scenario 1 | Scenario 2 side by side. Each cell is the mean over episodes
-  with a 95% bootstrap confidence interval (percentile, 2,000 resamples, fixed
-  seed: the same records give the same table); ``n`` is the number of episodes.
+  RL, TTFC (then SPEED, DISTANCE, return, goal rate) as rows, algorithms as columns in
+  the paper's order, Scenario 1 | Scenario 2 side by side, and the reference policies'
+  columns beside Scenario 1's algorithms when references ran. Each cell is the mean over
+  episodes and its 95% bootstrap confidence interval printed as its two ends
+  ``[low, high]`` (percentile, 2,000 resamples, fixed seed: the same records give the
+  same table; the interval need not be symmetric, so never ``±``); one episode has no
+  interval ("n = 1: no interval"); ``n`` is the number of episodes.
   "-": the metric does not apply (CV with no other vehicle, CP with no
   pedestrian); "--": TTFC of an AC that never collided. Files: ``rq1.md``,
   ``rq1_long.csv`` (one row per cell: mean, ci_low, ci_high, n),
   ``rq1_wide.csv`` (the table as printed) and ``rq1.tex`` (booktabs + multirow,
   scaled to the page width: ``\\usepackage{booktabs,multirow,graphicx}``).
 - Figures (eval/reporting/figures.py), each as PDF and PNG.
-- ``index.md`` and ``index.html``: everything above with its provenance
-  (``provenance.json``: runs and checkpoints with SHA-256, the rule that chose each
-  AC, cosim version, git commit, seeds, the command line, the policy).
+- ``index.md`` and ``index.html`` (eval/reporting/page.py): what was tested and how much
+  on the first screen, then everything above with a legend and its provenance as tables
+  (``provenance.json``: every checkpoint with SHA-256, the run it came from and how that
+  was trained, the rule that chose each AC, the task version, cosim version, git commit,
+  seeds, the command line, the policy, the date).
 """
 
 from __future__ import annotations
 
 import hashlib
-import html
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -33,7 +37,9 @@ import pandas as pd
 from eval.labels import ALGO_ORDER, SCENARIO_NAMES, algo_order, env_title  # noqa: F401 - re-exported
 from eval.testing.metrics import episode_metrics, scenario_dt
 
-TABLE_METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
+TABLE_METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE", "return", "goal")
+"""Table RQ1's rows: the paper's metrics, then the return and the goal rate (the yardstick
+the reference columns are read against)."""
 BOOTSTRAP = 2000
 CI_SEED = 0
 UNITS = {"TTFC": "s", "SPEED": "km/h", "DISTANCE": "m"}
@@ -89,42 +95,120 @@ def long_table(per: pd.DataFrame, labels: Mapping[str, str] | None = None,
     return pd.DataFrame(rows)
 
 
+DIGITS = {"TTFC": 2, "SPEED": 2, "DISTANCE": 2, "return": 1, "goal": 2}
+"""Decimals per metric (3 for the step fractions CV..RL)."""
+ROW_NAMES = {"goal": "goal rate"}
+"""How a metric's row is headed where its key is not its name."""
+
+
 def _digits(metric: str) -> int:
-    return 2 if metric in UNITS else 3
+    return DIGITS.get(metric, 3)
+
+
+def row_name(metric: str) -> str:
+    """The Metric column's text of ``metric`` (``goal`` -> ``goal rate``)."""
+    return ROW_NAMES.get(metric, metric)
+
+
+NO_INTERVAL = "n = 1: no interval"
 
 
 def cell(metric: str, mean: float, lo: float, hi: float, n: int, episodes: int) -> str:
-    """'mean ± half-width' (n appended when it is not every episode); '-' / '--' when none."""
+    """'mean [low, high]' (the 95% interval's two ends: a bootstrap interval need not be
+    symmetric, and a ± would imply values the data cannot have); one value has no interval:
+    its mean alone when every cell of its column has one episode (the table's note says so),
+    else 'mean (n = 1: no interval)'; ' (n=k)' when the metric applied in k of the episodes;
+    '-' / '--' when it never applied."""
     if n == 0:
         return "--" if metric == "TTFC" else "-"
     d = _digits(metric)
-    text = f"{mean:.{d}f} ± {max(hi - mean, mean - lo):.{d}f}"
+    if n == 1:
+        return f"{mean:.{d}f}" if episodes == 1 else f"{mean:.{d}f} ({NO_INTERVAL})"
+    text = f"{mean:.{d}f} [{lo:.{d}f}, {hi:.{d}f}]"
     return text + (f" (n={n})" if n != episodes else "")
 
 
-def wide_rows(long: pd.DataFrame, metrics: Sequence[str] = TABLE_METRICS):
-    """(header, rows, groups): the combined Table RQ1 as printed; groups = [(title, n_rows)]."""
+REFERENCE_COLUMNS = ("autopilot", "autopilot-discrete", "safe-non-turner", "random")
+"""Reference policies (eval/testing/validity.py) shown as Table RQ1 columns beside the
+algorithms, in Scenario 1 whose conditions they ran under; the rest of the degenerate suite is
+one column, its strongest policy by return in each environment (:data:`BEST_DEGENERATE`)."""
+BEST_DEGENERATE = "best degenerate"
+REF = "ref:"
+"""Prefix of a reference column's key in :func:`wide_rows`' columns (``ref:autopilot``)."""
+
+
+def reference_columns(refs: pd.DataFrame | None) -> list[str]:
+    """The reference columns ``refs`` (eval.testing.protocol.reference_rows) fills, in order."""
+    if refs is None or refs.empty:
+        return []
+    have = set(refs["policy"])
+    cols = [p for p in REFERENCE_COLUMNS if p in have]
+    return cols + ([BEST_DEGENERATE] if have - set(REFERENCE_COLUMNS) - _NOT_DEGENERATE else [])
+
+
+_NOT_DEGENERATE = {"autopilot", "autopilot-discrete", "safe-non-turner"}
+
+
+def reference_cells(refs: pd.DataFrame | None, metrics: Sequence[str] = TABLE_METRICS) -> dict:
+    """(env, column) -> {metric: printed mean, "n (episodes)": the AC-episodes}; the
+    reference rows are means over episodes x ACs (no interval: eval.testing.validity.summarize)."""
+    out: dict = {}
+    if refs is None or refs.empty:
+        return out
+    for env, g in refs.groupby("env", sort=False):
+        g = g.set_index("policy")
+        for col in reference_columns(refs):
+            name = col
+            if col == BEST_DEGENERATE:
+                pool = g.loc[[p for p in g.index if p not in REFERENCE_COLUMNS and p not in _NOT_DEGENERATE]]
+                if pool.empty:
+                    continue
+                name = str(pool["return"].astype(float).idxmax())
+            if name not in g.index:
+                continue
+            r = g.loc[name]
+            cells = {"n (episodes)": (f"{name}, " if col == BEST_DEGENERATE else "")
+                     + f"{int(r['n'])} AC-episodes"}
+            for m in metrics:
+                v = float(r[m]) if m in r.index else float("nan")
+                cells[m] = (f"{v:.{_digits(m)}f}" if np.isfinite(v) else "--" if m == "TTFC"
+                            else "-" if m in r.index else "")
+            out[(env, col)] = cells
+    return out
+
+
+def wide_rows(long: pd.DataFrame, metrics: Sequence[str] = TABLE_METRICS,
+              refs: pd.DataFrame | None = None):
+    """(header, rows, groups, cols): the combined Table RQ1 as printed; groups = [(title,
+    n_rows)], cols = the (scenario, algorithm or ``ref:<policy>``) of each value column."""
     scenarios = sorted(long["scenario"].unique())
     algos = algo_order(long["algorithm"].unique())
     label = dict(zip(long["algorithm"], long["label"], strict=False))
+    ref_cols = reference_columns(refs) if 1 in scenarios else []
+    cols = [(s, a) for s in scenarios for a in algos + ([REF + r for r in ref_cols] if s == 1 else [])]
     header = ["Environment", "Metric"] + [
-        f"S{s} {label.get(a, a)}" for s in scenarios for a in algos]
+        f"S{s} {a[len(REF):]} (ref)" if a.startswith(REF) else f"S{s} {label.get(a, a)}" for s, a in cols]
     idx = long.set_index(["env", "scenario", "algorithm", "metric"])["cell"]
     eps = long.drop_duplicates(["env", "scenario", "algorithm"]).set_index(
         ["env", "scenario", "algorithm"])["episodes"]
+    ref_cells = reference_cells(refs, metrics)
     rows, groups = [], []
     envs = sorted(long["env"].unique())
     titles = dict(zip(long["env"], long["title"], strict=False))
+
+    def value(env, s, a, m):
+        if a.startswith(REF):
+            return ref_cells.get((env, a[len(REF):]), {}).get(m, "")
+        if m == "n (episodes)":
+            return str(int(eps[(env, s, a)])) if (env, s, a) in eps.index else ""
+        return idx.get((env, s, a, m), "")
+
     for env in envs:
-        block = [[titles[env], "n (episodes)"] + [
-            str(int(eps[(env, s, a)])) if (env, s, a) in eps.index else "" for s in scenarios
-            for a in algos]]
-        for m in metrics:
-            block.append([titles[env], m] + [
-                idx.get((env, s, a, m), "") for s in scenarios for a in algos])
+        block = [[titles[env], row_name(m)] + [value(env, s, a, m) for s, a in cols]
+                 for m in ("n (episodes)", *metrics)]
         rows += block
         groups.append((titles[env], len(block)))
-    return header, rows, groups, scenarios, algos
+    return header, rows, groups, cols
 
 
 def rq1_markdown(header, rows, groups) -> str:
@@ -148,35 +232,43 @@ def _tex(text: str) -> str:
 
 
 def _tex_cell(c: str) -> str:
-    if c in ("-", "--", ""):
-        return c
-    main, _, rest = c.partition(" (n=")
-    m, _, hw = main.partition(" ± ")
-    body = f"${m}\\pm{hw}$" if hw else f"${m}$"
-    return body + (f"\\,$^{{n={rest.rstrip(')')}}}$" if rest else "")
+    """A printed cell in LaTeX: 'm [lo, hi] (n=k)' -> '$m$ {\\scriptsize[lo, hi]}\\,$^{n=k}$'."""
+    import re
+
+    found = re.match(r"^(-?[\d.]+)( \[[^\]]+\])?(?: \(n ?= ?(\d+)[^)]*\))?$", c)
+    if not found:
+        return _tex(c)
+    m, ci, n = found.groups()
+    return (f"${m}$" + (f" {{\\scriptsize{ci}}}" if ci else "")
+            + (f"\\,$^{{n={n}}}$" if n else ""))
 
 
-def rq1_latex(header, rows, groups, scenarios, algos, labels: Mapping[str, str]) -> str:
+def rq1_latex(header, rows, groups, cols) -> str:
     """booktabs + multirow, scaled to the page width; needs \\usepackage{booktabs,multirow,graphicx}."""
-    k = len(algos)
-    cols = "ll" + "c" * (k * len(scenarios))
+    scenarios = list(dict.fromkeys(s for s, _ in cols))
+    width = {s: sum(1 for c, _ in cols if c == s) for s in scenarios}
     lines = [
         "% Table RQ1 (cosim test): needs \\usepackage{booktabs,multirow,graphicx}",
         r"\begin{table*}[t]", r"\centering", r"\small", r"\setlength{\tabcolsep}{3pt}",
-        r"\caption{Driving errors per environment (Table RQ1): mean $\pm$ 95\% bootstrap CI over "
-        r"episodes. CV, CO, CP, OS, RL: fraction of steps; TTFC: s; SPEED: km/h; DISTANCE: m. "
-        r"``-'': does not apply; ``--'': no collision.}",
+        r"\caption{Driving errors per environment (Table RQ1): mean and [95\% bootstrap CI] over "
+        r"episodes (one episode: the value alone). CV, CO, CP, OS, RL: fraction of steps; TTFC: s; "
+        r"SPEED: km/h; DISTANCE: m; return: undiscounted sum of rewards; goal rate: share of "
+        r"episodes that reached the goal. (ref): a scripted reference policy under Scenario 1 "
+        r"conditions, mean over episodes x ACs. ``-'': does not apply; ``--'': no collision.}",
         r"\label{tab:rq1}",
-        r"\resizebox{\textwidth}{!}{%",  # twelve columns of mean ± CI: fit the page width
-        rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
+        r"\resizebox{\textwidth}{!}{%",  # many columns of mean and CI: fit the page width
+        rf"\begin{{tabular}}{{ll{'c' * len(cols)}}}", r"\toprule",
     ]
-    head = ["", ""] + [rf"\multicolumn{{{k}}}{{c}}{{{_tex(SCENARIO_NAMES.get(s, f'Scenario {s}'))}}}"
+    head = ["", ""] + [rf"\multicolumn{{{width[s]}}}{{c}}{{{_tex(SCENARIO_NAMES.get(s, f'Scenario {s}'))}}}"
                        for s in scenarios]
     lines.append(" & ".join(head) + r" \\")
-    lines.append(" ".join(rf"\cmidrule(lr){{{3 + i * k}-{2 + (i + 1) * k}}}"
-                          for i in range(len(scenarios))))
-    lines.append(" & ".join(["Environment", "Metric"] + [
-        _tex(labels.get(a, a)) for _ in scenarios for a in algos]) + r" \\")
+    start, rules_ = 3, []
+    for s in scenarios:
+        rules_.append(rf"\cmidrule(lr){{{start}-{start + width[s] - 1}}}")
+        start += width[s]
+    lines.append(" ".join(rules_))
+    lines.append(" & ".join(["Environment", "Metric"] + [_tex(h.split(" ", 1)[1]) for h in header[2:]])
+                 + r" \\")
     lines.append(r"\midrule")
     i = 0
     for g, (title, size) in enumerate(groups):
@@ -199,37 +291,111 @@ def sha256(path: Path) -> str:
 
 
 def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping | None = None,
-               selections: Mapping | None = None, command: Sequence[str] | None = None) -> dict:
-    """What was tested and how: checkpoints with SHA-256 and the AC rule, seeds, and what ran it
-    (eval.training.runfolder.software, as a run's manifest.json: command, versions, git commit)."""
+               selections: Mapping | None = None, command: Sequence[str] | None = None,
+               env_checkpoints: Sequence[Mapping] | None = None,
+               benchmark: Mapping | None = None) -> dict:
+    """What was tested and how: checkpoints with SHA-256 and the AC rule, seeds, the task
+    version (each environment's scenario files, hashed), how each checkpoint was trained (its
+    run's config.yaml), the date, and what ran it (eval.training.runfolder.software, as a run's
+    manifest.json: command, versions, git commit).
+
+    ``checkpoints`` (algorithm -> path) are the policies one test drives in every environment
+    of ``plan`` (`cosim test`); ``env_checkpoints`` lists, when each environment has its own
+    (`cosim benchmark`), one ``{"env", "seed", "algorithm", "path"}`` per checkpoint tested;
+    ``benchmark``: the benchmark's plan (its preset, seeds, ...: BenchmarkPlan.to_dict()).
+    """
+    import datetime as dt
+
     from eval.testing import selection
     from eval.testing.protocol import rules
     from eval.training.runfolder import software
 
     ran = software(" ".join(["cosim", *command]) if command is not None else None)
+    selections = dict(selections or {})
     tested = []
     for algo in algos:
         entry = {"algorithm": algo, "label": slot_label(policy, algo)}
         if checkpoints and algo in checkpoints:
-            p = Path(checkpoints[algo])
-            sel = (selections or {}).get(algo)
-            entry.update(checkpoint=str(p), sha256=sha256(p),
-                         run=str(p.parent.parent.parent) if p.parent.name.startswith("ac_") else None,
-                         ac=sel.ac if sel else None, chosen_by=sel.basis if sel else None,
-                         scores=sel.scores if sel else {})
+            entry.update(_checkpoint_entry(Path(checkpoints[algo]), selections.get(algo)))
         tested.append(entry)
+    if env_checkpoints is not None:
+        where = [{"env": c["env"], "seed": c.get("seed"), "algorithm": c["algorithm"],
+                  "label": slot_label(policy, c["algorithm"]),
+                  **_checkpoint_entry(Path(c["path"]), c.get("selection"))} for c in env_checkpoints]
+    else:  # one checkpoint per algorithm, driven in every environment tested
+        where = [{"env": list(plan.envs), "seed": None, "algorithm": t["algorithm"], "label": t["label"],
+                  **{k: v for k, v in t.items() if k not in ("algorithm", "label")}}
+                 for t in tested if "checkpoint" in t]
     return {
         "policy": policy,
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "tested": tested,
+        "checkpoints": where,
         "ac_rule": selection.RULE,
         "cosim_version": ran["versions"]["cosim"],
         **ran,
+        **({"benchmark": dict(benchmark)} if benchmark is not None else {}),
         "plan": {"envs": list(plan.envs), "scenarios": list(plan.scenarios),
                  "episodes": plan.episodes, "steps": plan.steps, "agents": plan.agents,
                  "seed": plan.seed, "episode_seeds": [plan.seed + e for e in range(plan.episodes)],
                  **rules(plan)},
+        "task": task_version(plan.envs),
         "ci": f"95% percentile bootstrap of the mean over episodes, {BOOTSTRAP} resamples, seed {CI_SEED}",
     }
+
+
+def _checkpoint_entry(path: Path, sel) -> dict:
+    """A checkpoint's provenance: path, SHA-256, its run, the AC chosen and why, and how its
+    run was trained (:func:`trained_with`)."""
+    from eval.testing import selection
+
+    if sel is None and path.parent.name.startswith("ac_"):
+        sel = selection.choose(path.parent.parent.parent)
+    run = path.parent.parent.parent if path.parent.name.startswith("ac_") else None
+    return {"checkpoint": str(path), "sha256": sha256(path), "run": str(run) if run else None,
+            "ac": sel.ac if sel else None, "chosen_by": sel.basis if sel else None,
+            "scores": sel.scores if sel else {}, "trained": trained_with(run)}
+
+
+TRAINING_KEYS = ("algo", "env", "preset", "steps", "agents", "seed", "horizon", "obs", "image_size",
+                 "frame_stack", "collisions_end_episode")
+"""What the report says of a checkpoint's training run (keys of its config.yaml)."""
+
+
+def trained_with(run: Path | None) -> dict:
+    """The training settings of a run folder (its config.yaml, :data:`TRAINING_KEYS`); {} when
+    the checkpoint has no run folder (a file given with --checkpoint) or it cannot be read."""
+    if run is None or not (Path(run) / "config.yaml").exists():
+        return {}
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((Path(run) / "config.yaml").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return {}
+    return {k: cfg[k] for k in TRAINING_KEYS if k in cfg}
+
+
+def task_version(envs: Sequence[str]) -> dict:
+    """Per environment: its title, the SHA-256 (first 12 hex digits) of its scenario files (the
+    YAML, the network, the demand and additional files: the task a result belongs to), its
+    seconds per step and its horizon."""
+    from cosim.scenario import load_scenario
+
+    out = {}
+    for env in envs:
+        try:
+            sc = load_scenario(env)
+        except Exception:  # noqa: BLE001 - a report must not fail on a hash
+            out[env] = {"title": env_title(env)}
+            continue
+        h = hashlib.sha256()
+        for f in [sc.source, sc.net, *sc.demand, *sc.pedestrian_demand, *sc.additional]:
+            h.update(Path(f).name.encode())
+            h.update(Path(f).read_bytes())
+        out[env] = {"title": sc.title or env, "sha256": h.hexdigest()[:12], "dt": float(sc.dt),
+                    "horizon": int(sc.horizon)}
+    return out
 
 
 def slot_label(policy: str, algo: str) -> str:
@@ -257,18 +423,19 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
     per.to_csv(out / "episodes.csv", index=False)
     long = long_table(per, labels)
     long.to_csv(out / "rq1_long.csv", index=False)
-    header, rows, groups, scenarios, algos = wide_rows(long)
+    header, rows, groups, cols = wide_rows(long, refs=references)
     pd.DataFrame(rows, columns=header).to_csv(out / "rq1_wide.csv", index=False)
     md = rq1_markdown(header, rows, groups)
     (out / "rq1.md").write_text(md)
-    (out / "rq1.tex").write_text(rq1_latex(header, rows, groups, scenarios, algos, labels))
+    (out / "rq1.tex").write_text(rq1_latex(header, rows, groups, cols))
     (out / "provenance.json").write_text(json.dumps(prov, indent=2, default=str))
     written = [out / n for n in ("records.parquet", "metrics.csv", "episodes.csv", "rq1_long.csv", "rq1_wide.csv", "rq1.md",
                                  "rq1.tex", "provenance.json")]
     figures_written = figs.write_all(records, per, long, out, labels, dt) if figures else []
     written += figures_written
-    index_md = rq1_markdown(*with_replay_links(header, rows, groups, scenarios, algos, long, replays))
-    written += write_index(out, index_md, prov, figures_written, references, replays, extra_md)
+    index_md = rq1_markdown(*with_replay_links(header, rows, groups, cols, replays))
+    written += write_index(out, index_md, prov, figures_written, references, replays, extra_md,
+                           long=long, per=per)
     (out / "report.md").write_text((out / "index.md").read_text())
     written.append(out / "report.md")
     if references is not None and not references.empty:
@@ -292,14 +459,12 @@ FILE_NOTES = {
 }
 
 
-def with_replay_links(header, rows, groups, scenarios, algos, long: pd.DataFrame,
-                      replays: Sequence[dict]):
+def with_replay_links(header, rows, groups, cols, replays: Sequence[dict]):
     """The table for the index: a 'first collision' row after TTFC in each environment,
     linking the failure replay of each column that has one (eval/testing/replay.py)."""
     if not replays:
         return header, rows, groups
     by = {(r["title"], r["scenario"], r["algorithm"]): r for r in replays}
-    cols = [(s, a) for s in scenarios for a in algos]
     out_rows, out_groups, k = [], [], 0
     for title, size in groups:
         block = rows[k:k + size]
@@ -315,115 +480,19 @@ def with_replay_links(header, rows, groups, scenarios, algos, long: pd.DataFrame
 
 def write_index(out: Path, rq1_md: str, prov: dict, figures: Sequence[Path],
                 references: pd.DataFrame | None, replays: Sequence[dict],
-                extra_md: str = "") -> list[Path]:
-    """index.md and index.html: the table, the figures, the replays, every file, provenance."""
-    out = Path(out)
-    policy = prov.get("policy", "trained")
-    md = ["# cosim test report\n"]
-    if policy != "trained":
-        md.append(f"**Policy: {policy}.** Every AC was driven by the {policy} reference, not by "
-                  f"a trained checkpoint; columns are labelled '{policy} (<algorithm> slot)'.\n")
-    md.append("## Table RQ1\n")
-    md.append("Mean ± 95% bootstrap CI over episodes (n = episodes; `(n=k)` when the metric "
-              "applied in k of them). S1 = Scenario 1 (multi-agent), S2 = Scenario 2 "
-              "(single-agent). \"-\": does not apply (no other vehicle / no pedestrian); "
-              "\"--\": no collision. CV, CO, CP, OS, RL are fractions of steps; TTFC s, "
-              "SPEED km/h, DISTANCE m.\n")
-    md.append(rq1_md)
-    md.append("\n## Figures\n")
-    md.append("RQ2 success rates: **Safety** = share of episodes without a collision step "
-              "(CV = CO = CP = 0); **Efficiency** = SPEED and DISTANCE; **Lane keeping** = "
-              "1 - OS (share of steps inside its own lanes). Error bars: 95% bootstrap CI.\n")
-    for f in figures:
-        if f.suffix == ".png":
-            md.append(f"![{f.stem}]({f.name}) ([PDF]({f.with_suffix('.pdf').name}))\n")
-    if replays:
-        md.append("\n## Failure replays (first collision per algorithm and environment)\n")
-        md.append("The moment TTFC measures, and the first step counted by the metric named: "
-                  "the AC's camera and a top-down view from 3 s before to 1 s after, and the "
-                  "SUMO state at the collision step.\n")
-        md.append("| scenario | environment | algorithm | episode | step | TTFC (s) | metric | "
-                  "frames | camera | overview | SUMO state | reproduced |")
-        md.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
-        metric = {"vehicle": "CV", "object": "CO", "pedestrian": "CP"}
-        for r in replays:
-            md.append(f"| {r['scenario']} | {r['title']} | {r['label']} | {r['episode']} | "
-                      f"{r['step']} | {r['ttfc']:.1f} | {metric.get(r['kind'], r['kind'])} | "
-                      f"[strip]({r['strip']}) | [gif]({r['camera']}) | "
-                      f"[gif]({r['overview']}) | [xml]({r['state']}) ([json]({r['meta']})) | "
-                      f"{'yes' if r['reproduced'] else 'NO'} |")
-        md.append("\nReopen a state with `cosim replay <state.json>` (prints the positions, "
-                  "`--plot` draws them) or in sumo-gui (`--load-state`).\n")
-    if references is not None and not references.empty:
-        from eval.testing.protocol import references_markdown
+                extra_md: str = "", long: pd.DataFrame | None = None,
+                per: pd.DataFrame | None = None) -> list[Path]:
+    """index.md and index.html (eval/reporting/page.py): what was tested, the table, the
+    figures, the replays, the references, provenance, every file."""
+    from eval.reporting import page
 
-        md.append("\n" + references_markdown(references))
-    if extra_md:
-        md.append(extra_md)
-    md.append("\n## Provenance\n")
-    md.append(f"- command: `{prov.get('command', '')}`")
-    md.append(f"- policy: {policy}")
-    md.append(f"- cosim version: {prov.get('cosim_version')}; git: {prov.get('git')}")
-    plan = prov.get("plan", {})
-    md.append(f"- plan: {plan}")
-    md.append(f"- confidence intervals: {prov.get('ci', '')}")
-    md.append(f"- AC chosen per run by: {prov.get('ac_rule', '')}\n")
-    md.append("| column | checkpoint | SHA-256 | AC | chosen by | scores |")
-    md.append("|---|---|---|---|---|---|")
-    for t in prov.get("tested", []):
-        md.append(f"| {t['label']} | {t.get('checkpoint', '(' + policy + ')')} | "
-                  f"{t.get('sha256', '-')} | {t.get('ac') or '-'} | {t.get('chosen_by') or '-'} | "
-                  f"{t.get('scores') or '-'} |")
-    md.append("\n## Files\n")
-    listed = sorted(p for p in out.rglob("*")
+    out = Path(out)
+    listed = sorted(p.relative_to(out).as_posix() for p in out.rglob("*")
                     if p.is_file() and p.name not in ("index.md", "index.html", "report.md"))
-    for p in listed:
-        rel = p.relative_to(out).as_posix()
-        md.append(f"- [{rel}]({rel}){': ' + FILE_NOTES[p.name] if p.name in FILE_NOTES else ''}")
-    text = "\n".join(md) + "\n"
+    text = page.index_markdown(prov, rq1_md, figures=[f.name for f in figures], references=references,
+                               replays=replays, extra_md=extra_md, long=long, per=per,
+                               files={rel: FILE_NOTES.get(rel.rsplit("/", 1)[-1], "") for rel in listed})
     (out / "index.md").write_text(text)
-    (out / "index.html").write_text(markdown_to_html(text, "cosim test report"))
+    (out / "index.html").write_text(page.markdown_to_html(text, page.title(prov)))
     return [out / "index.md", out / "index.html"]
 
-
-def markdown_to_html(text: str, title: str) -> str:
-    """The small Markdown subset index.md uses (headings, tables, lists, links, images)."""
-    import re
-
-    def inline(s: str) -> str:
-        s = html.escape(s, quote=False)
-        s = re.sub(r"!\[([^\]]*)\]\(([^)]+)\)", r'<img src="\2" alt="\1" style="max-width:100%">', s)
-        s = re.sub(r"\[([^\]]+)\]\(([^)]+)\)", r'<a href="\2">\1</a>', s)
-        s = re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", s)
-        return re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
-
-    body, table, lst = [], [], False
-    for line in text.splitlines() + [""]:
-        if line.startswith("|"):
-            table.append(line)
-            continue
-        if table:
-            cells = [[c.strip() for c in r.strip("|").split("|")] for r in table if not set(r) <= set("|-")]
-            body.append("<table>" + "".join(
-                "<tr>" + "".join(f"<{'th' if i == 0 else 'td'}>{inline(c)}</{'th' if i == 0 else 'td'}>"
-                                 for c in r) + "</tr>" for i, r in enumerate(cells)) + "</table>")
-            table = []
-        if line.startswith("- "):
-            if not lst:
-                body.append("<ul>")
-                lst = True
-            body.append(f"<li>{inline(line[2:])}</li>")
-            continue
-        if lst:
-            body.append("</ul>")
-            lst = False
-        if line.startswith("#"):
-            level = len(line) - len(line.lstrip("#"))
-            body.append(f"<h{level}>{inline(line[level:].strip())}</h{level}>")
-        elif line.strip():
-            body.append(f"<p>{inline(line)}</p>")
-    style = ("body{font-family:sans-serif;max-width:1400px;margin:auto}table{border-collapse:collapse;"
-             "font-size:12px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
-             "img{max-width:100%}")
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-            f"<style>{style}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")

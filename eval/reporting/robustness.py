@@ -134,8 +134,8 @@ def sweep_markdown(table: pd.DataFrame, labels: dict) -> str:
             cells = []
             for a in algos:
                 r = t.loc[(level, m, a)]
-                cells.append("-" if r.n == 0 else
-                             f"{r['mean']:.2f} ± {max(r.ci_high - r['mean'], r['mean'] - r.ci_low):.2f}")
+                cells.append("-" if r.n == 0 else f"{r['mean']:.2f}" if r.n == 1 else
+                             f"{r['mean']:.2f} [{r.ci_low:.2f}, {r.ci_high:.2f}]")
             lines.append(f"| {level:g} | {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -160,6 +160,6 @@ def write(out: Path, labels: dict, cross: pd.DataFrame | None = None,
         figs = sweep_figure(table, out, labels)
         written += [out / f"sweep_{kind}.csv", *figs]
         md += [f"\n## Robustness sweep: {kind} (Scenario 1 conditions, pooled over environments)\n",
-               "Mean ± 95% bootstrap CI over episodes.\n", sweep_markdown(table, labels),
+               "Mean [95% bootstrap CI] over episodes (n = 1: no interval).\n", sweep_markdown(table, labels),
                f"\n![sweep_{kind}](sweep_{kind}.png) ([PDF](sweep_{kind}.pdf))\n"]
     return written, "\n".join(md)

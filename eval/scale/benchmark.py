@@ -68,7 +68,8 @@ class TestSettings:
 
 QUICK_REFERENCES = ("autopilot", "autopilot-discrete", "safe-non-turner", "random")
 TEST_SETTINGS = {
-    "smoke": TestSettings(episodes=1, steps=60),
+    # the whole reference suite: the yardstick of Table RQ1 (seconds at 60 steps, no camera)
+    "smoke": TestSettings(episodes=1, steps=60, references=POLICIES),
     # the two autopilots (the discrete one is a discrete learner's ceiling), the safe
     # non-turner (did it learn to turn?) and random (docs/task.md, "Reference policies")
     "quick": TestSettings(episodes=3, steps=500, references=QUICK_REFERENCES),
@@ -419,7 +420,7 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
     out = Path(out)
     settings = TEST_SETTINGS[plan.preset]
     algos = list(plan.algos)
-    frames, rows, first = [], [], {}
+    frames, tested, first = [], [], {}
     for env in plan.envs:
         for seed in range(plan.seeds):
             ckpts = {}
@@ -430,7 +431,8 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                     raise BenchmarkError(f"{run}: no checkpoint; rerun with --resume")
                 ckpts[algo] = chosen.path
                 first.setdefault(algo, chosen.path)
-                rows.append(f"| {env} | {algo} | {seed} | `{chosen.path.relative_to(out)}` |")
+                tested.append({"env": env, "seed": seed, "algorithm": algo, "path": chosen.path,
+                               "selection": chosen})
             test_plan = ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
                                      seed=HELD_OUT_SEED, agents=len(algos))
             records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
@@ -444,10 +446,14 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
     whole = ProtocolPlan(envs=tuple(plan.envs), episodes=settings.episodes, steps=settings.steps,
                          seed=HELD_OUT_SEED, agents=len(algos))
     refs = reference_rows(whole, list(settings.references)) if settings.references else None
+    if progress and refs is not None:
+        progress(f"references ({len(settings.references)} policies)")
+    # every environment's checkpoints, each with its AC and scores (the report's provenance)
     prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
-                      command=list(command))
+                      selections={t["algorithm"]: t["selection"] for t in tested if t["env"] == plan.envs[0]
+                                  and t["seed"] == 0},
+                      command=list(command), env_checkpoints=tested, benchmark=plan.to_dict())
     extra = ("\n## Benchmark grid\n\nEvery environment is tested with its own trained policies, "
-             f"{plan.seeds} seed(s) pooled (`cosim benchmark --preset {plan.preset}`); the "
-             "checkpoints listed under provenance are the first environment's.\n\n"
-             "| environment | algorithm | seed | checkpoint |\n|---|---|---|---|\n" + "\n".join(rows) + "\n")
+             f"{plan.seeds} seed(s) pooled (`cosim benchmark --preset {plan.preset}`); provenance "
+             "lists every checkpoint (environment, seed, algorithm) with its hash and the AC chosen.\n")
     return write_paper_report(records, out / "report", prov=prov, references=refs, extra_md=extra)

@@ -27,6 +27,19 @@ import numpy as np
 import pandas as pd
 
 METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
+DEFINITIONS = {
+    "CV": "collision with another vehicle: fraction of the AC's steps in contact with one",
+    "CO": "collision with a static road object: fraction of steps",
+    "CP": "collision with a pedestrian: fraction of steps",
+    "OS": "off its side: fraction of steps off the road or outside the lanes of its own direction",
+    "RL": "red light: fraction of steps on which it crossed a stop line against a red signal",
+    "TTFC": "time to first collision of any kind, simulated seconds",
+    "SPEED": "mean forward speed, km/h",
+    "DISTANCE": "progress towards the goal: abs(goal - spawn) - abs(goal - final position), metres",
+    "return": "undiscounted sum of the AC's rewards over the episode",
+    "goal": "share of episodes in which the AC reached its goal",
+}
+"""Each metric's definition in words (the table above): the legend of every report."""
 KEYS = ["episode", "agent", "algorithm"]
 
 

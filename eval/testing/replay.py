@@ -8,10 +8,12 @@ deterministic) and, around the collision step (the TTFC moment), keeps
   steps (1 s) after the collision;
 - ``overview.gif``: a top-down view centred on the AC over the same window;
 - ``strip.png``: up to six moments of both (camera above overview), the step
-  before the collision and the collision step among them (for papers and READMEs);
+  before the collision and the collision step among them, each labelled with its time
+  from the collision (for papers and READMEs);
 - ``state.xml``: the SUMO state at the collision step (``simulation.saveState``);
 - ``state.json``: what the state holds (every vehicle and person position), the
-  scenario, seed, episode and step, and whether the re-run reproduced the record.
+  scenario, seed, episode and step, and whether the re-run reproduced the record (and, when
+  not, ``why``: no collision at that step, or how far the AC was from its recorded position).
 
 ``cosim replay <state.json>`` (:func:`reload`) starts the scenario's SUMO, loads
 the state and prints the positions it holds next to the saved ones; ``--plot``
@@ -131,14 +133,18 @@ def _rerun(env, policies, want, seed, scenario, env_name, title, agent_algo, lab
                 ls = env.world.bridge._ls
                 ls.simulation.saveState(str(folder / "state.xml"))
                 info = infos.get(a, {})
-                reproduced = bool(info.get("collision")) and bool(
-                    np.hypot(info.get("x", np.nan) - r.x, info.get("y", np.nan) - r.y) < 1e-6)
+                off = float(np.hypot(info.get("x", np.nan) - r.x, info.get("y", np.nan) - r.y))
+                reproduced = bool(info.get("collision")) and off < 1e-6
+                why = ("" if reproduced else
+                       f"the re-run had no collision at step {int(r.step)}" if not info.get("collision")
+                       else f"the re-run's AC was {off:.2f} m from the recorded position at the "
+                            "collision step")
                 meta = {
                     "scenario": scenario, "env": env_name, "title": title, "algorithm": algo,
                     "label": labels.get(algo, algo), "agent": a, "episode": int(r.episode),
                     "seed": seed, "step": int(r.step), "ttfc": round(r.step * env.scenario.dt, 6),
                     "kind": r.kind, "hit": str(info.get("hit", "")), "ac_xy": [r.x, r.y],
-                    "reproduced": reproduced, "state": "state.xml",
+                    "reproduced": reproduced, "why": why, "state": "state.xml",
                     "background": scenario == 1, "pedestrians": scenario == 1,
                     "positions": sumo_positions(ls),
                 }
@@ -152,16 +158,28 @@ def _rerun(env, policies, want, seed, scenario, env_name, title, agent_algo, lab
         # four moments spread over the clip, plus the step before the collision and its step
         spread = np.linspace(0, len(cams[a]) - 1, 4).round().astype(int).tolist()
         picks = sorted(set(spread) | {max(k - 1, 0), k})
-        pairs = [np.concatenate([cams[a][i], tops[a][i]], axis=0) for i in picks]
+        dt = env.scenario.dt
+        pairs = [labelled(np.concatenate([cams[a][i], tops[a][i]], axis=0),
+                          "collision" if i == k else f"{(i - k) * dt:+.1f} s") for i in picks]
         save_png(folder / "strip.png", mosaic(pairs, cols=len(pairs)))
         rel = folder.relative_to(out).as_posix()
         rows.append({**{key: meta[key] for key in ("scenario", "env", "title", "algorithm", "label",
                                                    "agent", "episode", "step", "ttfc", "kind",
-                                                   "reproduced")},
+                                                   "reproduced", "why")},
                      "camera": f"{rel}/camera.gif", "overview": f"{rel}/overview.gif",
                      "strip": f"{rel}/strip.png", "state": f"{rel}/state.xml", "frame": k,
                      "meta": f"{rel}/state.json"})
     return rows
+
+
+def labelled(frame: np.ndarray, text: str) -> np.ndarray:
+    """``frame`` with a black band on top carrying ``text`` (a strip frame's time from the
+    collision), drawn with Pillow's built-in font."""
+    from PIL import Image, ImageDraw
+
+    band = Image.new("RGB", (frame.shape[1], 12), (0, 0, 0))
+    ImageDraw.Draw(band).text((3, 0), text, fill=(255, 255, 255))
+    return np.concatenate([np.asarray(band, np.uint8), np.asarray(frame, np.uint8)], axis=0)
 
 
 def reload(meta_path: Path) -> dict:

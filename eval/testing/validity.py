@@ -149,8 +149,11 @@ def check_scenario(scenario: Scenario | str, num_agents: int, episodes: int,
 
 
 def summarize(rows: pd.DataFrame) -> pd.DataFrame:
-    """Mean per policy (in POLICIES order) of every column, plus collision steps."""
-    table = rows.groupby("policy", sort=False)[[*COLUMNS, "collision_steps"]].mean()
+    """Mean per policy (in POLICIES order) of every column, plus collision steps (and TTFC, the
+    mean over the AC-episodes with a collision, and SPEED, when the rows have them: the report's
+    reference columns)."""
+    extra = [c for c in ("TTFC", "SPEED") if c in rows.columns]
+    table = rows.groupby("policy", sort=False)[[*COLUMNS, "collision_steps", *extra]].mean()
     table["n"] = rows.groupby("policy", sort=False).size()
     return table.reindex([p for p in POLICIES if p in table.index])
 

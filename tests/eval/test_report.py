@@ -18,6 +18,7 @@ from eval.reporting.report import (
     bootstrap_ci,
     cell,
     provenance,
+    row_name,
     sha256,
     write_paper_report,
 )
@@ -27,7 +28,8 @@ from eval.testing.protocol import ProtocolPlan, run_protocol
 ARGS = ["test", "--policy", "random", "--agents", "2", "--envs", "env_1", "env_3",
         "--episodes", "2", "--steps", "30", "--quiet", "--references", "none"]
 FIGURES = ("rq2_safety", "rq2_efficiency", "rq2_lane_keeping", "speed_per_timestep", "ttfc_survival")
-NUMBER = re.compile(r"^-?\d+\.\d+ ± \d+\.\d+( \(n=\d+\))?$")
+NUMBER = re.compile(r"^-?\d+\.\d+ \[-?\d+\.\d+, -?\d+\.\d+\]( \(n=\d+\))?$")
+"""A cell over two or more episodes: the mean and its interval's two ends."""
 
 
 @pytest.fixture(scope="module")
@@ -56,14 +58,16 @@ def test_combined_rq1_has_every_cell_and_dash_where_a_metric_does_not_apply(repo
                         assert row.cell == "-", (s, env, label, m)   # no car / no pedestrian
                     elif m == "TTFC" and row.n == 0:
                         assert row.cell == "--"
+                    elif row.n == 1:  # a TTFC of one episode in two
+                        assert row.cell.endswith(" (n = 1: no interval)"), row.cell
                     else:
                         assert NUMBER.match(row.cell), (s, env, label, m, row.cell)
-                        assert row.ci_low <= row.mean <= row.ci_high
+                        assert float(row.ci_low) <= float(row.mean) <= float(row.ci_high)
                         assert row.episodes == 2
     assert set(long.title) == {"Straight", "Four-way"}
     wide = pd.read_csv(folder / "rq1_wide.csv", keep_default_na=False)
     assert list(wide.columns) == ["Environment", "Metric", *(f"S{s} {lab}" for s in (1, 2) for lab in labels)]
-    assert list(wide.Metric[:9]) == ["n (episodes)", *TABLE_METRICS]
+    assert list(wide.Metric[:11]) == ["n (episodes)", *map(row_name, TABLE_METRICS)]
     md = (folder / "rq1.md").read_text()
     assert md.count("**Straight**") == 1 and md.count("**Four-way**") == 1
 
@@ -86,7 +90,7 @@ def _balanced(tex: str) -> None:
 
 def test_latex_is_booktabs_multirow_and_compiles_or_is_balanced(reports, tmp_path):
     tex = (reports[0] / "rq1.tex").read_text()
-    assert r"\multirow{9}{*}{Straight}" in tex and r"\toprule" in tex and r"\cmidrule" in tex
+    assert r"\multirow{11}{*}{Straight}" in tex and r"\toprule" in tex and r"\cmidrule" in tex
     _balanced(tex)
     engine = shutil.which("pdflatex")
     if engine:
@@ -128,7 +132,9 @@ def test_bootstrap_is_deterministic_and_cells_say_when_nothing_applies():
     assert (mean, n) == (2.0, 2) and 1.0 <= lo <= mean <= hi <= 3.0
     assert cell("CV", *bootstrap_ci([np.nan]), 1) == "-"
     assert cell("TTFC", *bootstrap_ci([]), 2) == "--"
-    assert cell("TTFC", 1.5, 1.5, 1.5, 1, 2) == "1.50 ± 0.00 (n=1)"
+    assert cell("TTFC", 1.5, 1.5, 1.5, 1, 2) == "1.50 (n = 1: no interval)"
+    assert cell("CO", 0.306, 0.0, 0.916, 3, 3) == "0.306 [0.000, 0.916]"  # asymmetric: both ends
+    assert cell("CO", 0.25, 0.25, 0.25, 1, 1) == "0.250"  # one episode: its value, no interval
 
 
 _SAVED: dict[str, Path] = {}
