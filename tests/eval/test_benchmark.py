@@ -608,7 +608,8 @@ def test_two_node_cluster_spreads_trials_survives_a_node_kill_and_matches_no_ray
 
 
 @needs_ray
-@pytest.mark.slow  # ~1.5 min here; the scheduler's part runs by default (test_pbt_scheduler.py)
+@pytest.mark.cluster  # ~1.5 min quiet, 3-4 at load 10; the scheduler's part runs by default (test_pbt_scheduler.py)
+@pytest.mark.timeout(1000)
 def test_ctrl_c_during_pbt_leaves_no_ray_process_and_resume_finishes_it(tmp_path, ray_tmp):
     args = ["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps", "240",
             "--pbt", "2", "--pbt-interval", "60", "--out", str(tmp_path)]
@@ -627,10 +628,38 @@ def test_ctrl_c_during_pbt_leaves_no_ray_process_and_resume_finishes_it(tmp_path
     assert not wait_gone(ray_tmp), "Ray processes left after Ctrl-C"
     (folder,) = tmp_path.glob("env_1__ppo__0__pbt2-*")
     assert not (folder / "lineage.csv").exists()
-    resumed = cosim(["train", "--resume", str(folder)], ray_tmp, timeout=300)
+    exploits_before = {p.name: p.read_text() for p in (folder / "pbt" / "exploits").glob("*.json")}
+    resumed = cosim(["train", "--resume", str(folder)], ray_tmp, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert (folder / "lineage.csv").exists() and (folder / "lineage.png").exists()
     assert json.loads((folder / "state.json").read_text())["env_steps"] == 240
+    assert_lineage_intact(folder, exploits_before, population=2, interval=60, steps=240)
+
+
+def assert_lineage_intact(folder: Path, exploits_before: dict[str, str], population: int,
+                          interval: int, steps: int) -> None:
+    """After a resume the PBT lineage is whole: the exploits recorded before the interruption
+    are kept unchanged and in lineage.csv, every trial reported at every barrier once
+    (no gap, no step trained twice kept), and every exploit cloned a live trial's weights
+    at a barrier."""
+    import pandas as pd
+
+    from eval.scale.pbt import _histories
+
+    exploits = {p.name: p.read_text() for p in (folder / "pbt" / "exploits").glob("*.json")}
+    assert {k: exploits.get(k) for k in exploits_before} == exploits_before, "an exploit record was lost or rewritten"
+    lineage = pd.read_csv(folder / "lineage.csv")
+    events = {(e["env_steps"], e["trial"]) for e in map(json.loads, exploits.values())}
+    assert set(zip(lineage.env_steps, lineage.trial, strict=True)) == events
+    histories = _histories(folder)
+    assert len(histories) == population
+    barriers = list(range(interval, steps + 1, interval))
+    for trial, points in histories.items():
+        assert [p["env_steps"] for p in points] == barriers, (trial, [p["env_steps"] for p in points])
+    for e in lineage.drop_duplicates(["env_steps", "trial"]).itertuples():
+        assert e.env_steps in barriers and e.donor in histories and e.donor != e.trial
+        assert e.donor_weights_sha256 == e.resumed_weights_sha256  # the donor's weights, cloned
+    assert len(pd.read_csv(folder / "trials.csv")) == population
 
 
 def test_a_tune_folder_from_before_the_subpackages_is_refused_with_what_to_do(tmp_path):
