@@ -186,7 +186,7 @@ RUN_POINTER = "run_path.txt"
 TRIAL_NODES = "trial_nodes.jsonl"
 """In a grid trial's run folder: one line per Ray worker that trained it (node IP and id,
 host, PID, the env steps at its first checkpoint), appended at that worker's first checkpoint:
-a trial retried on another node after its node died has two (docs/guide.md#scale-out)."""
+a trial retried on another node after its node died has two (docs/guide.md#scale-out-a-cluster-of-several-machines)."""
 TRIAL_RETRIES = 2
 """Tune's FailureConfig(max_failures): a trial whose worker or node dies starts again from
 its last checkpoint (a resumable run folder) up to this many times before it counts as failed."""

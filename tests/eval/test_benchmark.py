@@ -509,7 +509,7 @@ def _reports(result_json: Path) -> list[dict]:
     return [json.loads(line) for line in lines if line.strip().endswith("}")]
 
 
-# Two Ray nodes on this machine (docs/guide.md#scale-out): Ray rewrites 127.0.0.1 to the
+# Two Ray nodes on this machine (docs/guide.md#scale-out-a-cluster-of-several-machines): Ray rewrites 127.0.0.1 to the
 # machine's routable address once clusters are enabled, so the head takes another
 # loopback address; every node listens on all interfaces then, hence token authentication.
 HEAD_IP, WORKER_IP = "127.0.0.3", "127.0.0.2"
