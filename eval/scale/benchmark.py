@@ -228,7 +228,8 @@ def _tune_trial(config: dict) -> None:
 
     def report(run: Path, env_steps: int, mean_return: float) -> None:
         if not recorded:  # which node trains it (a retry after a node died may be elsewhere)
-            recorded.append(_record_node(run, env_steps))
+            _record_node(run, env_steps)
+            recorded.append(env_steps)
         with tempfile.TemporaryDirectory() as tmp:  # tune.report persists it before returning
             (Path(tmp) / RUN_POINTER).write_text(str(Path(run).resolve()))
             tune.report({"env_steps": env_steps, "mean_return": finite(mean_return)},
