@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -40,6 +41,7 @@ def ray_tmp():
         except ProcessLookupError:
             pass
     assert not left, f"Ray processes left behind: {left}"
+    shutil.rmtree(path, ignore_errors=True)  # Ray's session logs
 
 
 def wait_gone(tmp: Path, grace: float = 15.0) -> dict[int, str]:
