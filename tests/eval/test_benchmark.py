@@ -650,6 +650,8 @@ def assert_lineage_intact(folder: Path, exploits_before: dict[str, str], populat
 
     exploits = {p.name: p.read_text() for p in (folder / "pbt" / "exploits").glob("*.json")}
     assert {k: exploits.get(k) for k in exploits_before} == exploits_before, "an exploit record was lost or rewritten"
+    # two trials: the lower one clones the upper one at every barrier, so the resumed run exploits too
+    assert len(exploits) > len(exploits_before), "no exploit after the resume"
     lineage = pd.read_csv(folder / "lineage.csv")
     events = {(e["env_steps"], e["trial"]) for e in map(json.loads, exploits.values())}
     assert set(zip(lineage.env_steps, lineage.trial, strict=True)) == events
