@@ -20,6 +20,12 @@ the trainer's own clock from the first reset (agents/workers.py TrainProgress.ti
 
     python bench/train_throughput.py [--steps 1500] [--envs 1 2] [--algos ppo dqn td3 a3c impala]
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo a3c impala dqn ddpg td3   # the presets' ACs
+    python bench/train_throughput.py --device cuda --envs 1 4 8 16 --algos ppo dqn td3   # on a GPU machine
+
+``--device cuda`` puts the PPO/DQN/DDPG/TD3 learners on the GPU (A3C and IMPALA learn on
+CPU whatever the device); without a CUDA device it stops at once with one line saying so.
+The last table is the one the README's GPU rows take: env steps/s per algorithm and
+--envs value, against the targets of issue 29 (PPO >= 1,000, DQN/TD3 >= 600 at 16 envs).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -37,6 +44,7 @@ import numpy as np
 from eval.training.train import make_config, make_env, train
 
 AGENTS = 3  # the default of --agents: the first tables of docs/benchmarks.md were taken with 3 ACs
+TARGETS = {"ppo": 1000.0, "dqn": 600.0, "td3": 600.0}  # env steps/s at 16 envs on a GPU (issue 29)
 
 
 def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dict[str, float]:
@@ -62,9 +70,9 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
 
 
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
-               agents: int = AGENTS) -> dict[str, float]:
+               agents: int = AGENTS, device: str = "cpu") -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
-                      envs=n, device="cpu", torch_threads=threads)
+                      envs=n, device=device, torch_threads=threads)
     if hasattr(cfg.agent_config, "learning_starts"):
         cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(learning_starts=200))
     t0 = time.monotonic()
@@ -77,6 +85,36 @@ def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
             "frames_s": timing.get("time/agent_steps_per_s", float("nan"))}
 
 
+def check_device(device: str) -> None:
+    """Stop with one line (exit 2) when ``--device cuda`` is asked for and torch sees no GPU."""
+    import torch
+
+    if device == "cuda" and not torch.cuda.is_available():
+        sys.stderr.write(f"bench/train_throughput.py: --device cuda asked for, but torch {torch.__version__} "
+                         f"sees no CUDA device (built with CUDA {torch.version.cuda}); run it on a GPU "
+                         "machine or use --device cpu\n")
+        raise SystemExit(2)
+
+
+def device_name(device: str) -> str:
+    import torch
+
+    return torch.cuda.get_device_name(0) if device == "cuda" else "CPU"
+
+
+def print_target_table(rows: dict, algos: list[str], envs: list[int], device: str) -> None:
+    """Env steps/s (steady) per algorithm and --envs value, and the target (at 16 envs)."""
+    print(f"\n| algorithm ({device}) | " + " | ".join(f"{n} env(s)" for n in envs) + " | target | met |")
+    print("|---|" + "---|" * len(envs) + "---|---|")
+    for algo in algos:
+        rates = [rows[(algo, n)]["steps_s"] for n in envs]
+        target = TARGETS.get(algo)
+        met = "" if target is None or 16 not in envs else \
+            ("yes" if rows[(algo, 16)]["steps_s"] >= target else "no")
+        print(f"| {algo} | " + " | ".join(f"{r:.0f}" for r in rates)
+              + f" | {'' if target is None else f'>= {target:,.0f} at 16 envs'} | {met} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1500)
@@ -85,7 +123,10 @@ def main() -> None:
     parser.add_argument("--algos", nargs="+", default=["ppo", "dqn", "td3", "a3c", "impala"])
     parser.add_argument("--torch-threads", type=int, default=1,
                         help="the trainer's torch threads for every row (0: cosim train's default)")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                        help="torch device of the PPO/DQN/DDPG/TD3 learners (default cpu)")
     args = parser.parse_args()
+    check_device(args.device)
     raw: dict[int, dict] = {}
     rows: dict[tuple[str, int], dict] = {}
     with tempfile.TemporaryDirectory() as out:
@@ -93,10 +134,11 @@ def main() -> None:
             raw[n] = raw_env_rate(n, args.steps, agents=args.agents)
             print(f"raw env, {n} env(s): {raw[n]}", flush=True)
             for algo in args.algos:
-                rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents)
+                rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
+                                             args.device)
                 print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
-    print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset, CPU, "
-          f"torch threads {args.torch_threads or 'default'}\n")
+    print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset, learners on "
+          f"{device_name(args.device)}, torch threads {args.torch_threads or 'default'}\n")
     print("| what | envs | env steps/s (steady) | AC-frames/s (steady) | env steps/s (wall) "
           "| training / raw env (steady) |")
     print("|---|---|---|---|---|---|")
@@ -107,6 +149,7 @@ def main() -> None:
             t = rows[(algo, n)]
             print(f"| {algo} | {n} | {t['steps_s']:.1f} | {t['frames_s']:.1f} | {t['wall_s']:.1f} "
                   f"| {t['steps_s'] / r['steps_s']:.2f} |")
+    print_target_table(rows, args.algos, args.envs, args.device)
     if len(args.envs) > 1 and "ppo" in args.algos:
         lo, hi = args.envs[0], args.envs[-1]
         print(f"\nPPO --envs {hi} / --envs {lo} (steady): {rows[('ppo', hi)]['steps_s'] / rows[('ppo', lo)]['steps_s']:.2f}x")

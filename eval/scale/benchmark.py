@@ -184,6 +184,27 @@ def finite(value: float) -> float:
 
 RUN_POINTER = "run_path.txt"
 """The one file of a grid trial's Tune checkpoint: the absolute path of its run folder."""
+TRIAL_NODES = "trial_nodes.jsonl"
+"""In a grid trial's run folder: one line per Ray worker that trained it (node IP and id,
+host, PID, the env steps at its first checkpoint), appended at that worker's first checkpoint:
+a trial retried on another node after its node died has two (docs/guide.md#scale-out-a-cluster-of-several-machines)."""
+TRIAL_RETRIES = 2
+"""Tune's FailureConfig(max_failures): a trial whose worker or node dies starts again from
+its last checkpoint (a resumable run folder) up to this many times before it counts as failed."""
+
+
+def _record_node(run: Path, env_steps: int) -> None:
+    """Append this Ray worker's node to ``run/TRIAL_NODES``."""
+    import os
+    import socket
+
+    import ray
+
+    ctx = ray.get_runtime_context()
+    line = {"node_ip": ray.util.get_node_ip_address(), "node_id": ctx.get_node_id(),
+            "hostname": socket.gethostname(), "pid": os.getpid(), "env_steps": int(env_steps)}
+    with open(Path(run) / TRIAL_NODES, "a") as f:
+        f.write(json.dumps(line) + "\n")
 
 
 def run_of_checkpoint(checkpoint) -> Path:
@@ -204,8 +225,12 @@ def _tune_trial(config: dict) -> None:
     cfg = TrainConfig(**config["cell"])
     folder = Path(config["scratch"]) / cell_name(cfg)
     keep = config.get("keep", "best")
+    recorded = []
 
     def report(run: Path, env_steps: int, mean_return: float) -> None:
+        if not recorded:  # which node trains it (a retry after a node died may be elsewhere)
+            _record_node(run, env_steps)
+            recorded.append(env_steps)
         with tempfile.TemporaryDirectory() as tmp:  # tune.report persists it before returning
             (Path(tmp) / RUN_POINTER).write_text(str(Path(run).resolve()))
             tune.report({"env_steps": env_steps, "mean_return": finite(mean_return)},
@@ -371,7 +396,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                     # a checkpoint is a pointer to the run folder (_tune_trial): the last one is
                     # all a restore needs (PBT, which clones run folders, keeps copies)
                     checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
-                    failure_config=tune.FailureConfig(max_failures=0)),
+                    failure_config=tune.FailureConfig(max_failures=TRIAL_RETRIES)),
             )
         grid = tuner.fit()
     return {**finished, **_collect(grid, cells, out)}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -40,6 +41,7 @@ def ray_tmp():
         except ProcessLookupError:
             pass
     assert not left, f"Ray processes left behind: {left}"
+    shutil.rmtree(path, ignore_errors=True)  # Ray's session logs
 
 
 def wait_gone(tmp: Path, grace: float = 15.0) -> dict[int, str]:
@@ -471,8 +473,150 @@ def test_ray_start_head_on_loopback_and_benchmark_on_it(tmp_path, ray_tmp):
                 time.sleep(0.5)
 
 
+def stop_processes(pids: list[int]) -> None:
+    """SIGTERM then SIGKILL the given processes, waiting up to 10 s for them to go."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in pids:
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + 10
+        while any(Path(f"/proc/{pid}").exists() and "\nState:\tZ" not in _status(pid) for pid in pids) \
+                and time.monotonic() < deadline:
+            time.sleep(0.3)
+
+
+def _status(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return "\nState:\tZ"
+
+
+def pids_with_env(entry: str) -> list[int]:
+    """PIDs of live processes whose environment holds ``entry`` (``NAME=value``)."""
+    needle = f"{entry}\0".encode()
+    found = []
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit() and int(proc.name) != os.getpid():
+            try:
+                if needle in (proc / "environ").read_bytes() and "\nState:\tZ" not in _status(int(proc.name)):
+                    found.append(int(proc.name))
+            except OSError:
+                continue
+    return found
+
+
+def _reports(result_json: Path) -> list[dict]:
+    """The Tune results a trial reported so far (one JSON line per checkpoint)."""
+    if not result_json.exists():
+        return []
+    lines = result_json.read_text().splitlines()
+    return [json.loads(line) for line in lines if line.strip().endswith("}")]
+
+
+# Two Ray nodes on this machine (docs/guide.md#scale-out-a-cluster-of-several-machines): Ray rewrites 127.0.0.1 to the
+# machine's routable address once clusters are enabled, so the head takes another
+# loopback address; every node listens on all interfaces then, hence token authentication.
+HEAD_IP, WORKER_IP = "127.0.0.3", "127.0.0.2"
+CLUSTER_STEPS = 80  # two checkpoints (smoke: every 40 steps): the node dies between them
+
+
 @needs_ray
-@pytest.mark.slow  # ~1.5 min here; the scheduler's part runs by default (test_pbt_scheduler.py)
+@pytest.mark.cluster
+@pytest.mark.timeout(1500)
+def test_two_node_cluster_spreads_trials_survives_a_node_kill_and_matches_no_ray(tmp_path, ray_tmp):
+    """`cosim benchmark --ray-address` on a head and a worker node: one trial per node, the
+    worker node killed (SIGKILL, every process of it) after its trial's first checkpoint;
+    the trial resumes on the head from that checkpoint, the report is complete, and the
+    trial no node loss touched is bit-identical to `--no-ray`'s."""
+    import secrets
+
+    import pandas as pd
+
+    port = free_port()
+    token = secrets.token_hex(32)
+    env = {**os.environ, "RAY_TMPDIR": str(ray_tmp), "RAY_USAGE_STATS_ENABLED": "0",
+           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "1", "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": token}
+    marker = f"COSIM_TEST_NODE={ray_tmp.name}-worker"  # every process of the worker node inherits it
+    ray_bin = str(Path(sys.executable).with_name("ray"))
+    # one CPU per node and one per trial (smoke: one env each): one trial on each node
+    common = ["--num-cpus", "1", "--disable-usage-stats"]
+    out, seq = tmp_path / "b", tmp_path / "seq"
+    grid = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn",
+            "--steps", str(CLUSTER_STEPS), "--keep", "all"]
+    proc = None
+    try:
+        head = subprocess.run([ray_bin, "start", "--head", "--node-ip-address", HEAD_IP, "--port", str(port),
+                               "--include-dashboard", "false", *common], env=env, capture_output=True,
+                              text=True, timeout=180)
+        assert head.returncode == 0, head.stderr[-2000:]
+        worker = subprocess.run([ray_bin, "start", "--address", f"{HEAD_IP}:{port}", "--node-ip-address",
+                                 WORKER_IP, *common], env={**env, marker.split("=")[0]: marker.split("=")[1]},
+                                capture_output=True, text=True, timeout=180)
+        assert worker.returncode == 0, worker.stderr[-2000:]
+        assert pids_with_env(marker), "no process of the worker node"
+        proc = subprocess.Popen([sys.executable, "-m", "eval.cli", *grid, "--concurrent", "2",
+                                 "--ray-address", f"{HEAD_IP}:{port}", "--out", str(out)],
+                                env={**env, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        cells = ("env_1__ppo__0__bench", "env_1__dqn__0__bench")
+        # wait for the trial on the worker node to report its first checkpoint, then kill that node
+        killed = None
+        deadline = time.monotonic() + 900
+        while killed is None and proc.poll() is None and time.monotonic() < deadline:
+            for cell in cells:
+                if any(r.get("node_ip") == WORKER_IP for r in _reports(out / "tune" / "grid" / cell / "result.json")):
+                    killed = cell
+            time.sleep(0.3)
+        assert killed is not None, f"no trial reported from {WORKER_IP}: " + (proc.stdout.read()[-3000:]
+                                                                             if proc.poll() is not None else "")
+        stop_processes(pids_with_env(marker))
+        assert not pids_with_env(marker)
+        before = _reports(out / "tune" / "grid" / killed / "result.json")
+        assert max(r["env_steps"] for r in before) < CLUSTER_STEPS, "the trial finished before the kill"
+        log, _ = proc.communicate(timeout=900)
+        assert proc.returncode == 0, log[-4000:]
+    finally:
+        if proc is not None and proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        # the head's and any worker's processes, by PID (never `ray stop`: it stops every Ray here)
+        stop_processes(ray_pids(ray_tmp))
+
+    (spared,) = set(cells) - {killed}
+    # which node trained which trial: Tune's results and each run folder's trial_nodes.jsonl
+    ips = {cell: [r["node_ip"] for r in _reports(out / "tune" / "grid" / cell / "result.json")] for cell in cells}
+    assert set(ips[spared]) == {HEAD_IP} and ips[killed][0] == WORKER_IP and ips[killed][-1] == HEAD_IP, ips
+    nodes = {cell: [json.loads(line) for line in (out / "runs" / cell / "trial_nodes.jsonl").read_text().splitlines()]
+             for cell in cells}
+    assert [n["node_ip"] for n in nodes[spared]] == [HEAD_IP]
+    assert [n["node_ip"] for n in nodes[killed]] == [WORKER_IP, HEAD_IP]
+    assert nodes[killed][0]["node_id"] != nodes[killed][1]["node_id"]
+    # resumed from its checkpoint (40 steps), not from scratch: its first report on the head is at 80
+    assert nodes[killed][1]["env_steps"] == CLUSTER_STEPS
+    for cell in cells:  # nothing lost: every trial at its budget, every AC's checkpoints there
+        assert json.loads((out / "runs" / cell / "state.json").read_text())["env_steps"] == CLUSTER_STEPS
+        assert len(list((out / "runs" / cell / "checkpoints").glob("ac_*/latest.pt"))) == 2
+    # the report is complete: both algorithms tested
+    per = pd.read_csv(out / "report" / "episodes.csv")
+    assert set(per["algorithm"]) == {"ppo", "dqn"} and (out / "report" / "index.html").exists()
+
+    # the same grid without Ray: the trial no node loss touched is bit-identical
+    without = cosim([*grid, "--train-only", "--no-ray", "--out", str(seq)])
+    assert without.returncode == 0, without.stderr[-3000:]
+    for path in sorted((out / "runs" / spared).glob("checkpoints/ac_*/latest.pt")):
+        a, b = tensors(path), tensors(seq / path.relative_to(out))
+        assert a.keys() == b.keys() and a
+        assert not [k for k in a if not (a[k] == b[k]).all()], path
+    a, b = (pd.read_csv(root / "runs" / spared / "episodes.csv").drop(columns="wall_time_s") for root in (out, seq))
+    pd.testing.assert_frame_equal(a, b)
+
+
+@needs_ray
+@pytest.mark.cluster  # 87-93 s at load ~4, 139-224 s at 10-13; the scheduler's part runs by default (test_pbt_scheduler.py)
+@pytest.mark.timeout(1000)
 def test_ctrl_c_during_pbt_leaves_no_ray_process_and_resume_finishes_it(tmp_path, ray_tmp):
     args = ["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps", "240",
             "--pbt", "2", "--pbt-interval", "60", "--out", str(tmp_path)]
@@ -491,10 +635,40 @@ def test_ctrl_c_during_pbt_leaves_no_ray_process_and_resume_finishes_it(tmp_path
     assert not wait_gone(ray_tmp), "Ray processes left after Ctrl-C"
     (folder,) = tmp_path.glob("env_1__ppo__0__pbt2-*")
     assert not (folder / "lineage.csv").exists()
-    resumed = cosim(["train", "--resume", str(folder)], ray_tmp, timeout=300)
+    exploits_before = {p.name: p.read_text() for p in (folder / "pbt" / "exploits").glob("*.json")}
+    resumed = cosim(["train", "--resume", str(folder)], ray_tmp, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert (folder / "lineage.csv").exists() and (folder / "lineage.png").exists()
     assert json.loads((folder / "state.json").read_text())["env_steps"] == 240
+    assert_lineage_intact(folder, exploits_before, population=2, interval=60, steps=240)
+
+
+def assert_lineage_intact(folder: Path, exploits_before: dict[str, str], population: int,
+                          interval: int, steps: int) -> None:
+    """After a resume the PBT lineage is whole: the exploits recorded before the interruption
+    are kept unchanged and in lineage.csv, every trial reported at every barrier once
+    (no gap, no step trained twice kept), and every exploit cloned a live trial's weights
+    at a barrier."""
+    import pandas as pd
+
+    from eval.scale.pbt import _histories
+
+    exploits = {p.name: p.read_text() for p in (folder / "pbt" / "exploits").glob("*.json")}
+    assert {k: exploits.get(k) for k in exploits_before} == exploits_before, "an exploit record was lost or rewritten"
+    # two trials: the lower one clones the upper one at every barrier, so the resumed run exploits too
+    assert len(exploits) > len(exploits_before), "no exploit after the resume"
+    lineage = pd.read_csv(folder / "lineage.csv")
+    events = {(e["env_steps"], e["trial"]) for e in map(json.loads, exploits.values())}
+    assert set(zip(lineage.env_steps, lineage.trial, strict=True)) == events
+    histories = _histories(folder)
+    assert len(histories) == population
+    barriers = list(range(interval, steps + 1, interval))
+    for trial, points in histories.items():
+        assert [p["env_steps"] for p in points] == barriers, (trial, [p["env_steps"] for p in points])
+    for e in lineage.drop_duplicates(["env_steps", "trial"]).itertuples():
+        assert e.env_steps in barriers and e.donor in histories and e.donor != e.trial
+        assert e.donor_weights_sha256 == e.resumed_weights_sha256  # the donor's weights, cloned
+    assert len(pd.read_csv(folder / "trials.csv")) == population
 
 
 def test_a_tune_folder_from_before_the_subpackages_is_refused_with_what_to_do(tmp_path):
