@@ -1,6 +1,8 @@
-"""The `cosim` command line (the top layer: the only place that wires environments, agents and
-evaluation). The parser and one error and exit policy (:func:`main`) are here, the handlers in
+"""The `cosim` command line: the top layer: the only place that wires environments, agents and evaluation.
+
+The parser and one error and exit policy (:func:`main`) are here, the handlers in
 eval/cli/learn.py and eval/cli/sim.py; ``python -m eval.cli`` runs :func:`main` (__main__.py).
+What `cosim --help` says cosim is: :data:`DESCRIPTION`; its list of commands (the epilog):
 
     cosim scenarios                         list the driving environments
     cosim drive env_3 --agents 6            run the scripted drivers, print events (no cameras)
@@ -85,7 +87,8 @@ DESCRIPTION = (
     "SUMO traffic and PyBullet cameras run in co-simulation; autonomous cars (ACs) learn to drive "
     "from their camera with six algorithms (PPO, A3C, IMPALA, DQN, DDPG, TD3) in five "
     "environments; a test protocol measures them together and alone and writes a report.")
-EXAMPLES = "commands, as a first session runs them:\n" + __doc__.split("\n\n", 1)[1].split('"""')[0]
+EXAMPLES = "commands, as a first session runs them:\n" + "\n".join(
+    line for line in __doc__.splitlines() if line.startswith("    cosim "))
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
