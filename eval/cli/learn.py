@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -11,8 +12,6 @@ from eval.training.runfolder import output_folder
 
 
 def cmd_train(args) -> int:
-    import os
-    import subprocess
 
     from eval.training.train import ALGORITHMS, TrainError, make_config, parse_set, train
 
@@ -46,32 +45,83 @@ def cmd_train(args) -> int:
             return 2
         print(f"run folder: {run}")
         return 0
-    # --algo all: one process per algorithm, as many at once as there are CPUs
+    return _train_all(args, configs)
+
+
+LINE = re.compile(r"^\[(?P<algo>\w+) \S+\] step (?P<step>\d+)/(?P<steps>\d+)")
+"""A --quiet training run's progress line (eval/training/trainer.py, _report)."""
+
+
+def _train_all(args, configs) -> int:
+    """``cosim train --algo all``: one `cosim train --quiet` process per algorithm, as many at
+    once as there are CPUs, under one progress bar over all their steps (their log lines,
+    every few seconds, move it; other lines are printed above it; ``--quiet``: the lines only)."""
+    import queue
+    import subprocess
+    import threading
+
+    from tqdm import tqdm
+
     parallel = max(1, os.cpu_count() or 1)
-    print(f"training {len(configs)} algorithms, {parallel} at a time")
-    pending = list(algos)
+    print(f"training {len(configs)} algorithms, {parallel} at a time", flush=True)
+    steps = {c.algo: c.steps for c in configs}
+    pending = [c.algo for c in configs]
     running: dict[str, subprocess.Popen] = {}
-    failed = []
+    done_steps = dict.fromkeys(steps, 0)
+    failed, lines = [], queue.Queue()
+    bar = tqdm(total=sum(steps.values()), unit="step", desc="train all", dynamic_ncols=True,
+               disable=args.quiet, smoothing=0.05)
+    say = print if args.quiet else bar.write
     base = _train_command(args)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if not args.quiet:  # their lines move the bar: a line every few seconds
+        env["COSIM_LOG_EVERY_S"] = os.environ.get("COSIM_LOG_EVERY_S", "5")
+
+    def pump(algo: str, stream) -> None:
+        for text in stream:
+            lines.put((algo, text.rstrip("\n")))
+
+    def advance(algo: str, step: int) -> None:
+        step = min(step, steps[algo])
+        bar.update(step - done_steps[algo])
+        done_steps[algo] = step
+        bar.set_postfix_str(" ".join(f"{a} {done_steps[a] * 100 // steps[a]}%" for a in running), refresh=False)
+
     try:
         while pending or running:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
                 envs = [] if args.envs is None else ["--envs", str(args.envs)]
-                running[algo] = subprocess.Popen(base + envs + ["--algo", algo])
+                running[algo] = subprocess.Popen(base + envs + ["--algo", algo], stdout=subprocess.PIPE,
+                                                 text=True, env=env)
+                threading.Thread(target=pump, args=(algo, running[algo].stdout), daemon=True).start()
+            try:
+                algo, text = lines.get(timeout=0.5)
+                hit = LINE.match(text)
+                if hit and not args.quiet:
+                    advance(algo, int(hit["step"]))
+                else:
+                    say(text if text.startswith("[") else f"[{algo}] {text}")
+            except queue.Empty:
+                pass
             for algo, proc in list(running.items()):
-                try:
-                    proc.wait(timeout=0.5)
-                except subprocess.TimeoutExpired:
+                if proc.poll() is None:
                     continue
                 del running[algo]
                 ok = proc.returncode == 0
-                print(f"{algo}: {'done' if ok else f'FAILED (exit {proc.returncode})'}", flush=True)
+                if ok:
+                    advance(algo, steps[algo])
+                say(f"{algo}: {'done' if ok else f'FAILED (exit {proc.returncode})'}")
                 if not ok:
                     failed.append(algo)
+        while not lines.empty():  # the last lines (run folders) of the runs that ended
+            algo, text = lines.get()
+            if not LINE.match(text):
+                say(f"[{algo}] {text}")
     finally:
         for proc in running.values():
             proc.terminate()
+        bar.close()
     return 1 if failed else 0
 
 

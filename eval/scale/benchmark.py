@@ -450,13 +450,19 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
 
     from eval.reporting.report import provenance, write_paper_report
     from eval.testing import selection
-    from eval.testing.protocol import ProtocolPlan, policy_factory, reference_rows, run_protocol
+    from eval.testing.protocol import (
+        ProtocolPlan,
+        policy_factory,
+        reference_rows,
+        run_protocol,
+        slot_table,
+    )
     from eval.testing.validity import HELD_OUT_SEED
 
     out = Path(out)
     settings = TEST_SETTINGS[plan.preset]
     algos = list(plan.algos)
-    frames, rows, first = [], [], {}
+    frames, rows, first, slots = [], [], {}, []
     for env in plan.envs:
         for seed in range(plan.seeds):
             ckpts = {}
@@ -470,6 +476,7 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                 rows.append(f"| {env} | {algo} | {seed} | `{chosen.path.relative_to(out)}` |")
             test_plan = ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
                                      seed=HELD_OUT_SEED, agents=len(algos))
+            slots.append(slot_table({env: ckpts}, test_plan, algos).assign(train_seed=seed))
             records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
             # seeds are pooled: number their episodes apart, or the metrics would merge
             # seed 0's episode 0 with seed 1's episode 0
@@ -485,6 +492,10 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
         progress("writing the report (tables, figures) ...")
     prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
                       command=list(command))
+    slots = pd.concat(slots, ignore_index=True)  # which checkpoint drove which slot (as `cosim test`)
+    prov["slots"] = slots.to_dict("records")
+    (out / "report").mkdir(parents=True, exist_ok=True)
+    slots.to_csv(out / "report" / "slots.csv", index=False)
     extra = ("\n## Benchmark grid\n\nEvery environment is tested with its own trained policies, "
              f"{plan.seeds} seed(s) pooled (`cosim benchmark --preset {plan.preset}`); the "
              "checkpoints listed under provenance are the first environment's.\n\n"
