@@ -87,6 +87,25 @@ def _train_all(args, configs) -> int:
         done_steps[algo] = step
         bar.set_postfix_str(" ".join(f"{a} {done_steps[a] * 100 // steps[a]}%" for a in running), refresh=False)
 
+    def handle(algo: str, text: str) -> None:
+        hit = LINE.match(text)
+        if text.startswith("run folder: "):
+            folders[algo] = text.removeprefix("run folder: ")
+        elif hit and not args.quiet:
+            advance(algo, int(hit["step"]))
+        else:
+            say(text if hit else f"[{algo}] {text}")
+
+    def drain(timeout: float = 0.0) -> None:
+        try:
+            while True:
+                handle(*lines.get(timeout=timeout))
+                timeout = 0.0
+        except queue.Empty:
+            pass
+
+    folders: dict[str, str] = {}
+    pumps: dict[str, threading.Thread] = {}
     try:
         while pending or running:
             while pending and len(running) < parallel:
@@ -94,30 +113,21 @@ def _train_all(args, configs) -> int:
                 envs = [] if args.envs is None else ["--envs", str(args.envs)]
                 running[algo] = subprocess.Popen(base + envs + ["--algo", algo], stdout=subprocess.PIPE,
                                                  text=True, env=env)
-                threading.Thread(target=pump, args=(algo, running[algo].stdout), daemon=True).start()
-            try:
-                algo, text = lines.get(timeout=0.5)
-                hit = LINE.match(text)
-                if hit and not args.quiet:
-                    advance(algo, int(hit["step"]))
-                else:
-                    say(text if text.startswith("[") else f"[{algo}] {text}")
-            except queue.Empty:
-                pass
+                pumps[algo] = threading.Thread(target=pump, args=(algo, running[algo].stdout), daemon=True)
+                pumps[algo].start()
+            drain(timeout=0.5)
             for algo, proc in list(running.items()):
                 if proc.poll() is None:
                     continue
+                pumps[algo].join(timeout=10)  # its last lines (the run folder) are read
+                drain()
                 del running[algo]
-                ok = proc.returncode == 0
-                if ok:
+                if proc.returncode == 0:
                     advance(algo, steps[algo])
-                say(f"{algo}: {'done' if ok else f'FAILED (exit {proc.returncode})'}")
-                if not ok:
+                    say(f"{algo}: done, run folder {folders.get(algo, '?')}")
+                else:
+                    say(f"{algo}: FAILED (exit {proc.returncode})")
                     failed.append(algo)
-        while not lines.empty():  # the last lines (run folders) of the runs that ended
-            algo, text = lines.get()
-            if not LINE.match(text):
-                say(f"[{algo}] {text}")
     finally:
         for proc in running.values():
             proc.terminate()
