@@ -251,7 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the checkpoint of one algorithm's AC in every slot and environment instead "
                         "of the newest under --runs (repeatable), e.g. --checkpoint "
                         "ppo=runs/x/checkpoints/ac_0/best.pt (default: none)")
-    e.add_argument("--out", type=Path, default=Path("reports"), help="report folder")
+    e.add_argument("--out", type=Path, default=Path("reports"),
+                   help="where reports go, each in a new <date>-<time> folder")
     e.add_argument("--references", default="all",
                    help="reference rows added to the report: 'all' (autopilot, random and the "
                         "degenerate suite of `cosim check-scenarios`), 'none', or a comma list")
