@@ -113,26 +113,31 @@ SOFTWARE_GL = r"llvmpipe|softpipe|swrast|swiftshader"  # GL_RENDERER names of CP
 
 
 class _CapturedStdout:
-    """Redirect the process-level stdout (fd 1, where C code prints) to a temporary file."""
+    """Redirect the process-level stdout (fd 1, where C code prints; ``fd=2``: stderr) to a
+    temporary file."""
+
+    def __init__(self, fd: int = 1):
+        self._fd = fd
+        self._stream = sys.stdout if fd == 1 else sys.stderr
 
     def __enter__(self) -> _CapturedStdout:
         self.text = ""
         self._file = tempfile.TemporaryFile(mode="w+b")
         try:
-            sys.stdout.flush()
-            self._saved = os.dup(1)
-            os.dup2(self._file.fileno(), 1)
-        except (OSError, ValueError):  # no usable fd 1 (closed, or a daemon): capture nothing
+            self._stream.flush()
+            self._saved = os.dup(self._fd)
+            os.dup2(self._file.fileno(), self._fd)
+        except (OSError, ValueError, AttributeError):  # no usable fd (closed, or a daemon): capture nothing
             self._saved = None
         return self
 
     def __exit__(self, *exc) -> None:
         if self._saved is not None:
             try:
-                sys.stdout.flush()
-            except (OSError, ValueError):
+                self._stream.flush()
+            except (OSError, ValueError, AttributeError):
                 pass
-            os.dup2(self._saved, 1)
+            os.dup2(self._saved, self._fd)
             os.close(self._saved)
         self._file.seek(0)
         self.text = self._file.read().decode(errors="replace")
@@ -140,9 +145,18 @@ class _CapturedStdout:
 
 
 def _pybullet():
-    """Import pybullet at use, so a missing install is reported when a Mirror starts."""
+    """Import pybullet at use, so a missing install is reported when a Mirror starts.
+
+    pybullet's C module prints "pybullet build time: ..." on stderr when it is imported, in
+    every process that renders (each env worker, each Ray trial, the test): the import runs
+    with fd 2 captured, so no process prints it (issue 28)."""
     try:
-        import pybullet
+        if "pybullet" in sys.modules:
+            import pybullet
+        else:
+            with _CapturedStdout(fd=2) as banner:
+                import pybullet
+            log.debug("%s", banner.text.strip())
     except ImportError as exc:
         raise SimulatorUnavailable(
             f"pybullet is not importable ({exc}); install it with `pip install 'pybullet>=3.2.6'`"

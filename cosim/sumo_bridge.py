@@ -13,7 +13,9 @@ from east, the convention of the rest of cosim.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import itertools
 import logging
 import math
@@ -33,6 +35,7 @@ log = logging.getLogger(__name__)
 # libsumo is one simulation per process: remember which bridge owns it, to fail clearly.
 _owner: weakref.ReferenceType | None = None
 _labels = itertools.count()  # unique TraCI connection labels
+_warned_traci = False  # the TraCI warning was logged in this process
 
 PERSON_RADIUS = 0.3  # metres; a person's footprint is a circle
 _VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE = 0x42, 0x43, 0x40, 0x4F
@@ -230,7 +233,9 @@ class SumoBridge:
         import traci
         from traci.exceptions import FatalTraCIError, TraCIException
 
-        if self.backend == "auto":
+        global _warned_traci
+        if self.backend == "auto" and not _warned_traci:  # once per process: a training run's
+            _warned_traci = True                          # validation env is one at every checkpoint
             log.warning(
                 "a second SUMO simulation in this process runs through TraCI (slower than "
                 "libsumo); use one environment per process for speed"
@@ -241,7 +246,9 @@ class SumoBridge:
         self._errors = (TraCIException, FatalTraCIError)
         self._running = True
         extra = ["--start", "--quit-on-end", "--delay", "50"] if gui else []
-        traci.start([binary] + self.command(seed)[1:] + extra, label=label)
+        # traci prints " Retrying in 1 seconds" while SUMO opens its port: not for the console
+        with contextlib.redirect_stdout(io.StringIO()):
+            traci.start([binary] + self.command(seed)[1:] + extra, label=label)
         self._ls = traci.getConnection(label)
 
     def _subscribe(self) -> None:

@@ -2,6 +2,7 @@
 
 The parser and one error and exit policy (:func:`main`) are here, the handlers in
 eval/cli/learn.py and eval/cli/sim.py; ``python -m eval.cli`` runs :func:`main` (__main__.py).
+What `cosim --help` says cosim is: :data:`DESCRIPTION`; its list of commands (the epilog):
 
     cosim scenarios                         list the driving environments
     cosim drive env_3 --agents 6            run the scripted drivers, print events (no cameras)
@@ -81,9 +82,46 @@ def _write_log(text: str) -> Path:
     return path
 
 
+DESCRIPTION = (
+    "cosim: an open benchmark for multi-agent deep reinforcement learning in urban driving. "
+    "SUMO traffic and PyBullet cameras run in co-simulation; autonomous cars (ACs) learn to drive "
+    "from their camera with six algorithms (PPO, A3C, IMPALA, DQN, DDPG, TD3) in five "
+    "environments; a test protocol measures them together and alone and writes a report.")
+EXAMPLES = "commands, as a first session runs them:\n" + "\n".join(
+    line for line in __doc__.splitlines() if line.startswith("    cosim "))
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Every option's help line ends with its default, ``(default: X)``, unless the help
+    already says it; a flag (store_true) is off by default and says nothing. The
+    description and the epilog keep their line breaks (the command list)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text or action.default is argparse.SUPPRESS or action.nargs == 0
+                or (not action.option_strings and action.nargs not in ("?", "*"))):
+            return text
+        return f"{text} (default: {_shown(action.default)})".replace("%", "%%")
+
+    def _fill_text(self, text, width, indent):  # the description wraps, the epilog keeps its lines
+        if "\n" in text:
+            return super()._fill_text(text, width, indent)
+        return argparse.HelpFormatter._fill_text(self, text, width, indent)
+
+
+def _shown(value) -> str:
+    """A default as typed on the command line: ``env_1 env_2``, ``runs``, ``none``."""
+    if value is None or value == []:
+        return "none"
+    if isinstance(value, (list, tuple)):
+        return " ".join(str(v) for v in value)
+    return str(value)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cosim", description=__doc__.split("\n\n")[0])
-    p.add_argument("-v", "--verbose", action="store_true", help="log library messages")
+    p = argparse.ArgumentParser(prog="cosim", description=DESCRIPTION, epilog=EXAMPLES,
+                                formatter_class=HelpFormatter)
+    p.add_argument("-v", "--verbose", action="store_true", help="log library messages (INFO)")
     sub = p.add_subparsers(metavar="COMMAND")
 
     s = sub.add_parser("scenarios", help="list the driving environments")
@@ -91,14 +129,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("drive", help="drive ACs with the scripted controller and print events")
     _scenario_args(d, steps=300)
-    d.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    d.add_argument("--policy", choices=["autopilot", "random"], default="autopilot",
+                   help="who drives the ACs: the scripted autopilot or uniform random actions")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--gui", action="store_true", help="watch it in sumo-gui (needs a display)")
     d.set_defaults(func=sim.cmd_drive)
 
     v = sub.add_parser("view", help="write camera mosaics and GIFs of what the ACs see")
     _scenario_args(v, steps=200)
-    v.add_argument("--policy", choices=["autopilot", "random"], default="autopilot")
+    v.add_argument("--policy", choices=["autopilot", "random"], default="autopilot",
+                   help="who drives the ACs: the scripted autopilot or uniform random actions")
     v.add_argument("--out", type=Path, default=Path("view"), help="output folder")
     v.add_argument("--image-size", type=_int_in(8, 512), default=84, help="camera pixels (8-512)")
     v.add_argument("--moments", type=_int_in(1), default=3, help="mosaics taken along the run")
@@ -108,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.set_defaults(func=sim.cmd_view)
 
     n = sub.add_parser("nets", help="build or check the SUMO networks")
-    n.add_argument("action", choices=["build", "check"])
+    n.add_argument("action", choices=["build", "check"],
+                   help="build: run netconvert; check: fail if a built network is out of date")
     n.add_argument("--config", type=Path, action="append",
                    help="a netconvert .netccfg (default: every bundled network)")
     n.set_defaults(func=sim.cmd_nets)
@@ -127,17 +168,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--env", default="env_1", help=f"{_names(ENVS)} or a scenario .yaml")
     t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
     t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
-    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--seed", type=int, default=0, help="seed of the run (environments, weights, exploration)")
     t.add_argument("--preset", default="quick", choices=presets or None,
                    help=f"run preset, from eval/training/hyperparams/runs.yaml: {', '.join(presets)}")
     t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
-                   help=f"must match the algorithm (discrete: {' '.join(DISCRETE)})")
-    t.add_argument("--agent-preset", default=None, help="hyperparameters: default or paper")
+                   help=f"must match the algorithm (discrete: {' '.join(DISCRETE)}; default: the "
+                        "algorithm's own)")
+    t.add_argument("--agent-preset", default=None,
+                   help="hyperparameters: default or paper (default: the run preset's)")
     t.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="hyper",
                    help="change one agent hyperparameter, e.g. --set learning_rate=3e-4 (repeatable)")
     t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
     t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
-                   help="continue an interrupted run from its last checkpoint")
+                   help="continue an interrupted run from its last checkpoint (default: start a new run)")
     t.add_argument("--envs", type=int, default=None,
                    help="environments stepped together, one process each when > 1, every algorithm "
                         "(default: the preset's envs; a3c/impala: its workers)")
@@ -171,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="environment steps between PBT exploit/explore decisions (default: the "
                         "preset's checkpoint interval)")
     t.add_argument("--ray-address", default=None, metavar="ADDR",
-                   help="with --pbt: an existing Ray cluster (default: local Ray)")
+                   help="with --pbt: an existing Ray cluster, HOST:PORT (default: a local Ray)")
     t.add_argument("--keep", choices=sorted(KEEP_POLICIES), default="best",
                    help="what a finished run folder keeps: best = each AC's best.pt (the policy the "
                         "test drives), all = latest.pt too, to train it further (default: best)")
@@ -181,12 +224,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--agents", type=int, default=6,
                    help=f"ACs in Scenario 1, one per algorithm in the order {' '.join(ALGORITHMS)}")
     e.add_argument("--algos", nargs="+", default=None, choices=list(ALGORITHMS), metavar="ALGO",
-                   help="the algorithms tested, one AC each (instead of the first --agents of that order)")
-    e.add_argument("--envs", nargs="+", default=list(ENVS), help=f"default: {_names(ENVS)}")
-    e.add_argument("--scenario", choices=["1", "2", "both"], default="both")
+                   help="the algorithms tested, one AC each (default: the first --agents of that order)")
+    e.add_argument("--envs", nargs="+", default=list(ENVS), metavar="ENV",
+                   help=f"environments tested: {_names(ENVS)} or scenario .yaml files")
+    e.add_argument("--scenario", choices=["1", "2", "both"], default="both",
+                   help="1: the ACs together in traffic; 2: each AC alone; both")
     e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
     e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--seed", type=int, default=0, help="seed of the first episode (episode e: seed + e)")
     e.add_argument("--fixed-slots", action="store_true",
                    help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
                         "turns at the spawn slots, one step per episode)")
@@ -195,11 +240,19 @@ def build_parser() -> argparse.ArgumentParser:
                         f"it; {', '.join(DETERMINISTIC)} always act greedily)")
     e.add_argument("--policy", choices=["trained", "autopilot", "random"], default="trained",
                    help="trained checkpoints from --runs, or a reference driver")
-    e.add_argument("--runs", type=Path, default=Path("runs"), help="where `cosim train` wrote runs")
+    e.add_argument("--runs", type=Path, default=Path("runs"),
+                   help="where `cosim train` wrote runs; each environment is tested with the newest "
+                        "run of each algorithm trained in it")
+    e.add_argument("--allow-cross-env", action="store_true",
+                   help="test an environment with a checkpoint trained in another (warned) when "
+                        "--runs has none trained in it, or with a --checkpoint from another; without "
+                        "it such a test is refused")
     e.add_argument("--checkpoint", action="append", default=[], metavar="ALGO=PATH",
-                   help="the checkpoint of one algorithm's AC instead of the newest under --runs "
-                        "(repeatable), e.g. --checkpoint ppo=runs/x/checkpoints/ac_0/best.pt")
-    e.add_argument("--out", type=Path, default=Path("reports"), help="report folder")
+                   help="the checkpoint of one algorithm's AC in every slot and environment instead "
+                        "of the newest under --runs (repeatable), e.g. --checkpoint "
+                        "ppo=runs/x/checkpoints/ac_0/best.pt (default: none)")
+    e.add_argument("--out", type=Path, default=Path("reports"),
+                   help="where reports go, each in a new <date>-<time> folder")
     e.add_argument("--references", default="all",
                    help="reference rows added to the report: 'all' (autopilot, random and the "
                         "degenerate suite of `cosim check-scenarios`), 'none', or a comma list")
@@ -210,10 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ACs per cross-play episode: the ego and N-1 partners (default 3)")
     e.add_argument("--sweep", action="append", default=[], metavar="KIND=L1,L2",
                    help="also a robustness sweep (repeatable): density=0.5,1,2, camera_noise=0,0.05, "
-                        "action_noise=0,0.2, dropout=0,0.3")
+                        "action_noise=0,0.2, dropout=0,0.3 (default: none)")
     e.add_argument("--no-replays", action="store_true",
                    help="skip the failure replays (clips and SUMO state of each first collision)")
-    e.add_argument("--quiet", action="store_true")
+    e.add_argument("--quiet", action="store_true", help="no progress bars")
     e.set_defaults(func=learn.cmd_test)
 
     _benchmark_parser(sub, presets, preset_error)
@@ -221,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("replay", help="reopen a failure replay's SUMO state (from a cosim test report)")
     rp.add_argument("state", type=Path, help="replays/<...>/state.json (or state.xml) of a report")
     rp.add_argument("--plot", type=Path, default=None, metavar="PNG",
-                    help="also draw the reloaded positions into this PNG")
+                    help="also draw the reloaded positions into this PNG (default: no plot)")
     rp.set_defaults(func=learn.cmd_replay)
 
     c = sub.add_parser("check-scenarios",
@@ -231,8 +284,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--agents", type=int, nargs="+", default=[3, 6], help="AC counts to check")
     c.add_argument("--episodes", type=int, default=5, help="held-out episodes per policy")
     c.add_argument("--steps", type=int, default=None, help="steps per episode (default: horizon)")
-    c.add_argument("--out", type=Path, default=None, help="also write the per-episode rows (CSV)")
+    c.add_argument("--out", type=Path, default=None,
+                   help="also write the per-episode rows to this CSV (default: print only)")
     c.set_defaults(func=sim.cmd_check_scenarios)
+    for command in sub.choices.values():
+        command.formatter_class = HelpFormatter
     return p
 
 
@@ -262,13 +318,25 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
     from eval.training.config import COLLISION_RULES
     from eval.training.runfolder import KEEP_POLICIES
 
-    b = sub.add_parser("benchmark", help="train every (algorithm, environment, seed) as a Ray Tune "
-                                         "trial, then test them and write the report")
+    trials = len(ENVS) * len(ALGORITHMS)
+    b = sub.add_parser(
+        "benchmark", help="train every (algorithm, environment, seed) as a Ray Tune trial, then test "
+                          "them and write the report",
+        description=f"Train every (algorithm, environment, seed) as a Ray Tune trial, test them "
+                    f"(Scenario 1 and 2 in each environment) and write the report. Without options "
+                    f"it runs the `standard` preset: {len(ALGORITHMS)} algorithms x {len(ENVS)} "
+                    f"environments x 1 seed = {trials} trials of ~15 min each on a 2-core machine "
+                    f"(~{trials * 15 / 60:.1f} h), then the test with the whole reference suite. "
+                    "Start with --preset smoke (the same grid at 120 steps per trial, a few minutes).")
     b.add_argument("--preset", choices=presets or None, default="standard",
-                   help="run preset (eval/training/hyperparams/runs.yaml); standard: ~15 min per trial here")
-    b.add_argument("--envs", nargs="+", default=list(ENVS), help=f"default: {_names(ENVS)}")
-    b.add_argument("--algos", nargs="+", default=list(ALGORITHMS))
-    b.add_argument("--seeds", type=_int_in(1), default=1, help="seeds 0..K-1 per cell")
+                   help="run preset (eval/training/hyperparams/runs.yaml); standard: ~15 min per trial "
+                        "on 2 cores, smoke: under a minute")
+    b.add_argument("--envs", nargs="+", default=list(ENVS), metavar="ENV",
+                   help=f"environments of the grid: {_names(ENVS)} or scenario .yaml files")
+    b.add_argument("--algos", nargs="+", default=list(ALGORITHMS), metavar="ALGO",
+                   help=f"algorithms of the grid: {' '.join(ALGORITHMS)}")
+    b.add_argument("--seeds", type=_int_in(1), default=1, metavar="K",
+                   help="seeds 0..K-1 per (algorithm, environment)")
     b.add_argument("--steps", type=_int_in(1), default=None,
                    help="environment steps per trial (default: the preset's)")
     b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
@@ -280,7 +348,7 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
     b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",
                    help="trials at once (default: the CPUs here, or unlimited on a cluster)")
-    b.add_argument("--gpus-per-trial", type=float, default=0.0, help="GPU share of each trial")
+    b.add_argument("--gpus-per-trial", type=float, default=0.0, metavar="F", help="GPU share of each trial (Ray resources)")
     b.add_argument("--no-ray", action="store_true",
                    help="train the same grid one trial after another in this process")
     b.add_argument("--train-only", action="store_true", help="train the grid, skip the test and report")
@@ -291,7 +359,7 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
     b.add_argument("--resume", action="store_true",
                    help="continue an interrupted benchmark in --out without redoing finished trials; "
                         "with a larger --seeds, add those seeds to a finished one")
-    b.add_argument("--quiet", action="store_true")
+    b.add_argument("--quiet", action="store_true", help="no progress lines")
     b.set_defaults(func=_refuse(preset_error) if preset_error else learn.cmd_benchmark)
 
 
@@ -301,8 +369,8 @@ def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
     p.add_argument("scenario", nargs="?", default="env_3", help=f"{_names(ENVS)} or a scenario .yaml")
     p.add_argument("--agents", type=_int_in(1, 6), default=None,
                    help="learning cars (default: every spawn point of the scenario)")
-    p.add_argument("--steps", type=_int_in(1), default=steps)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=_int_in(1), default=steps, help="simulation steps")
+    p.add_argument("--seed", type=int, default=0, help="seed of the episode (traffic, spawn order)")
     p.add_argument("--no-background", action="store_true", help="no background cars")
     p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
 

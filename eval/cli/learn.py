@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -11,8 +12,6 @@ from eval.training.runfolder import output_folder
 
 
 def cmd_train(args) -> int:
-    import os
-    import subprocess
 
     from eval.training.train import ALGORITHMS, TrainError, make_config, parse_set, train
 
@@ -46,32 +45,93 @@ def cmd_train(args) -> int:
             return 2
         print(f"run folder: {run}")
         return 0
-    # --algo all: one process per algorithm, as many at once as there are CPUs
+    return _train_all(args, configs)
+
+
+LINE = re.compile(r"^\[(?P<algo>\w+) \S+\] step (?P<step>\d+)/(?P<steps>\d+)")
+"""A --quiet training run's progress line (eval/training/trainer.py, _report)."""
+
+
+def _train_all(args, configs) -> int:
+    """``cosim train --algo all``: one `cosim train --quiet` process per algorithm, as many at
+    once as there are CPUs, under one progress bar over all their steps (their log lines,
+    every few seconds, move it; other lines are printed above it; ``--quiet``: the lines only)."""
+    import queue
+    import subprocess
+    import threading
+
+    from tqdm import tqdm
+
     parallel = max(1, os.cpu_count() or 1)
-    print(f"training {len(configs)} algorithms, {parallel} at a time")
-    pending = list(algos)
+    print(f"training {len(configs)} algorithms, {parallel} at a time", flush=True)
+    steps = {c.algo: c.steps for c in configs}
+    pending = [c.algo for c in configs]
     running: dict[str, subprocess.Popen] = {}
-    failed = []
+    done_steps = dict.fromkeys(steps, 0)
+    failed, lines = [], queue.Queue()
+    bar = tqdm(total=sum(steps.values()), unit="step", desc="train all", dynamic_ncols=True,
+               disable=args.quiet, smoothing=0.05)
+    say = print if args.quiet else bar.write
     base = _train_command(args)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if not args.quiet:  # their lines move the bar: a line every few seconds
+        env["COSIM_LOG_EVERY_S"] = os.environ.get("COSIM_LOG_EVERY_S", "5")
+
+    def pump(algo: str, stream) -> None:
+        for text in stream:
+            lines.put((algo, text.rstrip("\n")))
+
+    def advance(algo: str, step: int) -> None:
+        step = min(step, steps[algo])
+        bar.update(step - done_steps[algo])
+        done_steps[algo] = step
+        bar.set_postfix_str(" ".join(f"{a} {done_steps[a] * 100 // steps[a]}%" for a in running), refresh=False)
+
+    def handle(algo: str, text: str) -> None:
+        hit = LINE.match(text)
+        if text.startswith("run folder: "):
+            folders[algo] = text.removeprefix("run folder: ")
+        elif hit and not args.quiet:
+            advance(algo, int(hit["step"]))
+        else:
+            say(text if hit else f"[{algo}] {text}")
+
+    def drain(timeout: float = 0.0) -> None:
+        try:
+            while True:
+                handle(*lines.get(timeout=timeout))
+                timeout = 0.0
+        except queue.Empty:
+            pass
+
+    folders: dict[str, str] = {}
+    pumps: dict[str, threading.Thread] = {}
     try:
         while pending or running:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
                 envs = [] if args.envs is None else ["--envs", str(args.envs)]
-                running[algo] = subprocess.Popen(base + envs + ["--algo", algo])
+                running[algo] = subprocess.Popen(base + envs + ["--algo", algo], stdout=subprocess.PIPE,
+                                                 text=True, env=env)
+                pumps[algo] = threading.Thread(target=pump, args=(algo, running[algo].stdout), daemon=True)
+                pumps[algo].start()
+            drain(timeout=0.5)
             for algo, proc in list(running.items()):
-                try:
-                    proc.wait(timeout=0.5)
-                except subprocess.TimeoutExpired:
+                if proc.poll() is None:
                     continue
+                pumps[algo].join(timeout=10)  # its last lines (the run folder) are read
+                drain()
                 del running[algo]
-                ok = proc.returncode == 0
-                print(f"{algo}: {'done' if ok else f'FAILED (exit {proc.returncode})'}", flush=True)
-                if not ok:
+                if proc.returncode == 0:
+                    advance(algo, steps[algo])
+                    say(f"{algo}: done, run folder {folders.get(algo, '?')}")
+                else:
+                    say(f"{algo}: FAILED (exit {proc.returncode})")
                     failed.append(algo)
     finally:
         for proc in running.values():
             proc.terminate()
+        bar.close()
     return 1 if failed else 0
 
 
@@ -132,16 +192,7 @@ def _train_pbt(args) -> int:
 def cmd_test(args) -> int:
     import datetime as dt
 
-    from tqdm import tqdm
-
-    from eval.testing.protocol import (
-        ALGO_ORDER,
-        ProtocolError,
-        ProtocolPlan,
-        find_checkpoints,
-        policy_factory,
-        run_protocol,
-    )
+    from eval.testing.protocol import ALGO_ORDER, ProtocolError, ProtocolPlan, run_protocol
 
     if args.algos:  # paper order, one AC each
         args.agents = len(set(args.algos))
@@ -162,6 +213,10 @@ def cmd_test(args) -> int:
     plan = ProtocolPlan(envs=tuple(args.envs), scenarios=scenarios, episodes=args.episodes, steps=args.steps,
                         seed=args.seed, agents=args.agents, rotate=not args.fixed_slots, greedy=args.greedy)
     algos = [a for a in ALGO_ORDER if a in args.algos] if args.algos else list(ALGO_ORDER[: args.agents])
+    from cosim.scenario import load_scenario
+
+    for env_name in plan.envs:  # a bad name fails now, not after the first environments ran
+        load_scenario(env_name)
     try:
         from eval.testing.robustness import parse_sweeps
 
@@ -169,60 +224,130 @@ def cmd_test(args) -> int:
         given = _checkpoint_slots(args.checkpoint, algos)
         if given and args.policy != "trained":
             raise ProtocolError(f"--checkpoint is for --policy trained, not --policy {args.policy}")
-        ckpts = None
-        if args.policy == "trained":
-            ckpts = {**find_checkpoints(args.runs, [a for a in algos if a not in given]), **given}
-            ckpts = {a: ckpts[a] for a in algos}
-        factory = policy_factory(args.policy, ckpts, fixed=given, greedy=args.greedy)
+        per_env, factory = _test_policies(args, plan, algos, given)
     except ProtocolError as exc:
         print(f"cosim test: error: {exc}", file=sys.stderr)
         return 2
-    from cosim.scenario import load_scenario
-
-    for env_name in plan.envs:  # a bad name fails now, not after the first environments ran
-        load_scenario(env_name)
     out = output_folder(args.out / dt.datetime.now().strftime("%Y%m%d-%H%M%S"), "--out")
-    for algo, path in (ckpts or {}).items():
-        print(f"{algo:7s} {path}")
     from eval.reporting.report import provenance, write_paper_report
     from eval.testing import selection
+    from eval.testing.protocol import slot_summary, slot_table, slots_markdown
 
+    slots = slot_table(per_env, plan, algos, fixed=given) if per_env else None
+    if slots is not None:  # which checkpoint drives which slot where: console and report
+        print(f"checkpoints per environment and slot (slots.csv):\n{slot_summary(slots)}")
+        slots.to_csv(out / "slots.csv", index=False)
     # provenance first: the code, checkpoints and hashes as they are when the test starts
+    ckpts = per_env[plan.envs[0]] if per_env else None
     picked = {a: selection.describe(p) if a in given else
               (selection.choose(p.parent.parent.parent) or selection.describe(p))
               for a, p in (ckpts or {}).items()}
     prov = provenance(policy=args.policy, plan=plan, algos=algos, checkpoints=ckpts,
                       selections=picked, command=_test_command(args))
+    if slots is not None:
+        prov["slots"] = slots.to_dict("records")
+    phases = _Phases(args.quiet)
     units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
-    bar = tqdm(total=units, disable=args.quiet, unit="run", desc="test")
-    records = run_protocol(plan, factory, algos, progress=lambda name: bar.update(1))
-    bar.close()
+    records = run_protocol(plan, factory, algos, progress=phases.bar("test", units, "run"))
     refs = None
     if refs_wanted:
-        refs = reference_rows(plan, refs_wanted)
+        refs = reference_rows(plan, refs_wanted, progress=phases.bar("references", len(plan.envs), "env"))
+    labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
     replays = []
     if not args.no_replays:
         from eval.testing import replay
 
-        labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
-        replays = replay.capture(plan, factory, algos, records, out, labels)
-    extra_md = ""
+        replays = replay.capture(plan, factory, algos, records, out, labels,
+                                 progress=phases.bar("replays", replay.reruns(records), "run"))
+    extra_md = slots_markdown(slots) if slots is not None else ""
     if args.cross_play or sweeps:
         from eval.reporting import robustness as robustness_report
         from eval.testing import robustness
 
-        labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
-        cross = (robustness.run_cross_play(plan, factory, algos, group=args.cross_play_group)
+        cross = (robustness.run_cross_play(plan, factory, algos, group=args.cross_play_group,
+                                           progress=phases.bar("cross-play", len(plan.envs) * len(algos) * (len(algos) + 1), "run"))
                  if args.cross_play else None)
-        swept = {kind: robustness.run_sweep(plan, factory, algos, kind, levels)
+        swept = {kind: robustness.run_sweep(plan, factory, algos, kind, levels,
+                                            progress=phases.bar(f"sweep {kind}", len(levels) * len(plan.envs), "run"))
                  for kind, levels in sweeps.items()}
-        _, extra_md = robustness_report.write(out, labels, cross, swept)
+        _, robust_md = robustness_report.write(out, labels, cross, swept)
+        extra_md += robust_md
+    phases.say("writing the report (tables, figures) ...")
     written = write_paper_report(records, out, prov=prov, references=refs, replays=replays,
                                  extra_md=extra_md)
+    phases.close()
     print((out / "rq1.md").read_text())
     print(f"index: {out / 'index.html'}")
-    print("wrote:\n" + "\n".join(f"  {p}" for p in written))
+    print("wrote:\n" + "\n".join(f"  {p}" for p in [*written, *([out / "slots.csv"] if slots is not None else [])]))
     return 0
+
+
+def _test_policies(args, plan, algos: list[str], given: dict[str, Path]):
+    """The checkpoints each environment is tested with (environment -> algorithm -> path; None
+    for a reference policy) and the policy factory. Each environment takes the newest run of
+    each algorithm trained in it; a checkpoint trained in another environment (none of its
+    own under --runs, or a --checkpoint from another) is refused without --allow-cross-env,
+    and named on stderr with it.
+
+    Raises:
+        ProtocolError: no checkpoint, or a cross-environment test without --allow-cross-env.
+    """
+    from eval.testing.protocol import (
+        ProtocolError,
+        cross_env,
+        env_policy_factory,
+        find_checkpoints,
+        policy_factory,
+    )
+
+    if args.policy != "trained":
+        return None, policy_factory(args.policy, None, greedy=args.greedy)
+    per_env = {}
+    for env in plan.envs:
+        found = find_checkpoints(args.runs, [a for a in algos if a not in given], env=env)
+        per_env[env] = {a: (given.get(a) or found[a]) for a in algos}
+    crossed = cross_env(per_env)
+    by_ckpt: dict[tuple, list[str]] = {}
+    for algo, path, trained, env in crossed:
+        by_ckpt.setdefault((algo, path, trained), []).append(env)
+    if by_ckpt and not args.allow_cross_env:
+        (algo, path, trained), envs = next(iter(by_ckpt.items()))
+        more = f" ({len(by_ckpt) - 1} more checkpoint(s) likewise)" if len(by_ckpt) > 1 else ""
+        raise ProtocolError(
+            f"the {algo} checkpoint {path} was trained in {trained}, not in {' '.join(envs)}{more}; "
+            f"train {algo} there (`cosim train --algo {algo} --env {envs[0]}`), test the environment "
+            f"it was trained in (--envs {trained}), or pass --allow-cross-env to test it in "
+            f"{' '.join(envs)} anyway")
+    for (algo, path, trained), envs in by_ckpt.items():
+        print(f"cosim test: warning: the {algo} checkpoint {path} was trained in {trained} and drives "
+              f"{' '.join(envs)} (--allow-cross-env)", file=sys.stderr)
+    return per_env, env_policy_factory(per_env, fixed=given, greedy=args.greedy)
+
+
+class _Phases:
+    """Progress of `cosim test`'s phases (test, references, replays, cross-play, sweeps): a
+    tqdm bar each, as the training bar (eval/training/trainer.py); a line per phase that
+    starts without one (the report)."""
+
+    def __init__(self, quiet: bool):
+        self.quiet, self._bar = quiet, None
+
+    def bar(self, desc: str, total: int | None, unit: str):
+        from tqdm import tqdm
+
+        self.close()
+        self._bar = tqdm(total=total, disable=self.quiet, unit=unit, desc=desc, dynamic_ncols=True)
+        return lambda name: (self._bar.set_postfix_str(name, refresh=False), self._bar.update(1))
+
+    def say(self, text: str) -> None:
+        self.close()
+        if not self.quiet:
+            print(text, file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
 
 def cmd_benchmark(args) -> int:
@@ -231,6 +356,7 @@ def cmd_benchmark(args) -> int:
     from eval.scale.benchmark import (
         BenchmarkPlan,
         finished_runs,
+        report_steps,
         run_ray,
         run_sequential,
         write_report,
@@ -248,20 +374,38 @@ def cmd_benchmark(args) -> int:
     start, kept = time.monotonic(), len(finished_runs(plan, args.out))
     say(f"benchmark {args.preset}: {len(cells)} trials ({kept} finished earlier, kept) -> {args.out}")
     if args.no_ray:
-        runs = run_sequential(plan, args.out, resume=args.resume, progress=lambda n: say(f"trained {n}"),
-                              keep=args.keep)
+        runs = run_sequential(plan, args.out, resume=args.resume, keep=args.keep,
+                              progress=_counted(say, len(cells), kept, prefix="trained "))
     else:
         concurrent = args.concurrent or (0 if args.ray_address else (os.cpu_count() or 1))
         runs = run_ray(plan, args.out, resume=args.resume, address=args.ray_address,
-                       concurrent=concurrent, gpus_per_trial=args.gpus_per_trial, keep=args.keep)
+                       concurrent=concurrent, gpus_per_trial=args.gpus_per_trial, keep=args.keep,
+                       progress=say)
     say(f"trained {len(runs) - kept} trials in {time.monotonic() - start:.0f} s: {args.out / 'runs'}")
     if args.train_only:
         return 0
     written = write_report(plan, args.out, command=["benchmark", *sys.argv[2:]],
-                           progress=lambda n: say(f"tested {n}"))
+                           progress=_counted(say, report_steps(plan)))
     say(f"report: {args.out / 'report' / 'index.html'} ({len(written)} files, "
         f"{time.monotonic() - start:.0f} s in all)")
     return 0
+
+
+def _counted(say, total: int, done: int = 0, prefix: str = ""):
+    """A progress callback saying ``[k/total] <prefix><what> (<seconds> s)`` per call: the
+    seconds since the previous call (what just ended); none for a phase that starts ("... ")."""
+    import time
+
+    state = {"count": done, "last": time.monotonic()}
+
+    def report(what: str) -> None:
+        now = time.monotonic()
+        state["count"] += 1
+        took = "" if what.endswith("...") else f" ({now - state['last']:.0f} s)"
+        say(f"[{state['count']}/{total}] {prefix}{what}{took}")
+        state["last"] = now
+
+    return report
 
 
 def cmd_replay(args) -> int:

@@ -344,10 +344,40 @@ def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
     return done
 
 
+def _trial_lines(total: int, done: int, say: Callable[[str], None]):
+    """A Tune callback (in the driver) that says one line per trial as it ends:
+    ``[k/total] trained <cell> (<seconds> s)`` (or FAILED); ``done``: trials finished before."""
+    import time
+
+    from ray import tune
+
+    class TrialLines(tune.Callback):
+        def __init__(self):
+            self.count, self.start = done, {}
+
+        def on_trial_start(self, iteration, trials, trial, **info):
+            self.start.setdefault(trial.trial_id, time.monotonic())
+
+        def _say(self, trial, what: str) -> None:
+            self.count += 1
+            took = time.monotonic() - self.start.get(trial.trial_id, time.monotonic())
+            say(f"[{self.count}/{total}] {what} {cell_name(trial.config['cell'])} ({took:.0f} s)")
+
+        def on_trial_complete(self, iteration, trials, trial, **info):
+            self._say(trial, "trained")
+
+        def on_trial_error(self, iteration, trials, trial, **info):
+            self._say(trial, "FAILED")
+
+    return TrialLines()
+
+
 def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: str | None = None,
-            concurrent: int = 2, gpus_per_trial: float = 0.0, keep: str = "best") -> dict[str, Path]:
+            concurrent: int = 2, gpus_per_trial: float = 0.0, keep: str = "best",
+            progress: Callable[[str], None] | None = None) -> dict[str, Path]:
     """Train every cell as a Ray Tune trial, ``concurrent`` at a time; ``keep``: what a
-    finished run keeps (eval/training/runfolder.py KEEP_POLICIES).
+    finished run keeps (eval/training/runfolder.py KEEP_POLICIES); ``progress``: called with
+    one line per trial as it ends (a new grid; a restored one ends silently).
 
     Returns:
         Cell name -> finished run folder under ``out/runs``.
@@ -393,6 +423,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                                             trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
                 run_config=tune.RunConfig(
                     name="grid", storage_path=str(out / "tune"), verbose=0,
+                    callbacks=[_trial_lines(len(cells), len(finished), progress)] if progress else None,
                     # a checkpoint is a pointer to the run folder (_tune_trial): the last one is
                     # all a restore needs (PBT, which clones run folders, keeps copies)
                     checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
@@ -429,23 +460,35 @@ def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
 
 
 # -- the test protocol and its report ----------------------------------------------------
+def report_steps(plan: BenchmarkPlan) -> int:
+    """How many times :func:`write_report` calls its ``progress``."""
+    return len(plan.envs) * (plan.seeds + bool(TEST_SETTINGS[plan.preset].references)) + 1
+
+
 def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                  progress: Callable[[str], None] | None = None) -> list[Path]:
     """Scenario 1 and 2 in every environment with that environment's trained policies
     (every seed's, pooled, episodes numbered apart), on held-out episode seeds (from
     eval.testing.validity.HELD_OUT_SEED; training uses small ones), the references of the
-    preset, and the `cosim test` report."""
+    preset, and the `cosim test` report; ``progress`` is called :func:`report_steps` times,
+    as each environment's test and references end and as the report starts."""
     import pandas as pd
 
     from eval.reporting.report import provenance, write_paper_report
     from eval.testing import selection
-    from eval.testing.protocol import ProtocolPlan, policy_factory, reference_rows, run_protocol
+    from eval.testing.protocol import (
+        ProtocolPlan,
+        policy_factory,
+        reference_rows,
+        run_protocol,
+        slot_table,
+    )
     from eval.testing.validity import HELD_OUT_SEED
 
     out = Path(out)
     settings = TEST_SETTINGS[plan.preset]
     algos = list(plan.algos)
-    frames, tested, first = [], [], {}
+    frames, tested, first, slots = [], [], {}, []
     for env in plan.envs:
         for seed in range(plan.seeds):
             ckpts = {}
@@ -460,24 +503,29 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                                "selection": chosen})
             test_plan = ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
                                      seed=HELD_OUT_SEED, agents=len(algos))
+            slots.append(slot_table({env: ckpts}, test_plan, algos).assign(train_seed=seed))
             records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
             # seeds are pooled: number their episodes apart, or the metrics would merge
             # seed 0's episode 0 with seed 1's episode 0
             frames.append(records.assign(train_seed=seed,
                                          episode=records["episode"] + seed * settings.episodes))
             if progress:
-                progress(f"{env} seed {seed}")
+                progress(f"tested {env} seed {seed}")
     records = pd.concat(frames, ignore_index=True)
     whole = ProtocolPlan(envs=tuple(plan.envs), episodes=settings.episodes, steps=settings.steps,
                          seed=HELD_OUT_SEED, agents=len(algos))
+    if progress:  # one line for both phases: the smoke console stays under 40 lines
+        progress(f"reference policies ({len(settings.references)}) and the report (tables, figures) ...")
     refs = reference_rows(whole, list(settings.references)) if settings.references else None
-    if progress and refs is not None:
-        progress(f"references ({len(settings.references)} policies)")
     # every environment's checkpoints, each with its AC and scores (the report's provenance)
     prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
                       selections={t["algorithm"]: t["selection"] for t in tested if t["env"] == plan.envs[0]
                                   and t["seed"] == 0},
                       command=list(command), env_checkpoints=tested, benchmark=plan.to_dict())
+    slots = pd.concat(slots, ignore_index=True)  # which checkpoint drove which slot (as `cosim test`)
+    prov["slots"] = slots.to_dict("records")
+    (out / "report").mkdir(parents=True, exist_ok=True)
+    slots.to_csv(out / "report" / "slots.csv", index=False)
     extra = ("\n## Benchmark grid\n\nEvery environment is tested with its own trained policies, "
              f"{plan.seeds} seed(s) pooled (`cosim benchmark --preset {plan.preset}`); provenance "
              "lists every checkpoint (environment, seed, algorithm) with its hash and the AC chosen.\n")

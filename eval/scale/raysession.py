@@ -30,6 +30,11 @@ RAY_ENV = {
     "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",
     "RAY_AIR_NEW_OUTPUT": "0",
     "RAY_DEDUP_LOGS": "0",
+    # a grid trial's Tune checkpoint is a few-byte pointer kept with num_to_keep=1 (eval/scale/
+    # benchmark.py), so Tune snapshots its experiment state at every trial checkpoint by design;
+    # its "Experiment state snapshotting has been triggered multiple times" warning (3 lines each
+    # time, 102 of the smoke benchmark's 111 console lines before issue 28) says nothing here; 0 turns it off
+    "TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S": "0",
 }
 # for the trials' processes, on a cluster too: a function trainable is reused (PBT,
 # reuse_actors=True) only if its training thread ends within this time after a stop;
@@ -91,6 +96,10 @@ def probe_address(address: str, timeout: float = 3.0) -> None:
         ) from None
 
 
+def _not_token_notice(record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith("Token authentication is enabled for this Ray cluster")
+
+
 @contextlib.contextmanager
 def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iterator[None]:
     """Start (or join) Ray for the duration of the block, and shut it down after.
@@ -111,6 +120,10 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
 
     # Tune's TensorBoard logger warns at every -inf score (no episode finished yet)
     logging.getLogger("tensorboardX.x2num").setLevel(logging.ERROR)
+    # Ray 2.60 announces that a new local cluster uses token authentication (its safe default):
+    # one line of every run's console that asks nothing of the user; its warning that a
+    # cluster runs *without* a token is kept
+    logging.getLogger("ray._private.authentication.authentication_token_setup").addFilter(_not_token_notice)
     if ray.is_initialized():  # a caller's own session (a notebook): use it, leave it running
         yield
         return

@@ -22,7 +22,7 @@ tables and plots are computed from those records.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -94,12 +94,39 @@ def slot_order(algos: Sequence[str], episode: int, rotate: bool = True) -> list[
     return algos[len(algos) - r:] + algos[: len(algos) - r]
 
 
-def find_checkpoints(runs: Path, algos: Sequence[str]) -> dict[str, Path]:
-    """The newest run of each algorithm under `runs`; the checkpoint of the AC that represents
-    it (eval/testing/selection.py: best training score, best.pt else latest.pt)."""
+def run_env(run: Path) -> str | None:
+    """The environment a run folder trained in: its config.yaml's ``env`` (a name, or a
+    scenario file's stem), else the first field of its name (``<env>__<algo>__<seed>__<stamp>``);
+    None when neither says."""
+    import yaml
+
+    run = Path(run)
+    try:
+        env = (yaml.safe_load((run / "config.yaml").read_text()) or {}).get("env")
+    except (OSError, ValueError, AttributeError, yaml.YAMLError):
+        env = None
+    if env:
+        return Path(str(env)).stem
+    parts = run.name.split("__")
+    return parts[0] if len(parts) >= 4 and parts[0] else None
+
+
+def trained_env(checkpoint: Path) -> str | None:
+    """The environment a checkpoint's run trained in (:func:`run_env`); None for a file
+    outside a run folder (``<run>/checkpoints/ac_k/best.pt``)."""
+    checkpoint = Path(checkpoint)
+    return run_env(checkpoint.parent.parent.parent) if checkpoint.parent.parent.name == "checkpoints" else None
+
+
+def find_checkpoints(runs: Path, algos: Sequence[str], env: str | None = None) -> dict[str, Path]:
+    """The newest run of each algorithm under `runs` (with ``env``: the newest trained in that
+    environment, else the newest of any, which :func:`cross_env` then names); the checkpoint of
+    the AC that represents it (eval/testing/selection.py: best training score, best.pt else latest.pt)."""
     found: dict[str, Path] = {}
     runs = Path(runs)
     folders = sorted(runs.glob("*__*__*__*"), key=lambda p: p.stat().st_mtime, reverse=True) if runs.exists() else []
+    if env is not None:  # stable: the environment's own runs first, each group newest first
+        folders.sort(key=lambda run: run_env(run) != Path(env).stem)
     for algo in algos:
         for run in folders:
             if run.name.split("__")[1] != algo:
@@ -205,19 +232,130 @@ def slot_checkpoint(path: Path, slot: str) -> Path:
     return own if own is not None else path
 
 
+def cross_env(per_env: Mapping[str, Mapping[str, Path]]) -> list[tuple[str, Path, str, str]]:
+    """``(algorithm, checkpoint, trained in, tested in)`` of every checkpoint that drives an
+    environment other than the one its run trained in (``per_env``: environment -> algorithm ->
+    checkpoint); a checkpoint outside a run folder has no known environment and is not listed."""
+    found = []
+    for env, ckpts in per_env.items():
+        for algo, path in ckpts.items():
+            trained = trained_env(path)
+            if trained is not None and trained != Path(env).stem:
+                found.append((algo, Path(path), trained, env))
+    return found
+
+
+def slot_table(per_env: Mapping[str, Mapping[str, Path]], plan: ProtocolPlan, algos: Sequence[str],
+               fixed: Collection[str] = ()) -> pd.DataFrame:
+    """Which checkpoint drives which slot in which environment (what :func:`policy_factory`
+    loads): one row per environment, algorithm and slot: ``env, algorithm, slot, scenarios``
+    (the test scenarios that drive the slot: Scenario 1 rotates the algorithms over every slot,
+    Scenario 2 drives ac_0 alone), ``checkpoint, ac`` (the AC folder it comes from), ``how``
+    (``own slot``: the run's AC trained in that slot; ``chosen AC``: the run's representative,
+    eval/testing/selection.py; ``given``: ``--checkpoint``), ``run, trained_env, cross_env``."""
+    algos = list(algos)[: plan.agents] if 1 in plan.scenarios else list(algos)
+    slots = [f"ac_{k}" for k in range(len(algos))] if 1 in plan.scenarios else ["ac_0"]
+    rows = []
+    for env, ckpts in per_env.items():
+        for algo in algos:
+            chosen = Path(ckpts[algo])
+            for slot in slots:
+                path = chosen if algo in fixed else slot_checkpoint(chosen, slot)
+                how = "given" if algo in fixed else "own slot" if path.parent.name == slot else "chosen AC"
+                scen = [n for n in plan.scenarios if n == 1 or slot == "ac_0"]
+                trained = trained_env(path)
+                rows.append({"env": env, "algorithm": algo, "slot": slot,
+                             "scenarios": " ".join(map(str, scen)), "checkpoint": str(path),
+                             "ac": path.parent.name if path.parent.name.startswith("ac_") else "-",
+                             "how": how,
+                             "run": str(path.parent.parent.parent) if path.parent.parent.name == "checkpoints" else "",
+                             "trained_env": trained or "unknown",
+                             "cross_env": trained is not None and trained != Path(env).stem})
+    return pd.DataFrame(rows)
+
+
+def _summary_rows(table: pd.DataFrame) -> list[list[str]]:
+    """The head and rows of :func:`slot_summary`: a row per algorithm and run (or file), the
+    environments it drives in one cell, the AC folder driving each slot."""
+    slots = list(dict.fromkeys(table["slot"]))
+    grouped: dict[tuple, list[str]] = {}
+    for (env, algo), g in table.groupby(["env", "algorithm"], sort=False):
+        g = g.set_index("slot")
+        cells = tuple("given" if g.at[s, "how"] == "given" else
+                      g.at[s, "ac"] + ("*" if g.at[s, "how"] == "chosen AC" else "") for s in slots)
+        first = g.iloc[0]
+        key = (algo, first["run"] or first["checkpoint"], first["trained_env"], bool(g["cross_env"].any()), cells)
+        grouped.setdefault(key, []).append(env)
+    rows = [["tested in", "algorithm", "trained in", *slots, "run (or file)"]]
+    for (algo, source, trained, cross, cells), envs in grouped.items():
+        rows.append([" ".join(envs), algo, trained + (" (!)" if cross else ""), *cells, source])
+    return rows
+
+
+def slot_summary(table: pd.DataFrame) -> str:
+    """:func:`slot_table` as one compact text table (the console's): a row per algorithm and
+    run, the environments it drives in one cell, then the AC folder driving each slot (``*``:
+    the run's chosen AC, where it trained no AC in that slot; ``given``: a ``--checkpoint``
+    file; ``(!)``: trained in another environment than it drives)."""
+    if table.empty:
+        return ""
+    rows = _summary_rows(table)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r[:-1], widths, strict=True)) + "  " + r[-1] for r in rows)
+
+
+SLOTS_NOTE = ("Scenario 1 rotates the algorithms over every slot, Scenario 2 drives `ac_0` alone. "
+              "A slot is driven by the run's AC trained in that slot; `*`: the run trained no AC "
+              "there and its chosen AC drives it; `given`: a `--checkpoint` file drives every slot; "
+              "\"(!)\": trained in another environment than the one tested (`--allow-cross-env`).")
+
+
+def slots_markdown(table: pd.DataFrame) -> str:
+    """:func:`slot_table` for the report page: a section with the compact table (as Markdown)."""
+    if table.empty:
+        return ""
+    rows = _summary_rows(table)
+    lines = ["\n## Checkpoints per environment and slot\n",
+             f"Which checkpoint drives which AC slot in each tested environment (`slots.csv`). {SLOTS_NOTE}\n",
+             "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+    lines += ["| " + " | ".join(r[:-1]) + f" | `{r[-1]}` |" for r in rows[1:]]
+    return "\n".join(lines) + "\n"
+
+
+def env_policy_factory(per_env: Mapping[str, Mapping[str, Path]], fixed: Collection[str] = (),
+                       greedy: bool = False) -> PolicyFactory:
+    """:func:`policy_factory` ("trained") with each environment's own checkpoints
+    (``per_env``: environment name or scenario file -> algorithm -> checkpoint); a checkpoint
+    several environments share is loaded once."""
+    from cosim.scenario import load_scenario
+
+    loaded: dict[Path, object] = {}
+    by_name = {load_scenario(env).name: policy_factory("trained", dict(ckpts), fixed, greedy, loaded)
+               for env, ckpts in per_env.items()}
+
+    def make(env, agent, algo):
+        return by_name[env.scenario.name](env, agent, algo)
+
+    return make
+
+
 def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
-                   fixed: Collection[str] = (), greedy: bool = False) -> PolicyFactory:
+                   fixed: Collection[str] = (), greedy: bool = False,
+                   loaded: dict | None = None) -> PolicyFactory:
     """How each AC gets its policy: trained checkpoints, the autopilot, or random.
 
     Trained: slot ``ac_k`` of algorithm ``a`` is driven by :func:`slot_checkpoint`
     (the run's own ``ac_k`` where it trained one), except for the algorithms in
     ``fixed`` (given with ``--checkpoint``), whose checkpoint drives every slot. The
     :data:`SAMPLED` algorithms draw their actions from their policy (seeded per slot
-    and episode) unless ``greedy``; the others act greedily."""
+    and episode) unless ``greedy``; the others act greedily. ``loaded``: a cache of loaded
+    checkpoints (path -> agent) to share with other factories."""
     if kind == "trained":
         checkpoints = dict(checkpoints or {})
-        # the given ones load now: a bad file fails before any episode runs
-        loaded: dict[Path, object] = {p: load_for_slot(p, a) for a, p in checkpoints.items()}
+        loaded = {} if loaded is None else loaded
+        for a, p in checkpoints.items():  # the given ones load now: a bad file fails before any episode runs
+            if p not in loaded:
+                loaded[p] = load_for_slot(p, a)
 
         def make(env, agent, algo):
             path = checkpoints[algo] if algo in fixed else slot_checkpoint(checkpoints[algo], agent)
@@ -316,6 +454,7 @@ def references_markdown(refs: pd.DataFrame) -> str:
     return "\n".join(parts)
 
 
-__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "drive", "find_checkpoints", "frame_stack_of", "load_for_slot",
-           "metrics_table", "obs_of", "policy_factory", "reference_rows", "references_markdown", "rules", "run_protocol",
-           "slot_checkpoint", "slot_order"]
+__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "cross_env", "drive", "env_policy_factory", "find_checkpoints",
+           "frame_stack_of", "load_for_slot", "metrics_table", "obs_of", "policy_factory", "reference_rows",
+           "references_markdown", "rules", "run_env", "run_protocol", "slot_checkpoint", "slot_order",
+           "slot_summary", "slot_table", "slots_markdown", "trained_env"]

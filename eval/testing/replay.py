@@ -65,6 +65,15 @@ def sumo_positions(ls) -> dict:
     return {"vehicles": veh, "persons": per, "time": float(ls.simulation.getTime())}
 
 
+def reruns(records: pd.DataFrame) -> int:
+    """How many episodes :func:`capture` re-runs (and calls its ``progress`` for)."""
+    targets = first_collisions(records)
+    if targets.empty:
+        return 0
+    return sum(1 if scenario == 1 else len(group)
+               for (scenario, _, _), group in targets.groupby(["scenario", "env", "episode"]))
+
+
 def capture(plan: ProtocolPlan, make_policy: Callable, algos: Sequence[str], records: pd.DataFrame, out: Path,
             labels: dict | None = None, progress: Callable[[str], None] | None = None) -> list[dict]:
     """Clips and SUMO states of every first collision (module docstring); one dict each."""

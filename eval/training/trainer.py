@@ -123,6 +123,15 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
     return out
 
 
+def _log_every() -> float:
+    """Seconds between the log lines of a --quiet run: 30, or COSIM_LOG_EVERY_S (what
+    `cosim train --algo all` sets for the runs whose lines drive its progress bar)."""
+    try:
+        return float(os.environ.get("COSIM_LOG_EVERY_S", "30"))
+    except ValueError:
+        return 30.0
+
+
 def _bar(cfg: TrainConfig, runlog: RunLog, quiet: bool, progress: bool):
     from tqdm import tqdm
 
@@ -134,7 +143,7 @@ def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_
     mean = runlog.mean_recent()
     bar.set_postfix_str(f"return {mean:8.1f}", refresh=False)
     now = time.monotonic()
-    if quiet and now - last_log[0] > 30:
+    if quiet and now - last_log[0] > _log_every():
         rate = (step - last_log[1]) / (now - last_log[0])
         last_log[0], last_log[1] = now, step
         print(f"[{cfg.algo} {cfg.env}] step {step}/{cfg.steps} recent mean return {mean:.1f} "

@@ -32,6 +32,10 @@ def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
         capture_output=True, text=True, timeout=900,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    # one progress bar over the six runs' steps (their --quiet lines move it), a line per run
+    assert "train all" in proc.stderr and f"{120 * 6}/{120 * 6}" in proc.stderr, proc.stderr[-2000:]
+    assert all(f"{algo}: done, run folder " in proc.stdout for algo in ALGORITHMS), proc.stdout
+    assert "pybullet build time" not in proc.stdout + proc.stderr
     runs = {p.name.split("__")[1]: p for p in tmp_path.iterdir()}
     assert sorted(runs) == sorted(ALGORITHMS)
     obs = np.zeros((84, 84, 12), np.uint8)  # the presets' 4-frame stack
