@@ -17,7 +17,7 @@ class _Agent:
     def __init__(self):
         self.step = 0
 
-    def save(self, path, policy_only: bool = False) -> None:
+    def save(self, path, policy_only: bool = False, policy_dtype: str = "float32") -> None:
         path.write_text(json.dumps({"step": self.step}))
 
 
