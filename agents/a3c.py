@@ -163,6 +163,8 @@ class A3C(Agent):
         optimizer: Its :class:`SharedAdam`.
     """
 
+    optimizer_learning_rates: ClassVar[dict[str, str]] = {"adam": "learning_rate"}
+
     algo: ClassVar[str] = "a3c"
     config_class: ClassVar[type[AgentConfig]] = A3CConfig
 

@@ -195,6 +195,9 @@ class Agent(abc.ABC):
     config_class: ClassVar[type[AgentConfig]]
     policy_only: bool = False
     """True when loaded from a policy checkpoint: it acts, but holds no optimizer or target state."""
+    optimizer_learning_rates: ClassVar[dict[str, str]] = {}
+    """Optimizer name (``self.optimizers``) -> the config field holding its learning rate, so
+    that a changed config reaches the optimizers (:func:`agents.checkpoint.retune_checkpoint`)."""
 
     def __init__(
         self,

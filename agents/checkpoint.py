@@ -53,6 +53,7 @@ __all__ = [
     "load_checkpoint",
     "POLICY_DTYPES",
     "policy_state",
+    "retune_checkpoint",
     "save_checkpoint",
     "space_from_dict",
     "space_to_dict",
@@ -235,6 +236,34 @@ def _read(path: Path) -> dict[str, Any]:
             f"({payload.get('versions', {}).get('cosim-agents', 'unknown')})"
         )
     return payload
+
+
+def retune_checkpoint(path, config) -> None:
+    """Rewrite the checkpoint at ``path`` so that its agent goes on training with ``config``
+    (same algorithm; PBT's explore step): the recorded config, and each optimizer's learning
+    rate (``Agent.optimizer_learning_rates``; a loaded optimizer state would otherwise bring
+    the old rate back). Weights, optimizer moments and counters are kept bit for bit; a policy
+    checkpoint (no optimizers) changes its config only. Written to a temporary name and renamed.
+
+    Raises:
+        CheckpointError: not a checkpoint, or ``config`` is not its algorithm's config class.
+    """
+    from agents.registry import get_agent_class
+
+    path = Path(path)
+    payload = _read(path)
+    cls = get_agent_class(payload["algo"])
+    if not isinstance(config, cls.config_class):
+        raise CheckpointError(f"checkpoint {path} holds a {payload['algo']!r} agent; retune it with a "
+                              f"{cls.config_class.__name__}, not a {type(config).__name__}")
+    payload["config"] = config.to_dict()
+    for name, state in payload["state"].get("optimizers", {}).items():
+        rate = float(getattr(config, cls.optimizer_learning_rates[name]))
+        for group in state.get("param_groups", []):
+            group["lr"] = rate
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
 
 
 def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 import logging
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium
 import numpy as np
@@ -44,6 +44,8 @@ class DQN(Agent):
     the Q-values diverged (to ~1e3 within 30k steps in our runs). The default
     delta 10 keeps ordinary TD errors quadratic; the paper preset keeps 1.
     """
+
+    optimizer_learning_rates: ClassVar[dict[str, str]] = {"optimizer": "learning_rate"}
 
     algo = "dqn"
     config_class = DQNConfig

@@ -119,6 +119,8 @@ class IMPALA(Agent):
         optimizer: Its Adam.
     """
 
+    optimizer_learning_rates: ClassVar[dict[str, str]] = {"adam": "learning_rate"}
+
     algo: ClassVar[str] = "impala"
     config_class: ClassVar[type[AgentConfig]] = IMPALAConfig
 

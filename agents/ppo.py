@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import collections
 import logging
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium
 import numpy as np
@@ -37,6 +37,8 @@ logger = logging.getLogger(__name__)
 
 class PPO(Agent):
     """Clipped-surrogate PPO with an adaptive KL penalty on one ActorCritic network."""
+
+    optimizer_learning_rates: ClassVar[dict[str, str]] = {"optimizer": "learning_rate"}
 
     algo = "ppo"
     config_class = PPOConfig

@@ -49,6 +49,8 @@ class TD3(Agent):
     itself. One CNN forward then serves the actor and all critics.
     """
 
+    optimizer_learning_rates: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_learning_rate", "critic_optimizer": "critic_learning_rate"}
+
     algo = "td3"
     config_class: ClassVar[type[AgentConfig]] = TD3Config
     config: TD3Config

@@ -87,29 +87,15 @@ def with_hyper(cfg: TrainConfig, hyper: dict[str, Any]) -> TrainConfig:
     return dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(**hyper))
 
 
-def _lr_field(optimizer_name: str, config: AgentConfig) -> str:
-    for part in ("actor", "critic"):
-        if part in optimizer_name and hasattr(config, f"{part}_learning_rate"):
-            return f"{part}_learning_rate"
-    return "learning_rate"
-
-
 def apply_hyper(run: Path, cfg: TrainConfig) -> None:
     """Write ``cfg``'s hyperparameters into a run folder before it is resumed: config.yaml,
-    and each agent checkpoint's config and optimizer learning rates (a checkpoint's
-    optimizer state would otherwise bring the old learning rate back)."""
-    import torch
+    and each agent checkpoint through agents' own API (``agents.checkpoint.retune_checkpoint``:
+    the checkpoint's config and its optimizers' learning rates)."""
+    from agents.checkpoint import retune_checkpoint
 
     (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     for path in sorted((run / "checkpoints").glob("ac_*/*.pt")):
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-        payload["config"] = cfg.agent_config.to_dict()  # its serialised form (agents/checkpoint.py)
-        for name, state in payload["state"].get("optimizers", {}).items():
-            for group in state.get("param_groups", []):
-                group["lr"] = float(getattr(cfg.agent_config, _lr_field(name, cfg.agent_config)))
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(payload, tmp)
-        tmp.replace(path)
+        retune_checkpoint(path, cfg.agent_config)
 
 
 def weights_digest(path: Path) -> str:

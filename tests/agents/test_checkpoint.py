@@ -215,3 +215,46 @@ def test_wrong_format_version_and_algorithm(tmp_path):
     torch.save(payload, tmp_path / "mismatch.pt")
     with pytest.raises(agents.CheckpointError, match="does not match"):
         agents.load(tmp_path / "mismatch.pt")
+
+
+@pytest.mark.parametrize("algo", ["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
+def test_retune_sets_config_and_learning_rates_and_keeps_weights_and_moments(algo, tmp_path):
+    """PBT's explore step through the agents API: the checkpoint's config and every
+    optimizer's learning rate change; weights and optimizer moments stay bit for bit."""
+    import gymnasium as gym
+
+    from agents.checkpoint import retune_checkpoint
+
+    cls = get_agent_class(algo)
+    if algo in SPACES:  # trained: its optimizers hold moments
+        agent = _trained(algo)
+    else:  # A3C and IMPALA train in their own loops (tests/agents/test_async*.py)
+        agent = cls.from_spaces(gym.spaces.Box(0, 255, (84, 84, 3), np.uint8), gym.spaces.Discrete(9), seed=3)
+    assert set(cls.optimizer_learning_rates) == set(agent.optimizers), "every optimizer has its rate field"
+    agent.save(tmp_path / "latest.pt")
+    agent.save(tmp_path / "best.pt", policy_only=True)
+    before = torch.load(tmp_path / "latest.pt", weights_only=True)
+    changes = {field: 0.5 * getattr(agent.config, field) for field in set(cls.optimizer_learning_rates.values())}
+    new = agent.config.replace(**changes)
+    for name in ("latest.pt", "best.pt"):
+        retune_checkpoint(tmp_path / name, new)
+    after = torch.load(tmp_path / "latest.pt", weights_only=True)
+    assert after["config"] == new.to_dict()
+    for net, tensors in before["state"]["networks"].items():
+        for key, t in tensors.items():
+            assert torch.equal(after["state"]["networks"][net][key], t), (net, key)
+    for name, state in after["state"]["optimizers"].items():
+        assert [g["lr"] for g in state["param_groups"]] == pytest.approx(
+            [changes[cls.optimizer_learning_rates[name]]] * len(state["param_groups"]))
+        old = before["state"]["optimizers"][name]["state"]
+        for k, moments in state["state"].items():
+            for key, value in moments.items():
+                assert torch.equal(value, old[k][key]) if torch.is_tensor(value) else value == old[k][key]
+    loaded = agents.load(tmp_path / "latest.pt", require_full=True)
+    assert loaded.config == new
+    assert {n: [g["lr"] for g in o.param_groups] for n, o in loaded.optimizers.items()} == {
+        n: [changes[cls.optimizer_learning_rates[n]]] * len(o.param_groups) for n, o in loaded.optimizers.items()}
+    assert agents.load(tmp_path / "best.pt").config == new
+    other = get_agent_class("dqn" if algo != "dqn" else "ppo").config_class()
+    with pytest.raises(agents.CheckpointError, match=f"holds a '{algo}' agent; retune it with a"):
+        retune_checkpoint(tmp_path / "latest.pt", other)
