@@ -396,3 +396,11 @@ def test_only_the_smoke_preset_rounds_its_policy_files_and_a_bad_dtype_is_refuse
     (tmp_path / "runs.yaml").write_text(yaml.safe_dump(runs))
     with pytest.raises(ValueError, match=r"runs.yaml: quick: policy_dtype must be one of float32, float16, got 'float8'"):
         presets.load_presets(tmp_path)
+
+
+def test_eval_never_writes_a_checkpoint_payload_itself():
+    """Checkpoints are the agents package's format: eval saves agents (agent.save) and retunes
+    them (agents.checkpoint.retune_checkpoint), never torch.save's a payload it edited."""
+    writers = [f"{path.relative_to(ROOT)}:{n}" for path in sorted((ROOT / "eval").rglob("*.py"))
+               for n, line in enumerate(path.read_text().splitlines(), 1) if "torch.save(" in line]
+    assert not writers, writers
