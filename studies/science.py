@@ -52,7 +52,7 @@ import pandas as pd  # noqa: E402
 from agents.errors import AgentError  # noqa: E402
 from agents.registry import ALGORITHMS  # noqa: E402
 from cosim.errors import CosimError  # noqa: E402
-from eval.reporting import science  # noqa: E402
+from eval.reporting import science, stats  # noqa: E402
 from eval.reporting.report import env_title  # noqa: E402
 from eval.scale.benchmark import (  # noqa: E402
     TEST_SETTINGS,
@@ -439,7 +439,7 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
            f"seed) (episode seeds {t['episode_seeds'][0]}.., collisions do not end an episode); "
            f"reference rows on the same episode seeds with {len(plan.algos)} ACs (Scenario 1 "
            f"conditions). Cells: mean over training seeds [95% percentile bootstrap CI over "
-           f"seeds, {science.BOOTSTRAP} resamples]; reference rows: over episodes x ACs.")
+           f"seeds, {stats.BOOTSTRAP} resamples]; reference rows: over episodes x ACs.")
     full = ["# Science study: full results\n", how + "\n"]
     for s in t["scenarios"]:
         full.append(f"\n## Scenario {s} ({'multi-agent' if s == 1 else 'single-agent'})\n")

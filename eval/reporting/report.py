@@ -35,33 +35,13 @@ import numpy as np
 import pandas as pd
 
 from eval.labels import ALGO_ORDER, SCENARIO_NAMES, algo_order, env_title  # noqa: F401 - re-exported
+from eval.reporting.stats import BOOTSTRAP, CI_SEED, bootstrap_ci
 from eval.testing.metrics import episode_metrics, scenario_dt
 
 TABLE_METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE", "return", "goal")
 """Table RQ1's rows: the paper's metrics, then the return and the goal rate (the yardstick
 the reference columns are read against)."""
-BOOTSTRAP = 2000
-CI_SEED = 0
 UNITS = {"TTFC": "s", "SPEED": "km/h", "DISTANCE": "m"}
-
-
-def bootstrap_ci(values, resamples: int = BOOTSTRAP, seed: int = CI_SEED) -> tuple[float, float, float, int]:
-    """(mean, low, high, n) of the finite values: a 95% percentile bootstrap of the mean.
-
-    Deterministic (a fixed seed); n = 1 gives an interval of zero width, n = 0 NaNs.
-    """
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    n = len(v)
-    if n == 0:
-        return float("nan"), float("nan"), float("nan"), 0
-    mean = float(v.mean())
-    if n == 1:
-        return mean, mean, mean, 1
-    rng = np.random.default_rng(seed)
-    means = v[rng.integers(0, n, (resamples, n))].mean(axis=1)
-    lo, hi = np.percentile(means, [2.5, 97.5])
-    return mean, float(lo), float(hi), n
 
 
 def per_episode(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:

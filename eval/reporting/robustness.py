@@ -19,7 +19,8 @@ import numpy as np
 import pandas as pd
 
 from eval.labels import algo_order
-from eval.reporting.report import bootstrap_ci, per_episode
+from eval.reporting.report import per_episode
+from eval.reporting.stats import bootstrap_ci
 
 SWEEP_METRICS = (("safety", "Safety (collision-\nfree episodes)"), ("lane_keeping", "Lane keeping\n(1 - OS)"),
                  ("DISTANCE", "DISTANCE (m)"), ("SPEED", "SPEED (km/h)"))

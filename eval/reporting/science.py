@@ -8,7 +8,7 @@ over *training seeds*:
 - :func:`seed_means`: one value per (scenario, environment, algorithm, seed): the
   mean over that seed's test episodes (NaN-aware: TTFC and CP only where they apply);
 - :func:`seed_table`: mean and 95% percentile-bootstrap CI over seeds
-  (:func:`eval.reporting.report.bootstrap_ci`: 2,000 resamples, fixed seed); n = seeds;
+  (:func:`eval.reporting.stats.bootstrap_ci`: 2,000 resamples, fixed seed); n = seeds;
 - :func:`reference_table`: the reference rows (eval/testing/validity.py: autopilot, uniform
   random, degenerate suite) with a CI over their episodes x ACs;
 - :func:`verdict`: issue 14's item 1 per (algorithm, environment): mean return AND
@@ -31,14 +31,15 @@ percentile bootstrap in numpy.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from eval.labels import ENVS, env_colour  # noqa: F401 - ENVS re-exported (studies/science.py)
-from eval.reporting.report import BOOTSTRAP, CI_SEED, algo_order, bootstrap_ci, env_title
+from eval.reporting.report import algo_order, env_title
+from eval.reporting.stats import bootstrap_ci, iqm, stratified_bootstrap
 from eval.testing.validity import DEGENERATE, POLICIES
 
 METRICS = ("return", "goal", "DISTANCE", "CV", "CO", "CP", "OS", "TTFC", "SPEED")
@@ -159,38 +160,6 @@ def verdict(table: pd.DataFrame, references: pd.DataFrame,
     order = {a: i for i, a in enumerate(algo_order(out["algorithm"].unique()))}
     return out.sort_values(["algorithm", "env"], key=lambda c: c.map(order) if c.name == "algorithm"
                            else c).reset_index(drop=True)
-
-
-# -- IQM -----------------------------------------------------------------------------------
-def iqm(scores, axis: int | None = None):
-    """Interquartile mean: the mean of the middle half after cutting floor(n/4) values at
-    each end (scipy.stats.trim_mean(x, 0.25), what rliable's ``aggregate_iqm`` returns)."""
-    x = np.asarray(scores, float)
-    if axis is None:
-        x, axis = x.ravel(), 0
-    x = np.sort(np.moveaxis(x, axis, -1), axis=-1)
-    n = x.shape[-1]
-    if n == 0:
-        raise ValueError("iqm of no scores")
-    k = int(0.25 * n)
-    return x[..., k:n - k].mean(axis=-1)
-
-
-def stratified_bootstrap(scores: Mapping[str, Sequence[float]],
-                         statistic: Callable = iqm, resamples: int = BOOTSTRAP,
-                         seed: int = CI_SEED) -> tuple[float, float, float]:
-    """(point, low, high): the statistic of every task's runs pooled, and its 95% percentile
-    interval when each task's runs (seeds) are resampled with replacement separately
-    (rliable's stratified bootstrap; tasks = environments)."""
-    tasks = [np.asarray(v, float) for v in scores.values()]
-    if not tasks or any(len(v) == 0 for v in tasks):
-        raise ValueError("stratified_bootstrap needs at least one score per task")
-    point = float(statistic(np.concatenate(tasks)))
-    rng = np.random.default_rng(seed)
-    draws = np.concatenate([v[rng.integers(0, len(v), (resamples, len(v)))] for v in tasks], axis=1)
-    stats = statistic(draws, axis=1)
-    lo, hi = np.percentile(stats, [2.5, 97.5])
-    return point, float(lo), float(hi)
 
 
 def normalise(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
@@ -395,6 +364,5 @@ def iqm_markdown(t: pd.DataFrame) -> str:
     return _md(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
 
 
-__all__ = ["METRICS", "convergence_curve", "convergence_curves", "convergence_figure", "iqm",
-           "iqm_table", "normalise", "reference_table", "seed_means", "seed_table",
-           "stratified_bootstrap", "verdict"]
+__all__ = ["METRICS", "convergence_curve", "convergence_curves", "convergence_figure", "iqm_table",
+           "normalise", "reference_table", "seed_means", "seed_table", "verdict"]

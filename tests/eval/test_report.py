@@ -15,13 +15,13 @@ from gymnasium import spaces
 from eval.cli import main
 from eval.reporting.report import (
     TABLE_METRICS,
-    bootstrap_ci,
     cell,
     provenance,
     row_name,
     sha256,
     write_paper_report,
 )
+from eval.reporting.stats import bootstrap_ci
 from eval.testing import replay, selection
 from eval.testing.protocol import ProtocolPlan, run_protocol
 

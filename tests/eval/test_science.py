@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from eval.reporting import science
+from eval.reporting import science, stats
 from eval.testing.validity import DEGENERATE, POLICIES
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -21,24 +21,24 @@ SCRIPT = ROOT / "studies" / "science.py"
 
 # -- statistics ------------------------------------------------------------------------------
 def test_iqm_is_the_mean_of_the_middle_half():
-    assert science.iqm(np.arange(1, 9)) == pytest.approx(4.5)     # cut 2 each end: 3, 4, 5, 6
-    assert science.iqm(np.arange(15)) == pytest.approx(7.0)       # cut 3 each end: 3 .. 11
-    assert science.iqm([5.0, -100.0, 6.0, 100.0]) == pytest.approx(5.5)  # outliers cut
-    rows = science.iqm(np.array([[1, 2, 3, 4], [0, 0, 8, 8]]), axis=1)
+    assert stats.iqm(np.arange(1, 9)) == pytest.approx(4.5)     # cut 2 each end: 3, 4, 5, 6
+    assert stats.iqm(np.arange(15)) == pytest.approx(7.0)       # cut 3 each end: 3 .. 11
+    assert stats.iqm([5.0, -100.0, 6.0, 100.0]) == pytest.approx(5.5)  # outliers cut
+    rows = stats.iqm(np.array([[1, 2, 3, 4], [0, 0, 8, 8]]), axis=1)
     np.testing.assert_allclose(rows, [2.5, 4.0])
 
 
 def test_stratified_bootstrap_resamples_seeds_within_each_environment():
     # no spread within an environment: every resample is the data itself
-    assert science.stratified_bootstrap({"a": [0, 0], "b": [1, 1]}) == pytest.approx((0.5, 0.5, 0.5))
+    assert stats.stratified_bootstrap({"a": [0, 0], "b": [1, 1]}) == pytest.approx((0.5, 0.5, 0.5))
     # a: [0, 10] resamples to [0, 0] (p 1/4), [0, 10] (1/2), [10, 10] (1/4); b stays [5, 5]:
     # pooled IQMs 2.5, 5, 7.5; both tails hold 25% > 2.5%, so the CI is [2.5, 7.5] exactly
-    assert science.stratified_bootstrap({"a": [0, 10], "b": [5, 5]}) == pytest.approx((5.0, 2.5, 7.5))
+    assert stats.stratified_bootstrap({"a": [0, 10], "b": [5, 5]}) == pytest.approx((5.0, 2.5, 7.5))
     # one environment [0, 0, 0, 10]: IQM (middle two of four) is 0 with at most one 10 drawn
     # (p 0.738), 5 with two (0.211), 10 with three or four (0.051 > 2.5%): CI [0, 10]
-    assert science.stratified_bootstrap({"a": [0, 0, 0, 10]}) == pytest.approx((0.0, 0.0, 10.0))
+    assert stats.stratified_bootstrap({"a": [0, 0, 0, 10]}) == pytest.approx((0.0, 0.0, 10.0))
     with pytest.raises(ValueError, match="at least one score"):
-        science.stratified_bootstrap({"a": []})
+        stats.stratified_bootstrap({"a": []})
 
 
 def _seeds(values: dict[str, list[float]], algo="ppo", env="env_1") -> pd.DataFrame:
