@@ -441,20 +441,7 @@ def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
     return pd.concat(frames, ignore_index=True)
 
 
-def references_markdown(refs: pd.DataFrame) -> str:
-    from eval.testing import validity
-
-    parts = ["## Reference rows (Scenario 1 conditions, scripted policies)\n",
-             "Fixed policies on the same environments, AC count, steps and episodes "
-             "(docs/scenarios.md): a trained AC should beat every degenerate row; "
-             "autopilot-discrete is the ceiling of a discrete learner, and a learner that "
-             "beats safe-non-turner learned to turn (docs/task.md, \"Reference policies\").\n"]
-    for env, g in refs.groupby("env", sort=False):
-        parts.append(f"\n### {env}\n\n" + validity.format_table(g.set_index("policy")) + "\n")
-    return "\n".join(parts)
-
-
 __all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "cross_env", "drive", "env_policy_factory", "find_checkpoints",
            "frame_stack_of", "load_for_slot", "metrics_table", "obs_of", "policy_factory", "reference_rows",
-           "references_markdown", "rules", "run_env", "run_protocol", "slot_checkpoint", "slot_order",
+           "rules", "run_env", "run_protocol", "slot_checkpoint", "slot_order",
            "slot_summary", "slot_table", "slots_markdown", "trained_env"]

@@ -63,6 +63,15 @@ def test_a_policy_checkpoint_acts_like_the_full_one_and_holds_only_the_policy(al
         agents.load(tmp_path / "policy.pt", require_full=True)
 
 
+def _move_every_weight(agent, seed: int) -> None:
+    """Every weight away from its initialisation, so that a network left out of a file shows."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for net in agent.networks.values():
+            for p in net.parameters():
+                p.add_(0.05 * torch.randn(p.shape, generator=gen))
+
+
 @pytest.mark.parametrize("algo", ["ppo", "a3c", "impala", "dqn", "ddpg", "td3"])
 def test_a_camera_policy_checkpoint_acts_like_the_full_agent(algo, tmp_path):
     """On camera images every network the action passes through is in the policy file: with
@@ -74,11 +83,7 @@ def test_a_camera_policy_checkpoint_acts_like_the_full_agent(algo, tmp_path):
     cls = get_agent_class(algo)
     action = gym.spaces.Box(-1, 1, (2,), np.float32) if algo in ("ddpg", "td3") else gym.spaces.Discrete(9)
     agent = cls.from_spaces(gym.spaces.Box(0, 255, (84, 84, 3), np.uint8), action, seed=5)
-    gen = torch.Generator().manual_seed(0)
-    with torch.no_grad():
-        for net in agent.networks.values():
-            for p in net.parameters():
-                p.add_(0.05 * torch.randn(p.shape, generator=gen))
+    _move_every_weight(agent, seed=0)
     agent.save(tmp_path / "policy.pt", policy_only=True)
     policy = agents.load(tmp_path / "policy.pt")
     rng = np.random.default_rng(2)
@@ -111,11 +116,7 @@ def test_a_float16_policy_file_is_half_the_size_and_acts_on_the_rounded_weights(
     cls = get_agent_class(algo)
     action = gym.spaces.Box(-1, 1, (2,), np.float32) if algo == "ddpg" else gym.spaces.Discrete(9)
     agent = cls.from_spaces(gym.spaces.Box(0, 255, (84, 84, 12), np.uint8), action, seed=3)
-    gen = torch.Generator().manual_seed(1)
-    with torch.no_grad():
-        for net in agent.networks.values():
-            for p in net.parameters():
-                p.add_(0.05 * torch.randn(p.shape, generator=gen))
+    _move_every_weight(agent, seed=1)
     agent.save(tmp_path / "f32.pt", policy_only=True)
     agent.save(tmp_path / "f16.pt", policy_only=True, policy_dtype="float16")
     assert (tmp_path / "f16.pt").stat().st_size < 0.6 * (tmp_path / "f32.pt").stat().st_size
