@@ -461,8 +461,9 @@ def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
 
 # -- the test protocol and its report ----------------------------------------------------
 def report_steps(plan: BenchmarkPlan) -> int:
-    """How many times :func:`write_report` calls its ``progress``."""
-    return len(plan.envs) * (plan.seeds + bool(TEST_SETTINGS[plan.preset].references)) + 1
+    """How many times :func:`write_report` calls its ``progress``: once per environment and
+    seed tested, once as the references and the report start."""
+    return len(plan.envs) * plan.seeds + 1
 
 
 def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
@@ -471,7 +472,7 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
     (every seed's, pooled, episodes numbered apart), on held-out episode seeds (from
     eval.testing.validity.HELD_OUT_SEED; training uses small ones), the references of the
     preset, and the `cosim test` report; ``progress`` is called :func:`report_steps` times,
-    as each environment's test and references end and as the report starts."""
+    as each environment's test ends and as the references and the report start."""
     import pandas as pd
 
     from eval.reporting.report import provenance, write_paper_report

@@ -185,3 +185,6 @@ def test_benchmark_console_on_ray_is_short_with_a_line_per_trial(tmp_path):
     lines = _console_checks(done.stdout + done.stderr, 3)
     # the plan, 3 trials, the total, the test of env_1, the report's start, where it is
     assert len(lines) == 1 + 3 + 1 + 2 + 1, lines
+    phases = [re.match(r"\[(\d+)/(\d+)\] (tested|reference)", line) for line in lines]
+    counts = [(int(m[1]), int(m[2])) for m in phases if m]
+    assert counts == [(1, 2), (2, 2)], lines  # the report's counter ends at its total
