@@ -111,11 +111,18 @@ def run_env(run: Path) -> str | None:
     return parts[0] if len(parts) >= 4 and parts[0] else None
 
 
+def run_of(checkpoint: Path) -> Path | None:
+    """The run folder a checkpoint is in (``<run>/checkpoints/ac_k/best.pt``); None for a
+    file outside a run folder."""
+    checkpoint = Path(checkpoint)
+    return checkpoint.parent.parent.parent if checkpoint.parent.parent.name == "checkpoints" else None
+
+
 def trained_env(checkpoint: Path) -> str | None:
     """The environment a checkpoint's run trained in (:func:`run_env`); None for a file
-    outside a run folder (``<run>/checkpoints/ac_k/best.pt``)."""
-    checkpoint = Path(checkpoint)
-    return run_env(checkpoint.parent.parent.parent) if checkpoint.parent.parent.name == "checkpoints" else None
+    outside a run folder."""
+    run = run_of(checkpoint)
+    return run_env(run) if run is not None else None
 
 
 def find_checkpoints(runs: Path, algos: Sequence[str], env: str | None = None) -> dict[str, Path]:
@@ -268,7 +275,7 @@ def slot_table(per_env: Mapping[str, Mapping[str, Path]], plan: ProtocolPlan, al
                              "scenarios": " ".join(map(str, scen)), "checkpoint": str(path),
                              "ac": path.parent.name if path.parent.name.startswith("ac_") else "-",
                              "how": how,
-                             "run": str(path.parent.parent.parent) if path.parent.parent.name == "checkpoints" else "",
+                             "run": str(run_of(path) or ""),
                              "trained_env": trained or "unknown",
                              "cross_env": trained is not None and trained != Path(env).stem})
     return pd.DataFrame(rows)
@@ -443,5 +450,5 @@ def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
 
 __all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "cross_env", "drive", "env_policy_factory", "find_checkpoints",
            "frame_stack_of", "load_for_slot", "metrics_table", "obs_of", "policy_factory", "reference_rows",
-           "rules", "run_env", "run_protocol", "slot_checkpoint", "slot_order",
+           "rules", "run_env", "run_of", "run_protocol", "slot_checkpoint", "slot_order",
            "slot_summary", "slot_table", "slots_markdown", "trained_env"]
