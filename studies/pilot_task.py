@@ -15,7 +15,10 @@ Arms (docs/task.md), each with the same budget (``--preset``, ``--steps``):
 - ``new``: ``cosim train``'s defaults (70 degree discrete reference with the grip limit,
   collisions go on, 4 frames, best.pt by validation);
 - ``nav``: the defaults with ``--obs nav`` (route command, speed and distance beside the
-  image); refused in one line when ``cosim train`` has no ``--obs``.
+  image); refused in one line when ``cosim train`` has no ``--obs``;
+- ``shared`` and ``nav-shared`` (not run unless named): ``new`` and ``nav`` with
+  ``--share-params``, one network for the run's six ACs (agents/shared.py), which then learns
+  from six times the transitions at the same environment steps and compute.
 
 Every run is trained by a ``cosim train`` subprocess (``--jobs`` at once) into
 ``OUT/runs/<arm>/``, its output in ``OUT/logs/``. A rerun of the same command skips finished
@@ -67,13 +70,17 @@ from cosim.errors import CosimError  # noqa: E402
 from cosim.scenario import load_scenario, scenarios_dir  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
-ARMS = ("old", "new", "nav")
+ARMS = ("old", "new", "nav", "shared", "nav-shared")
+DEFAULT_ARMS = ("old", "new", "nav")
+"""The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
 """The steering before issue 25 as a scenario ``vehicle:`` block (docs/guide.md)."""
 ARM_FLAGS = {
     "old": ["--collisions", "end", "--frame-stack", "1", "--validation-episodes", "0"],
     "new": [],
     "nav": ["--obs", "nav"],
+    "shared": ["--share-params"],
+    "nav-shared": ["--obs", "nav", "--share-params"],
 }
 REFERENCES = ("always-brake", "safe-non-turner", "autopilot-discrete", "autopilot")
 OLD_REFERENCES = ("autopilot-discrete",)
@@ -95,7 +102,8 @@ def parse(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("pilot_task"), help="study folder")
-    p.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
+    p.add_argument("--arms", nargs="+", choices=ARMS, default=list(DEFAULT_ARMS),
+                   help=f"default: {' '.join(DEFAULT_ARMS)}")
     p.add_argument("--algos", nargs="+", default=None, help="default: ppo dqn")
     p.add_argument("--envs", nargs="+", default=None, help="default: env_3 env_4")
     p.add_argument("--seed", type=int, default=0, help="training seed of every run")
@@ -465,7 +473,7 @@ def main(argv=None) -> int:
     try:
         check_plan(out, args)
         to_train, to_test = plan_work(out, args)
-        if "nav" in args.arms and any(c.arm == "nav" for c in to_train):
+        if any(c.arm in ("nav", "nav-shared") for c in to_train):
             check_obs_flag(_train_help())
         for cell in cells(args):
             env_arg(out, cell)  # old scenarios written and checked before anything runs

@@ -195,6 +195,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue (default): as in the test, the episode goes on and each contact "
                         "step is charged; end: a collision ends the AC's training episode (the "
                         "paper's rule; docs/task.md, Training rule)")
+    t.add_argument("--share-params", action="store_true",
+                   help="the run's ACs act with ONE network that learns from all their transitions "
+                        "(parameter sharing; default: one network per AC, the paper's; ppo dqn ddpg "
+                        "td3; docs/agents.md)")
     t.add_argument("--validation-episodes", type=_int_in(0), default=None, metavar="N",
                    help="held-out episodes under the test's rules at every checkpoint that pick each "
                         "AC's best.pt (default: the preset's, else 2; 0: off, best.pt by training "

@@ -13,6 +13,7 @@ from eval.training.runfolder import output_folder
 
 def cmd_train(args) -> int:
 
+    from eval.training.config import ASYNC_ALGOS
     from eval.training.train import ALGORITHMS, TrainError, make_config, parse_set, train
 
     if args.pbt is not None or (args.resume is not None and (args.resume / "pbt.json").exists()):
@@ -31,7 +32,8 @@ def cmd_train(args) -> int:
                         torch_threads=args.torch_threads, frame_stack=args.frame_stack,
                         obs=args.obs, learner_threads=args.learner_threads,
                         validation_episodes=args.validation_episodes,
-                        validation_steps=args.validation_steps)
+                        validation_steps=args.validation_steps,
+                        share_params=args.share_params and (args.algo != "all" or a not in ASYNC_ALGOS))
             for a in algos
         ]
     except TrainError as exc:
@@ -61,6 +63,8 @@ def _train_all(args, configs) -> int:
     import threading
 
     from tqdm import tqdm
+
+    from eval.training.config import ASYNC_ALGOS
 
     parallel = max(1, os.cpu_count() or 1)
     print(f"training {len(configs)} algorithms, {parallel} at a time", flush=True)
@@ -111,7 +115,8 @@ def _train_all(args, configs) -> int:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
                 envs = [] if args.envs is None else ["--envs", str(args.envs)]
-                running[algo] = subprocess.Popen(base + envs + ["--algo", algo], stdout=subprocess.PIPE,
+                own = [a for a in base if a != "--share-params" or algo not in ASYNC_ALGOS]
+                running[algo] = subprocess.Popen(own + envs + ["--algo", algo], stdout=subprocess.PIPE,
                                                  text=True, env=env)
                 pumps[algo] = threading.Thread(target=pump, args=(algo, running[algo].stdout), daemon=True)
                 pumps[algo].start()
@@ -155,6 +160,8 @@ def _train_command(args) -> list[str]:
             base += [flag, str(value)]
     for item in args.hyper:
         base += ["--set", item]
+    if args.share_params:  # _train_all drops it for a3c and impala (they cannot share)
+        base += ["--share-params"]
     return base
 
 
@@ -178,7 +185,7 @@ def _train_pbt(args) -> int:
                               envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
                               frame_stack=args.frame_stack, obs=args.obs, collisions=args.collisions,
                               validation_episodes=args.validation_episodes,
-                              validation_steps=args.validation_steps)
+                              validation_steps=args.validation_steps, share_params=args.share_params)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:

@@ -104,6 +104,11 @@ class TrainConfig:
     what a config.yaml written before the option reads as). make_config gives 2."""
     validation_steps: int = 300
     """Steps per validation episode (default: 300, or the preset's horizon when shorter)."""
+    share_params: bool = False
+    """False (the default, the paper's setting): every AC has its own networks and learns from its
+    own car's transitions. True (``--share-params``): the run's ACs act with ONE network that
+    learns from all their transitions (agents/shared.py; docs/agents.md, "Parameter sharing");
+    every AC's checkpoint holds that network. PPO, DQN, DDPG and TD3 only."""
     policy_dtype: str = "float32"
     """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
     bytes, rounded; the smoke preset's): the preset's policy_dtype (eval/training/presets.py)."""
@@ -138,7 +143,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
                 torch_threads: int = 0, frame_stack: int | None = None, obs: str = "image",
                 learner_threads: int = 0, collisions: str = "continue",
-                validation_episodes: int | None = None, validation_steps: int | None = None) -> TrainConfig:
+                validation_episodes: int | None = None, validation_steps: int | None = None,
+                share_params: bool = False) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
@@ -149,7 +155,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     best.pt (TrainConfig.validation_episodes; 0 episodes: by training return).
     ``collisions``: "continue" (the default, the test's rule: the episode goes on and every
     contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
-    ``obs``: "image" (the default) or "nav" (TrainConfig.obs).
+    ``obs``: "image" (the default) or "nav" (TrainConfig.obs). ``share_params``: one network for
+    all the run's ACs (TrainConfig.share_params).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -201,6 +208,9 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
+    if share_params and algo in ASYNC_ALGOS:
+        raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
+                         f"{algo} builds its own learners: drop --share-params for it")
     config_cls = registry.get_config_class(algo)  # PPOConfig, ... (agents/configs.py, no torch)
     chosen = agent_preset or p.agent_preset
     try:  # the preset's typed config (with its YAML's changes), then the --set changes
@@ -215,7 +225,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs,
         learner_threads=int(learner_threads),
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
-        validation_steps=validation_steps, policy_dtype=p.policy_dtype,
+        validation_steps=validation_steps, policy_dtype=p.policy_dtype, share_params=bool(share_params),
     )
 
 

@@ -107,6 +107,19 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
     from agents.registry import get_agent_class
 
     cls = get_agent_class(cfg.algo)
+    if cfg.share_params:  # one network for every AC (agents/shared.py); ac_0's files hold it
+        from agents.shared import share
+
+        latest = run / "checkpoints" / "ac_0" / "latest.pt"
+        if resumed and latest.exists():
+            core = agents_pkg.load(latest, device=device)
+            try:
+                check_observations(core.observation_space, obs_space, f"checkpoint {latest}")
+            except ValueError as exc:
+                raise TrainError(str(exc)) from None
+        else:
+            core = cls.from_spaces(obs_space, act_space, cfg.agent_config, seed=cfg.seed, device=device)
+        return share(core, [f"ac_{k}" for k in range(cfg.agents)])
     out = {}
     for k in range(cfg.agents):
         aid = f"ac_{k}"
@@ -202,7 +215,10 @@ def _cpus() -> int:
 
 
 def _learner_threads(cfg: TrainConfig) -> int:
-    """``cfg.learner_threads``, or one per AC up to the CPUs (the ACs' updates are independent)."""
+    """``cfg.learner_threads``, or one per AC up to the CPUs (the ACs' updates are independent);
+    1 when the ACs share one network (--share-params: one learner)."""
+    if cfg.share_params:
+        return 1
     return cfg.learner_threads or min(cfg.agents, _cpus())
 
 

@@ -148,3 +148,37 @@ def test_cosim_train_collisions_continue_reaches_the_run_config(tmp_path):
                  "--collisions", "continue", "--out", str(tmp_path), "--quiet"]) == 0
     (run,) = tmp_path.iterdir()
     assert yaml.safe_load((run / "config.yaml").read_text())["collisions_end_episode"] is False
+
+
+def test_share_params_trains_one_network_for_every_ac_and_resumes_it(tmp_path):
+    import torch
+    import yaml
+
+    import agents
+    from agents.shared import shared_core
+    from eval.training.train import train
+    from eval.training.trainer import _load_or_build, make_env
+
+    cfg = make_config("dqn", "env_1", "smoke", agents=2, steps=40, share_params=True,
+                      validation_episodes=0)
+    run = train(cfg, tmp_path, quiet=True, progress=False, keep="all")
+    assert yaml.safe_load((run / "config.yaml").read_text())["share_params"] is True
+    latest = [agents.load(run / "checkpoints" / f"ac_{k}" / "latest.pt") for k in range(2)]
+    for key, tensor in latest[1].q_network.state_dict().items():  # every AC's file: the one network
+        assert torch.equal(tensor, latest[0].q_network.state_dict()[key]), key
+    assert latest[0].steps == 2 * 40  # the one learner saw both ACs' transitions
+    assert agents.load(run / "checkpoints" / "ac_1" / "best.pt").algo == "dqn"
+    env = make_env(cfg)
+    try:  # resuming builds one core from ac_0's latest.pt and shares it again
+        slots = _load_or_build(cfg, run, True, env.observation_space("ac_0"), env.action_space("ac_0"))
+    finally:
+        env.close()
+    core = shared_core(slots)
+    assert core is not None and core.steps == 80 and list(slots) == ["ac_0", "ac_1"]
+
+
+def test_share_params_is_refused_for_a3c_and_impala():
+    for algo in ("a3c", "impala"):
+        with pytest.raises(TrainError, match="--share-params is for ppo, dqn, ddpg, td3"):
+            make_config(algo, "env_1", "smoke", share_params=True)
+    assert make_config("td3", "env_1", "smoke").share_params is False  # the paper's: one network per AC
