@@ -99,6 +99,12 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--collisions", choices=COLLISION_RULES, default=None,
                    help="training episodes at a collision: continue (default, the test's rule) or "
                         "end (the paper's); the test never ends them")
+    p.add_argument("--obs", choices=("image", "nav"), default=None,
+                   help="what the ACs observe in training and test (as `cosim train --obs`; "
+                        "default image, the paper's)")
+    p.add_argument("--share-params", action="store_true", default=None,
+                   help="one network per run for all its ACs in ppo dqn ddpg td3 (as `cosim "
+                        "train --share-params`; default: one per AC, the paper's)")
     p.add_argument("--episodes", type=int, default=None,
                    help="test episodes per environment and seed (default: the preset's test)")
     p.add_argument("--test-steps", type=int, default=None, help="steps per test episode")
@@ -119,6 +125,7 @@ def parse(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     given = {k for k, v in vars(args).items() if v is not None}
     study_options = given & {"preset", "envs", "algos", "seeds", "steps", "agents", "collisions", "episodes",
+                             "obs", "share_params",
                              "test_steps", "scenarios", "concurrent", "ray_address", "runs"}
     if args.combine and (study_options or args.smoke):
         p.error("--combine takes the studies' own settings; drop --"
@@ -196,6 +203,10 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
         cmd += ["--agents", str(plan.agents)]
     if plan.collisions:
         cmd += ["--collisions", plan.collisions]
+    if plan.obs != "image":
+        cmd += ["--obs", plan.obs]
+    if plan.share_params:
+        cmd.append("--share-params")
     if saved.exists():
         cmd.append("--resume")
     if args.no_ray:
@@ -323,7 +334,7 @@ def references(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame
 
 
 # -- combining finished studies ---------------------------------------------------------------
-COMBINED_KEYS = ("preset", "algos", "steps", "agents", "collisions")
+COMBINED_KEYS = ("preset", "algos", "steps", "agents", "collisions", "obs", "share_params")
 """What the studies combined must share (with their whole test plan)."""
 
 
@@ -364,7 +375,8 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
     envs = [e for e in science.ENVS if e in seeds_of] + sorted(set(seeds_of) - set(science.ENVS))
     plan = BenchmarkPlan(preset=b0["preset"], envs=tuple(envs), algos=tuple(b0["algos"]),
                          seeds=max(seeds_of.values()), steps=b0["steps"], agents=b0.get("agents"),
-                         collisions=b0.get("collisions"))
+                         collisions=b0.get("collisions"), obs=b0.get("obs", "image"),
+                         share_params=bool(b0.get("share_params", False)))
     saved = out / "science.json"
     if saved.exists() and "combined" not in json.loads(saved.read_text()):
         raise ScienceError(f"{out} holds a study of its own; choose another --out for the "
@@ -430,6 +442,9 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     budget += f", {plan.agents} ACs per training run" if plan.agents else ""
     budget += (", collisions do not end training episodes (`--collisions continue`)"
                if plan.collisions == "continue" else "")
+    budget += ", ACs observe camera frames and the nav measurements (`--obs nav`)" if plan.obs == "nav" else ""
+    budget += (", one network per run for all its ACs in PPO, DQN, DDPG and TD3 (`--share-params`)"
+               if plan.share_params else "")
     counts = sorted(set(seeds_of.values()))
     per_env = (f"{counts[0]} seed(s)" if len(counts) == 1 else "seeds per environment: " + ", ".join(
         f"{env_title(e)} {seeds_of[e]}" for e in plan.envs))
@@ -500,7 +515,8 @@ def main(argv=None) -> int:
         else:
             plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs),
                                  algos=tuple(args.algos), seeds=args.seeds, steps=args.steps,
-                                 agents=args.agents, collisions=args.collisions or "continue")
+                                 agents=args.agents, collisions=args.collisions or "continue",
+                                 obs=args.obs or "image", share_params=bool(args.share_params))
             plan.cells()  # an unknown preset or environment fails here, before any work
             study = study_plan(args, plan)
             check_plan(out, study)

@@ -348,6 +348,11 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
     b.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
                    help="training episodes at a collision (as `cosim train --collisions`; default "
                         "continue: the test's rule, docs/task.md)")
+    b.add_argument("--obs", choices=OBS_VARIANTS, default="image",
+                   help="what the ACs observe (as `cosim train --obs`; default image, the paper's)")
+    b.add_argument("--share-params", action="store_true",
+                   help="one network per trial for all its ACs in ppo dqn ddpg td3 (as `cosim train "
+                        "--share-params`; a3c and impala stay one per AC; default: one per AC)")
     b.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
     b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",

@@ -43,7 +43,7 @@ import numpy as np
 from cosim.errors import CosimError
 from eval.labels import ENVS
 from eval.testing.validity import POLICIES
-from eval.training.config import COLLISION_RULES
+from eval.training.config import ASYNC_ALGOS, COLLISION_RULES, OBS_VARIANTS
 from eval.training.train import ALGORITHMS, TrainConfig, make_config, train
 
 log = logging.getLogger(__name__)
@@ -96,6 +96,11 @@ class BenchmarkPlan:
     """Training episodes at a collision: "continue" (the test's rule, the default since
     2026-11-24; docs/task.md, Training rule) or "end" (the paper's). None is what a plan
     saved before then holds (no key): it meant, and still means, "end"."""
+    obs: str = "image"
+    """What the trials' ACs observe (``cosim train --obs``): image, or nav (docs/task.md)."""
+    share_params: bool = False
+    """One network per trial for all its ACs (``cosim train --share-params``) in the algorithms
+    that can share (PPO, DQN, DDPG, TD3); A3C and IMPALA trials stay one network per AC."""
 
     def __post_init__(self):
         unknown = sorted(set(self.algos) - set(ALGORITHMS))
@@ -111,18 +116,27 @@ class BenchmarkPlan:
             object.__setattr__(self, "collisions", "end")
         if self.collisions not in COLLISION_RULES:
             raise BenchmarkError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {self.collisions!r}")
+        if self.obs not in OBS_VARIANTS:
+            raise BenchmarkError(f"--obs must be {' or '.join(OBS_VARIANTS)}, got {self.obs!r}")
 
     def cells(self) -> list[TrainConfig]:
         """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
         return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, agents=self.agents,
-                            torch_threads=1, collisions=self.collisions)
+                            torch_threads=1, collisions=self.collisions, obs=self.obs,
+                            share_params=self.share_params and algo not in ASYNC_ALGOS)
                 for env in self.envs for algo in self.algos for seed in range(self.seeds)]
 
     def to_dict(self) -> dict[str, Any]:
         plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
                 "seeds": self.seeds, "steps": self.steps, "collisions": self.collisions}
-        # only when set: a plan saved before --agents existed still reads back as equal
-        return {**plan, **({"agents": self.agents} if self.agents is not None else {})}
+        # only when set: a plan saved before --agents, --obs or --share-params existed still
+        # reads back as equal
+        extra = {"agents": self.agents} if self.agents is not None else {}
+        if self.obs != "image":
+            extra["obs"] = self.obs
+        if self.share_params:
+            extra["share_params"] = True
+        return {**plan, **extra}
 
 
 def saved_plan(path: Path) -> dict[str, Any]:

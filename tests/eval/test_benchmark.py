@@ -684,3 +684,18 @@ def test_a_tune_folder_from_before_the_subpackages_is_refused_with_what_to_do(tm
         (tmp_path / "tuner.pkl").write_bytes(b"\x80\x05" + old)
         with pytest.raises(RayError, match="before eval/ was split"):
             refuse_old_layout(tmp_path)
+
+
+def test_the_plan_records_the_obs_and_sharing_variants_and_shares_where_it_can():
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan
+
+    plan = BenchmarkPlan(preset="smoke", envs=("env_1",), algos=("ppo", "a3c", "td3"), obs="nav",
+                         share_params=True)
+    cells = {c.algo: c for c in plan.cells()}
+    assert {a: (c.obs, c.share_params) for a, c in cells.items()} == {
+        "ppo": ("nav", True), "a3c": ("nav", False), "td3": ("nav", True)}
+    assert {"obs": "nav", "share_params": True}.items() <= plan.to_dict().items()
+    default = BenchmarkPlan(preset="smoke", envs=("env_1",), algos=("ppo",)).to_dict()
+    assert "obs" not in default and "share_params" not in default  # old plans still read as equal
+    with pytest.raises(BenchmarkError, match="--obs must be image or nav"):
+        BenchmarkPlan(preset="smoke", obs="lidar")
