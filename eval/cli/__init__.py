@@ -319,7 +319,7 @@ def _refuse(error: Exception):
 def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | None) -> None:
     from agents.registry import ALGORITHMS
     from eval.labels import ENVS
-    from eval.training.config import COLLISION_RULES
+    from eval.training.config import COLLISION_RULES, OBS_VARIANTS
     from eval.training.runfolder import KEEP_POLICIES
 
     trials = len(ENVS) * len(ALGORITHMS)
