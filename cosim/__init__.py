@@ -13,7 +13,21 @@ from cosim.env import CosimParallelEnv, parallel_env
 from cosim.scenario import available_scenarios, load_scenario
 from cosim.single import GYM_IDS, SingleAgentEnv, register_envs, single_env
 
+TASK_VERSION = 2
+"""The driving task's version, recorded in every run's manifest.json and every report's
+provenance.json (``task_version``) so a results folder says which task it measured:
+
+1. 2026-11-20 to 11-24: the paper's discrete steer fractions of a 35 degree wheel, no grip limit;
+   training episodes ended at a collision; one camera frame; best.pt by training return.
+2. since 2026-11-24 (issue 25; docs/task.md): the fractions of CARLA's 70 degree wheel with a
+   grip limit; collisions go on and every contact step is charged, in training as in the test;
+   4 stacked frames by default; best.pt by validation under the test's rules. Runs record
+   the options that select variants (``--obs``, ``--frame-stack``, ``--collisions``,
+   ``--share-params``) in their config.yaml.
+"""
+
 __all__ = [
+    "TASK_VERSION",
     "CosimParallelEnv",
     "GYM_IDS",
     "SingleAgentEnv",

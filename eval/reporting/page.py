@@ -166,7 +166,7 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
                                               if r[2] != "-") or "unknown (no run config.yaml)"])
     rows.append(["test", f"{plan.get('agents')} ACs, {episodes} episode(s) x {steps} steps per "
                          f"environment and scenario; episode seeds {seed_text}"])
-    rows.append(["task version", "; ".join(
+    rows.append(["task version", f"{prov.get('task_version', '1 (not recorded)')} (cosim.TASK_VERSION); scenarios: " + "; ".join(
         f"{task.get(e, {}).get('title', e)} ({e}) {task.get(e, {}).get('sha256', '?')}" for e in envs)])
     obs = _one(r[5] for r in budget if r[5] != "-") if any(r[5] != "-" for r in budget) else "observation unknown"
     acts = {}

@@ -200,7 +200,8 @@ PACKAGES = ("cosim", "torch", "numpy", "eclipse-sumo", "libsumo", "pybullet", "g
 
 
 def software(command: str | None = None) -> dict[str, Any]:
-    """What ran: the command line (default: this process's), Python, the platform, the
+    """What ran: the command line (default: this process's), the task's version
+    (``cosim.TASK_VERSION``), Python, the platform, the
     versions of :data:`PACKAGES` (None: not installed) and :func:`git_commit`. The one
     builder of this part of a run's ``manifest.json`` and a report's ``provenance.json``."""
     from importlib import metadata
@@ -211,8 +212,11 @@ def software(command: str | None = None) -> dict[str, Any]:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             versions[pkg] = None
+    from cosim import TASK_VERSION
+
     return {
         "command": command if command is not None else " ".join(sys.argv),
+        "task_version": TASK_VERSION,
         "python": platform.python_version(),
         "platform": platform.platform(),
         "versions": versions,

@@ -304,8 +304,11 @@ def test_provenance_and_a_run_manifest_record_what_ran_alike():
                       command=["test", "--agents", "1"])
     manifest = runfolder.manifest(TrainConfig(algo="ppo", agents=1))
     ran = set(runfolder.software())
-    assert ran == {"command", "python", "platform", "versions", "git"}
+    assert ran == {"command", "task_version", "python", "platform", "versions", "git"}
     assert ran <= set(prov) and ran <= set(manifest)
+    import cosim
+
+    assert prov["task_version"] == manifest["task_version"] == cosim.TASK_VERSION == 2
     assert prov["command"] == "cosim test --agents 1"
     assert prov["cosim_version"] == prov["versions"]["cosim"]
     assert set(prov["versions"]) == set(manifest["versions"]) == set(runfolder.PACKAGES)
