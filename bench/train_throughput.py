@@ -21,6 +21,11 @@ the trainer's own clock from the first reset (agents/workers.py TrainProgress.ti
     python bench/train_throughput.py [--steps 1500] [--envs 1 2] [--algos ppo dqn td3 a3c impala]
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo a3c impala dqn ddpg td3   # the presets' ACs
     python bench/train_throughput.py --device cuda --envs 1 4 8 16 --algos ppo dqn td3   # on a GPU machine
+    python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --share-params both   # sharing vs not
+
+``--share-params on`` trains PPO/DQN/DDPG/TD3 with one network for all ACs (`cosim train
+--share-params`; A3C and IMPALA rows stay independent); ``both`` trains each such algorithm
+both ways in the same run and adds a table of the ratio (shared / independent, steady rate).
 
 ``--device cuda`` puts the PPO/DQN/DDPG/TD3 learners on the GPU (A3C and IMPALA learn on
 CPU whatever the device); without a CUDA device it stops at once with one line saying so.
@@ -70,9 +75,9 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
 
 
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
-               agents: int = AGENTS, device: str = "cpu") -> dict[str, float]:
+               agents: int = AGENTS, device: str = "cpu", share: bool = False) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
-                      envs=n, device=device, torch_threads=threads)
+                      envs=n, device=device, torch_threads=threads, share_params=share)
     if hasattr(cfg.agent_config, "learning_starts"):
         cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(learning_starts=200))
     t0 = time.monotonic()
@@ -125,6 +130,8 @@ def main() -> None:
                         help="the trainer's torch threads for every row (0: cosim train's default)")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                         help="torch device of the PPO/DQN/DDPG/TD3 learners (default cpu)")
+    parser.add_argument("--share-params", choices=["off", "on", "both"], default="off",
+                        help="one network for all ACs in ppo/dqn/ddpg/td3 (both: each way, and the ratio)")
     args = parser.parse_args()
     check_device(args.device)
     raw: dict[int, dict] = {}
@@ -134,22 +141,39 @@ def main() -> None:
             raw[n] = raw_env_rate(n, args.steps, agents=args.agents)
             print(f"raw env, {n} env(s): {raw[n]}", flush=True)
             for algo in args.algos:
-                rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
-                                             args.device)
-                print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
+                can_share = algo not in ("a3c", "impala")
+                if args.share_params != "on" or not can_share:
+                    rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads,
+                                                 args.agents, args.device)
+                    print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
+                if args.share_params != "off" and can_share:
+                    key = (algo, n) if args.share_params == "on" else (f"{algo} shared", n)
+                    rows[key] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
+                                           args.device, share=True)
+                    print(f"{algo} shared, {n} env(s): {rows[key]}", flush=True)
+    shared = {"off": "", "on": ", one network for all ACs (--share-params)", "both": ""}[args.share_params]
     print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset, learners on "
-          f"{device_name(args.device)}, torch threads {args.torch_threads or 'default'}\n")
+          f"{device_name(args.device)}, torch threads {args.torch_threads or 'default'}{shared}\n")
+    names = [name for algo in args.algos for name in (algo, f"{algo} shared")
+             if any(key[0] == name for key in rows)]
     print("| what | envs | env steps/s (steady) | AC-frames/s (steady) | env steps/s (wall) "
           "| training / raw env (steady) |")
     print("|---|---|---|---|---|---|")
     for n in args.envs:
         r = raw[n]
         print(f"| raw env (random actions) | {n} | {r['steps_s']:.1f} | {r['frames_s']:.1f} | | 1.00 |")
-        for algo in args.algos:
+        for algo in names:
             t = rows[(algo, n)]
             print(f"| {algo} | {n} | {t['steps_s']:.1f} | {t['frames_s']:.1f} | {t['wall_s']:.1f} "
                   f"| {t['steps_s'] / r['steps_s']:.2f} |")
     print_target_table(rows, args.algos, args.envs, args.device)
+    if args.share_params == "both":
+        print("\n| algorithm | envs | shared / independent (steady env steps/s) |\n|---|---|---|")
+        for n in args.envs:
+            for algo in args.algos:
+                if (f"{algo} shared", n) in rows:
+                    ratio = rows[(f"{algo} shared", n)]["steps_s"] / rows[(algo, n)]["steps_s"]
+                    print(f"| {algo} | {n} | {ratio:.2f} |")
     if len(args.envs) > 1 and "ppo" in args.algos:
         lo, hi = args.envs[0], args.envs[-1]
         print(f"\nPPO --envs {hi} / --envs {lo} (steady): {rows[('ppo', hi)]['steps_s'] / rows[('ppo', lo)]['steps_s']:.2f}x")
