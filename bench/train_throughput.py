@@ -77,7 +77,8 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
                agents: int = AGENTS, device: str = "cpu", share: bool = False) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
-                      envs=n, device=device, torch_threads=threads, share_params=share)
+                      envs=n, device=device, torch_threads=threads, share_params=share,
+                      validation_episodes=0)  # the learning loop alone: validation is timed apart
     if hasattr(cfg.agent_config, "learning_starts"):
         cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(learning_starts=200))
     t0 = time.monotonic()
