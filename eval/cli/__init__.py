@@ -204,7 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "AC's best.pt (default: the preset's, else 2; 0: off, best.pt by training "
                         "return; docs/task.md)")
     t.add_argument("--validation-steps", type=_int_in(1), default=None, metavar="STEPS",
-                   help="steps per validation episode (default 300, or the preset's horizon if shorter)")
+                   help="steps per validation episode (default: the preset's horizon, at most the "
+                        "scenario's: quick 300, standard 600)")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="torch device of the learners (auto: cuda when available)")
     t.add_argument("--torch-threads", type=int, default=0, metavar="K",

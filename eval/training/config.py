@@ -40,8 +40,6 @@ and docs/task.md, "Training rule"."""
 
 VALIDATION_EPISODES = 2
 """Validation episodes per checkpoint unless ``--validation-episodes`` says otherwise."""
-VALIDATION_STEPS = 300
-"""Steps per validation episode (at most the preset's horizon) unless ``--validation-steps``."""
 
 
 class TrainError(CosimError, ValueError):
@@ -103,7 +101,9 @@ class TrainConfig:
     docs/task.md, "Checkpoint selection"). 0: no validation, best.pt by training return (also
     what a config.yaml written before the option reads as). make_config gives 2."""
     validation_steps: int = 300
-    """Steps per validation episode (default: 300, or the preset's horizon when shorter)."""
+    """Steps per validation episode. make_config gives the preset's horizon, at most the
+    scenario's (the test's episode length): quick 300, standard and paper 600, so a checkpoint
+    of a slot whose goal takes the autopilot 300-450 steps is judged on reaching it."""
     share_params: bool = False
     """False (the default, the paper's setting): every AC has its own networks and learns from its
     own car's transitions. True (``--share-params``): the run's ACs act with ONE network that
@@ -197,7 +197,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                          f"{envs}, {torch_threads} and {learner_threads}")
     if validation_episodes is None:
         validation_episodes = VALIDATION_EPISODES if p.validation_episodes is None else p.validation_episodes
-    validation_steps = min(VALIDATION_STEPS, p.horizon) if validation_steps is None else int(validation_steps)
+    # the preset's episode length, at most the test's (the scenario's horizon): docs/task.md
+    validation_steps = min(p.horizon, scenario.horizon) if validation_steps is None else int(validation_steps)
     validation_episodes = int(validation_episodes)
     if validation_episodes < 0 or validation_steps < 1:
         raise TrainError(f"--validation-episodes must be >= 0 (0: off) and --validation-steps >= 1, got "

@@ -103,6 +103,19 @@ def test_validation_seeds_are_disjoint_from_training_and_test_seeds():
         make_config("ppo", "env_1", "smoke", validation_episodes=-1)
 
 
+def test_validation_episodes_are_as_long_as_the_test_allows():
+    """A slot whose goal takes the autopilot 300-450 steps (env_4 ac_3 and ac_5) is judged on
+    reaching it: validation runs the preset's horizon, at most the scenario's (the test's)."""
+    from cosim.scenario import load_scenario
+
+    test_steps = load_scenario("env_4").horizon
+    assert test_steps == 600
+    assert make_config("ppo", "env_4", "standard").validation_steps == test_steps
+    assert make_config("ppo", "env_4", "paper").validation_steps == test_steps  # horizon 2000
+    assert make_config("ppo", "env_4", "quick").validation_steps == 300  # quick's horizon
+    assert make_config("ppo", "env_4", "standard", validation_steps=50).validation_steps == 50
+
+
 def test_validation_drives_the_acs_under_the_test_rules(tmp_path):
     """A real validation: the run's two ACs drive 2 short held-out episodes of the stacked
     env (collisions go on) and each gets its mean undiscounted return."""
