@@ -103,7 +103,7 @@ class TrainConfig:
     validation_steps: int = 300
     """Steps per validation episode. make_config gives the preset's horizon, at most the
     scenario's (the test's episode length): quick 300, standard and paper 600, so a checkpoint
-    of a slot whose goal takes the autopilot 300-450 steps is judged on reaching it."""
+    of a slot whose goal takes the autopilot 300-530 steps is judged on reaching it."""
     share_params: bool = False
     """False (the default, the paper's setting): every AC has its own networks and learns from its
     own car's transitions. True (``--share-params``): the run's ACs act with ONE network that
