@@ -61,9 +61,18 @@ class AgentConfig:
     reward_scale: float = 1.0
     """Every reward is multiplied by this before the agent learns from it (returns
     in the thousands make value targets, and so the shared encoder's gradients, huge)."""
+    action_repeat: int = 1
+    """Environment steps each chosen action is held for: the agent decides every
+    ``action_repeat``-th step and learns from the sum of the rewards in between (frame
+    skipping, Mnih et al. 2015's k = 4). A property of the policy, so its checkpoint carries it
+    and every test drives it at that rate (cosim.wrappers.ActionRepeat in training,
+    eval/testing/rollout.py ``RepeatPolicy`` in the test). 1: an action every step."""
 
     def __post_init__(self):
         check_range("reward_scale", self.reward_scale, 0, low_inclusive=False)
+        check_range("action_repeat", self.action_repeat, 1)
+        if int(self.action_repeat) != self.action_repeat:
+            raise ValueError(f"action_repeat={self.action_repeat!r} must be a whole number of steps")
 
     @classmethod
     def preset(cls, name: str = "default", **overrides: Any) -> AgentConfig:

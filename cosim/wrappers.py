@@ -1,8 +1,8 @@
 """ParallelEnv wrappers: frame stacking (:class:`FrameStack`, :class:`FrameHistory`), the
-``nav`` observation (:class:`NavObservation`: image and measurements), and
-:class:`BlackDeath` for libraries that need every agent present at every step.
-:func:`observation_wrappers` builds an AC's observation from these (docs/task.md,
-"Observation").
+``nav`` observation (:class:`NavObservation`: image and measurements), action repeat
+(:class:`ActionRepeat`), and :class:`BlackDeath` for libraries that need every agent present
+at every step. :func:`observation_wrappers` builds an AC's observation from these
+(docs/task.md, "Observation" and "Action repeat").
 
 A single camera frame has no velocity. :class:`FrameStack` gives each agent its last K
 frames, stacked on the channel axis oldest first (84x84x3 -> 84x84x3K); at a reset the
@@ -100,18 +100,78 @@ class FrameStack(BaseParallelWrapper):
         return {a: self._history[a].push(o) for a, o in obs.items()}
 
 
+class ActionRepeat(BaseParallelWrapper):
+    """Each agent's action is held for ``k`` environment steps: one ``step`` of this wrapper
+    is up to ``k`` steps of ``env`` (docs/task.md, "Action repeat").
+
+    An agent's reward is the sum of its rewards over the steps it took; an agent that finishes
+    (goal, region left, horizon) at an inner step takes no more of them, and its observation,
+    termination, truncation and info are those of that step; the wrapper stops early when no
+    agent is left. The others get the last inner step's. ``k = 1`` is ``env`` itself. The test
+    drives a checkpoint trained through this wrapper by holding its actions itself
+    (eval/testing/rollout.py ``RepeatPolicy``), which gives the same episode.
+    """
+
+    def __init__(self, env, k: int):
+        super().__init__(env)
+        self.k = check_action_repeat(k)
+
+    @property
+    def agents(self) -> list:
+        return self.env.agents
+
+    @property
+    def possible_agents(self) -> list:
+        return self.env.possible_agents
+
+    def observation_space(self, agent):
+        return self.env.observation_space(agent)
+
+    def action_space(self, agent):
+        return self.env.action_space(agent)
+
+    def step(self, actions):
+        obs, rewards, terms, truncs, infos = {}, {a: 0.0 for a in actions}, {}, {}, {}
+        live = dict(actions)
+        for _ in range(self.k):
+            o, r, te, tr, inf = self.env.step(live)
+            for a, v in r.items():
+                rewards[a] = rewards.get(a, 0.0) + float(v)
+            obs.update(o)
+            terms.update(te)
+            truncs.update(tr)
+            infos.update(inf)
+            left = set(self.env.agents)
+            live = {a: act for a, act in live.items() if a in left}
+            if not live:
+                break
+        return obs, rewards, terms, truncs, infos
+
+
+def check_action_repeat(k) -> int:
+    """``k`` as an int >= 1, or a ValueError naming it."""
+    if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
+        raise ValueError(f"action_repeat must be a whole number of environment steps >= 1 (1: an action "
+                         f"every step), got {k!r}")
+    return int(k)
+
+
 OBS_VARIANTS = ("image", "nav")
 """What an AC observes: its camera frames ("image"), or those beside a measurements vector
 ("nav": :class:`NavObservation`)."""
 
 
-def observation_wrappers(env, frame_stack: int = 1, obs: str = "image"):
+def observation_wrappers(env, frame_stack: int = 1, obs: str = "image", action_repeat: int = 1):
     """``env`` with the observation a run trains on: its last ``frame_stack`` camera frames
     (:class:`FrameStack`; 1 leaves the camera as it is) and, with ``obs="nav"``, the
-    measurements beside them (:class:`NavObservation`). The one place the training,
-    validation and library factories build an AC's observation (docs/task.md, "Observation")."""
+    measurements beside them (:class:`NavObservation`); with ``action_repeat`` R > 1 each
+    action held for R steps (:class:`ActionRepeat`, innermost: the frames stacked are those
+    the agent decided on). The one place the training, validation and library factories build
+    an AC's observation (docs/task.md, "Observation")."""
     k = check_frame_stack(frame_stack)
     check_obs_variant(obs)
+    repeat = check_action_repeat(action_repeat)
+    env = ActionRepeat(env, repeat) if repeat > 1 else env
     env = FrameStack(env, k) if k > 1 else env
     return NavObservation(env) if obs == "nav" else env
 

@@ -18,7 +18,9 @@ Arms (docs/task.md), each with the same budget (``--preset``, ``--steps``):
   image); refused in one line when ``cosim train`` has no ``--obs``;
 - ``shared`` and ``nav-shared`` (not run unless named): ``new`` and ``nav`` with
   ``--share-params``, one network for the run's six ACs (agents/shared.py), which then learns
-  from six times the transitions at the same environment steps and compute.
+  from six times the transitions at the same environment steps and compute;
+- ``nav-shared-r2`` (not run unless named): ``nav-shared`` with each action held for 2
+  environment steps (``--set action_repeat=2``, docs/task.md "Action repeat").
 
 Every run is trained by a ``cosim train`` subprocess (``--jobs`` at once) into
 ``OUT/runs/<arm>/``, its output in ``OUT/logs/``. A rerun of the same command skips finished
@@ -70,7 +72,7 @@ from cosim.errors import CosimError  # noqa: E402
 from cosim.scenario import load_scenario, scenarios_dir  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
-ARMS = ("old", "new", "nav", "shared", "nav-shared")
+ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2")
 DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -81,6 +83,7 @@ ARM_FLAGS = {
     "nav": ["--obs", "nav"],
     "shared": ["--share-params"],
     "nav-shared": ["--obs", "nav", "--share-params"],
+    "nav-shared-r2": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
 }
 REFERENCES = ("always-brake", "safe-non-turner", "autopilot-discrete", "autopilot")
 OLD_REFERENCES = ("autopilot-discrete",)
@@ -473,7 +476,7 @@ def main(argv=None) -> int:
     try:
         check_plan(out, args)
         to_train, to_test = plan_work(out, args)
-        if any(c.arm in ("nav", "nav-shared") for c in to_train):
+        if any(c.arm.startswith("nav") for c in to_train):
             check_obs_flag(_train_help())
         for cell in cells(args):
             env_arg(out, cell)  # old scenarios written and checked before anything runs

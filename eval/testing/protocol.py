@@ -39,6 +39,7 @@ from eval.testing.rollout import (
     AutopilotPolicy,
     NavPolicy,
     RandomPolicy,
+    RepeatPolicy,
     SampledPolicy,
     StackedPolicy,
     run_episodes,
@@ -211,8 +212,9 @@ def drive(agent, sample_seed: int | None = None, env=None, slot: str | None = No
     one frame; for a nav-trained agent inside a :class:`~eval.testing.rollout.NavPolicy` that
     builds the measurements of AC ``slot`` of ``env``; inside a
     :class:`~eval.testing.rollout.StackedPolicy` with that AC's own frame history when it was
-    trained on K frames. Both read from the checkpoint, so ACs of every variant share one
-    test environment.
+    trained on K frames; inside a :class:`~eval.testing.rollout.RepeatPolicy` that holds each
+    action for the checkpoint's ``action_repeat`` steps when it was trained with one. All read
+    from the checkpoint, so ACs of every variant share one test environment.
 
     Raises:
         ProtocolError: a nav-trained agent without the env and slot it drives.
@@ -224,7 +226,14 @@ def drive(agent, sample_seed: int | None = None, env=None, slot: str | None = No
             raise ProtocolError(f"{agent.algo} was trained with --obs nav: give drive() the test env and "
                                 "the AC slot it drives, to build that AC's measurements")
         policy = NavPolicy(policy, env, slot)
-    return StackedPolicy(policy, k) if k > 1 else policy
+    policy = StackedPolicy(policy, k) if k > 1 else policy
+    return RepeatPolicy(policy, repeat) if (repeat := action_repeat_of(agent)) > 1 else policy
+
+
+def action_repeat_of(agent) -> int:
+    """Environment steps a checkpoint's agent holds each action for (its config's
+    ``action_repeat``; 1 for a checkpoint written before the option)."""
+    return int(getattr(getattr(agent, "config", None), "action_repeat", 1))
 
 
 def slot_checkpoint(path: Path, slot: str) -> Path:
@@ -448,7 +457,7 @@ def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
     return pd.concat(frames, ignore_index=True)
 
 
-__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "cross_env", "drive", "env_policy_factory", "find_checkpoints",
+__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "action_repeat_of", "cross_env", "drive", "env_policy_factory", "find_checkpoints",
            "frame_stack_of", "load_for_slot", "metrics_table", "obs_of", "policy_factory", "reference_rows",
            "rules", "run_env", "run_of", "run_protocol", "slot_checkpoint", "slot_order",
            "slot_summary", "slot_table", "slots_markdown", "trained_env"]

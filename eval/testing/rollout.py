@@ -4,7 +4,8 @@ A policy is anything with ``act(obs, deterministic=True)`` (every trained agent)
 or a callable ``policy(obs) -> action``. :class:`RandomPolicy` and
 :class:`AutopilotPolicy` are the two references; :class:`StackedPolicy` feeds a
 policy trained on stacked frames its own frame history, :class:`NavPolicy` one trained on
-the ``nav`` observation its own measurements.
+the ``nav`` observation its own measurements, :class:`RepeatPolicy` holds the actions of one
+trained with an action repeat.
 """
 
 from __future__ import annotations
@@ -79,6 +80,34 @@ class StackedPolicy:
 
     def act(self, obs, deterministic: bool = True):
         return _act(self.policy, self.history.push(obs))
+
+
+class RepeatPolicy:
+    """A policy trained with ``action_repeat`` k (cosim.wrappers.ActionRepeat), driving one AC
+    of a test env that asks for an action every step: it decides at the episode's steps 0, k,
+    2k, ... and repeats that action in between, so the policies inside it (a
+    :class:`StackedPolicy`'s frame history, a :class:`NavPolicy`'s measurements) see only the
+    steps it decides on, as in training. ``reset()`` starts the count again.
+    """
+
+    def __init__(self, policy, k: int):
+        from cosim.wrappers import check_action_repeat
+
+        self.policy, self.k = policy, check_action_repeat(k)
+        self.count, self.action = 0, None
+        self.algo = getattr(policy, "algo", None)
+        self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    def reset(self) -> None:
+        self.count, self.action = 0, None
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def act(self, obs, deterministic: bool = True):
+        if self.count % self.k == 0:
+            self.action = _act(self.policy, obs)
+        self.count += 1
+        return self.action
 
 
 class NavPolicy:
@@ -191,4 +220,4 @@ def mean_return(records: pd.DataFrame) -> float:
     return float(records.groupby(["episode", "agent"])["reward"].sum().mean())
 
 
-__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "StackedPolicy", "mean_return", "run_episodes", "np"]
+__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "RepeatPolicy", "StackedPolicy", "mean_return", "run_episodes", "np"]

@@ -180,7 +180,8 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     start_step = runlog.env_steps
     # env i of N: seed + i (env 0 is the one-env run's env)
     fns = [functools.partial(make_env, cfg, cfg.seed + i) for i in range(n)]
-    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, env.env_step))
+    repeat = cfg.agent_config.action_repeat  # the loop counts decisions, the budget env steps
+    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, env.env_step), repeat)
     env.env_step = start_step
     last = [start_step]
     bar = _bar(cfg, runlog, quiet, progress)
@@ -190,7 +191,7 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
                                    env.action_space("ac_0"), device)
 
         def callback(step: int, stats, metrics) -> bool:
-            now = start_step + step
+            now = start_step + step * repeat
             before, last[0] = last[0], now
             for aid, m in metrics.items():
                 runlog.metrics(aid, m, now)
@@ -202,7 +203,7 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
 
         # episodes after a resume get fresh seeds: seed + 100003 * (episodes so far)
         first_seed = cfg.seed + 100_003 * sum(runlog.episodes.values())
-        run_vector_loop(agent_map, env, total_steps=cfg.steps - start_step, callback=callback,
+        run_vector_loop(agent_map, env, total_steps=decisions(cfg, start_step), callback=callback,
                         seed=first_seed, learner_threads=_learner_threads(cfg))
     finally:
         bar.close()
@@ -259,7 +260,7 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
     last_log = [time.monotonic(), start_step]
 
     def callback(p) -> bool:
-        now = start_step + int(p.env_steps)
+        now = start_step + int(p.env_steps) * cfg.agent_config.action_repeat
         for ep in p.episodes:
             for aid, stats in getattr(ep, "extras", {}).items():
                 runlog.episode(aid, stats, now)
@@ -286,7 +287,7 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
         trained = trainer(
             fns, obs_space, act_space,
             agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=cfg.agent_config,
-            total_steps=cfg.steps - start_step, seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
+            total_steps=decisions(cfg, start_step), seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
             callback=callback, **kwargs,
         )
         runlog.checkpoint(trained, max(last["step"], runlog.env_steps), last.get("timing"))
@@ -298,8 +299,9 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
     """Build the training env of a config, a TrainConfig or its ``to_dict()`` (top-level, so
     worker processes can pickle it; a TrainConfig pickles without torch);
     with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack),
-    with ``obs`` "nav" beside its measurements (cosim.wrappers.NavObservation); collisions end
-    an AC's episode unless ``collisions_end_episode`` is off."""
+    with ``obs`` "nav" beside its measurements (cosim.wrappers.NavObservation), with the
+    agents' ``action_repeat`` R > 1 each action held for R steps (cosim.wrappers.ActionRepeat);
+    collisions end an AC's episode unless ``collisions_end_episode`` is off."""
     from cosim.env import CosimParallelEnv
     from cosim.wrappers import observation_wrappers
 
@@ -309,14 +311,24 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
         horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
     )
-    return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs)
+    return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs,
+                                action_repeat=cfg.agent_config.action_repeat)
+
+
+def decisions(cfg: TrainConfig, start_step: int) -> int:
+    """Steps of the training env (decisions) left in the budget: ``cfg.steps`` counts
+    environment steps, and with the agents' ``action_repeat`` R each decision is R of them
+    (docs/task.md, "Action repeat")."""
+    return -(-(cfg.steps - start_step) // cfg.agent_config.action_repeat)
 
 
 class _EpisodeTap:
-    """Forwards a ParallelEnv and hands each agent's final ``info[EPISODE_INFO]`` to a callback."""
+    """Forwards a ParallelEnv and hands each agent's final ``info[EPISODE_INFO]`` to a callback;
+    counts environment steps, ``repeat`` per step of a training env that holds each action
+    for ``repeat`` steps."""
 
-    def __init__(self, env, on_episode: Callable[[str, dict], None]):
-        self.env, self.on_episode = env, on_episode
+    def __init__(self, env, on_episode: Callable[[str, dict], None], repeat: int = 1):
+        self.env, self.on_episode, self.repeat = env, on_episode, int(repeat)
         self.env_step = 0  # env steps so far (a vector env: summed over the envs it stepped)
 
     def __getattr__(self, name):  # reset, agents, spaces, close: the env's own
@@ -330,7 +342,7 @@ class _EpisodeTap:
 
     def _tap(self, out):
         # a vector env gives one info dict per environment
-        self.env_step += int(out.stepped.sum()) if hasattr(out, "stepped") else 1
+        self.env_step += self.repeat * (int(out.stepped.sum()) if hasattr(out, "stepped") else 1)
         for infos in (out.infos if hasattr(out, "env_reset") else [out[4]]):
             for agent, info in infos.items():
                 if EPISODE_INFO in info:

@@ -153,6 +153,32 @@ def test_a_checkpoint_trained_on_two_frames_is_tested_on_two(tmp_path):
         load_for_slot(bad, "ppo")
 
 
+def test_a_checkpoint_trained_with_an_action_repeat_is_tested_holding_its_actions(tmp_path):
+    """--set action_repeat=2: the budget counts environment steps (20 decisions for 40), the
+    checkpoint carries the repeat, and the test holds each of its actions for 2 steps."""
+    import yaml
+
+    from eval.testing.protocol import action_repeat_of, drive, load_for_slot
+    from eval.testing.rollout import RepeatPolicy, StackedPolicy
+    from eval.training.runfolder import read_state
+    from eval.training.train import make_config, train
+
+    cfg = make_config("ppo", "env_1", "smoke", agents=1, steps=40, hyper={"action_repeat": "2"})
+    run = train(cfg, tmp_path / "runs", quiet=True, progress=False)
+    assert yaml.safe_load((run / "config.yaml").read_text())["agent_config"]["action_repeat"] == 2
+    assert read_state(run)["env_steps"] == 40
+    agent = load_for_slot(find_checkpoints(tmp_path / "runs", ["ppo"])["ppo"], "ppo")
+    assert action_repeat_of(agent) == 2
+    policy = drive(agent)
+    assert isinstance(policy, RepeatPolicy) and policy.k == 2 and isinstance(policy.policy, StackedPolicy)
+    decided = []
+    act = policy.policy.act
+    policy.policy.act = lambda obs, deterministic=True: decided.append(1) or act(obs)
+    records = run_protocol(ProtocolPlan(envs=("env_1",), scenarios=(2,), episodes=1, steps=7, agents=1),
+                           lambda env, slot, algo: policy, ["ppo"])
+    assert len(records) == 7 and len(decided) == 4  # steps 0, 2, 4, 6
+
+
 def test_scenario_1_rotates_the_algorithms_over_the_spawn_slots():
     algos = ["ppo", "a3c", "ddpg"]
     assert slot_order(algos, 0) == algos
