@@ -22,10 +22,16 @@ the trainer's own clock from the first reset (agents/workers.py TrainProgress.ti
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo a3c impala dqn ddpg td3   # the presets' ACs
     python bench/train_throughput.py --device cuda --envs 1 4 8 16 --algos ppo dqn td3   # on a GPU machine
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --share-params both   # sharing vs not
+    python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --action-repeat 1 2   # action repeat
 
 ``--share-params on`` trains PPO/DQN/DDPG/TD3 with one network for all ACs (`cosim train
 --share-params`; A3C and IMPALA rows stay independent); ``both`` trains each such algorithm
 both ways in the same run and adds a table of the ratio (shared / independent, steady rate).
+
+``--action-repeat 1 2`` trains every algorithm with each action held for 1 and for 2 env steps
+(``cosim train --set action_repeat=2``, docs/task.md "Action repeat") in the same run and adds
+a table of the ratio (repeat R / repeat 1, steady env steps/s). With R > 1 the loop's own clock
+counts decisions: the steady env steps/s is R times its rate, the AC-frames/s its transitions.
 
 ``--device cuda`` puts the PPO/DQN/DDPG/TD3 learners on the GPU (A3C and IMPALA learn on
 CPU whatever the device); without a CUDA device it stops at once with one line saying so.
@@ -75,19 +81,20 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
 
 
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
-               agents: int = AGENTS, device: str = "cpu", share: bool = False) -> dict[str, float]:
+               agents: int = AGENTS, device: str = "cpu", share: bool = False, repeat: int = 1) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
                       envs=n, device=device, torch_threads=threads, share_params=share,
                       validation_episodes=0)  # the learning loop alone: validation is timed apart
-    if hasattr(cfg.agent_config, "learning_starts"):
-        cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(learning_starts=200))
+    changes = {"action_repeat": repeat} | ({"learning_starts": 200} if hasattr(cfg.agent_config, "learning_starts") else {})
+    cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(**changes))
     t0 = time.monotonic()
     run = train(cfg, Path(out), quiet=True, progress=False)
     wall = time.monotonic() - t0
     state = json.loads((run / "state.json").read_text())
     timing = state.get("timing", {})
     done = int(state["env_steps"])
-    return {"wall_s": done / wall, "steps_s": timing.get("time/env_steps_per_s", float("nan")),
+    # the loop's clock counts its steps, each `repeat` env steps
+    return {"wall_s": done / wall, "steps_s": repeat * timing.get("time/env_steps_per_s", float("nan")),
             "frames_s": timing.get("time/agent_steps_per_s", float("nan"))}
 
 
@@ -121,6 +128,17 @@ def print_target_table(rows: dict, algos: list[str], envs: list[int], device: st
               + f" | {'' if target is None else f'>= {target:,.0f} at 16 envs'} | {met} |")
 
 
+def print_ratio_table(rows: dict, algos: list[str], envs: list[int], variants: list[str]) -> None:
+    """Each variant's steady env steps/s over the plain row's, per algorithm and --envs value."""
+    for variant in variants:
+        print(f"\n| algorithm | envs | {variant} / plain (steady env steps/s) |\n|---|---|---|")
+        for n in envs:
+            for algo in algos:
+                if (f"{algo} {variant}", n) in rows and (algo, n) in rows:
+                    ratio = rows[(f"{algo} {variant}", n)]["steps_s"] / rows[(algo, n)]["steps_s"]
+                    print(f"| {algo} | {n} | {ratio:.2f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1500)
@@ -133,6 +151,8 @@ def main() -> None:
                         help="torch device of the PPO/DQN/DDPG/TD3 learners (default cpu)")
     parser.add_argument("--share-params", choices=["off", "on", "both"], default="off",
                         help="one network for all ACs in ppo/dqn/ddpg/td3 (both: each way, and the ratio)")
+    parser.add_argument("--action-repeat", type=int, nargs="+", default=[1],
+                        help="train every row with each action held this many env steps (several: each, and the ratio)")
     args = parser.parse_args()
     check_device(args.device)
     raw: dict[int, dict] = {}
@@ -143,6 +163,12 @@ def main() -> None:
             print(f"raw env, {n} env(s): {raw[n]}", flush=True)
             for algo in args.algos:
                 can_share = algo not in ("a3c", "impala")
+                for r in (x for x in args.action_repeat if x != 1):
+                    rows[(f"{algo} repeat {r}", n)] = train_rate(algo, n, args.steps, out, args.torch_threads,
+                                                                 args.agents, args.device, repeat=r)
+                    print(f"{algo} repeat {r}, {n} env(s): {rows[(f'{algo} repeat {r}', n)]}", flush=True)
+                if 1 not in args.action_repeat:
+                    continue
                 if args.share_params != "on" or not can_share:
                     rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads,
                                                  args.agents, args.device)
@@ -155,7 +181,8 @@ def main() -> None:
     shared = {"off": "", "on": ", one network for all ACs (--share-params)", "both": ""}[args.share_params]
     print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset, learners on "
           f"{device_name(args.device)}, torch threads {args.torch_threads or 'default'}{shared}\n")
-    names = [name for algo in args.algos for name in (algo, f"{algo} shared")
+    names = [name for algo in args.algos
+             for name in (algo, f"{algo} shared", *(f"{algo} repeat {r}" for r in args.action_repeat))
              if any(key[0] == name for key in rows)]
     print("| what | envs | env steps/s (steady) | AC-frames/s (steady) | env steps/s (wall) "
           "| training / raw env (steady) |")
@@ -167,14 +194,11 @@ def main() -> None:
             t = rows[(algo, n)]
             print(f"| {algo} | {n} | {t['steps_s']:.1f} | {t['frames_s']:.1f} | {t['wall_s']:.1f} "
                   f"| {t['steps_s'] / r['steps_s']:.2f} |")
-    print_target_table(rows, args.algos, args.envs, args.device)
+    if 1 in args.action_repeat:
+        print_target_table(rows, args.algos, args.envs, args.device)
+    print_ratio_table(rows, args.algos, args.envs, [f"repeat {r}" for r in args.action_repeat if r != 1])
     if args.share_params == "both":
-        print("\n| algorithm | envs | shared / independent (steady env steps/s) |\n|---|---|---|")
-        for n in args.envs:
-            for algo in args.algos:
-                if (f"{algo} shared", n) in rows:
-                    ratio = rows[(f"{algo} shared", n)]["steps_s"] / rows[(algo, n)]["steps_s"]
-                    print(f"| {algo} | {n} | {ratio:.2f} |")
+        print_ratio_table(rows, args.algos, args.envs, ["shared"])
     if len(args.envs) > 1 and "ppo" in args.algos:
         lo, hi = args.envs[0], args.envs[-1]
         print(f"\nPPO --envs {hi} / --envs {lo} (steady): {rows[('ppo', hi)]['steps_s'] / rows[('ppo', lo)]['steps_s']:.2f}x")

@@ -79,10 +79,29 @@ def _controller(name: str, world: World, rng: np.random.Generator) -> Callable[[
     return lambda ac: fixed
 
 
+def held(act: Callable[[str], tuple], hold: int) -> Callable[[str], tuple]:
+    """``act`` (AC id -> action) deciding at each AC's calls 0, ``hold``, 2 ``hold``, ... and
+    repeating that action in between: a controller under an action repeat (docs/task.md,
+    "Action repeat")."""
+    if hold == 1:
+        return act
+    count: dict[str, int] = {}
+    last: dict[str, tuple] = {}
+
+    def repeat(ac: str) -> tuple:
+        if count.get(ac, 0) % hold == 0:
+            last[ac] = act(ac)
+        count[ac] = count.get(ac, 0) + 1
+        return last[ac]
+
+    return repeat
+
+
 def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
-               steps: int | None = None, seed: int = HELD_OUT_SEED) -> pd.DataFrame:
+               steps: int | None = None, seed: int = HELD_OUT_SEED, hold: int = 1) -> pd.DataFrame:
     """One row per (episode, AC): return, goal, DISTANCE, the step fractions CV..RL, TTFC
-    (s to the first collision, NaN without one) and SPEED (mean forward speed, km/h)."""
+    (s to the first collision, NaN without one) and SPEED (mean forward speed, km/h);
+    ``hold`` > 1 holds each of the policy's actions for that many steps (:func:`held`)."""
     sc = TestConditions.of(1, steps).scenario(scenario)
     rows = []
     with World(sc, num_agents) as world:
@@ -90,7 +109,7 @@ def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
             ep_seed = seed + ep
             rng = np.random.default_rng(ep_seed)
             first = world.reset(seed=ep_seed)
-            act = _controller(policy, world, rng)
+            act = held(_controller(policy, world, rng), int(hold))
             acc = {ac: dict.fromkeys(("return", "n", "cv", "co", "cp", "os", "rl", "goal", "speed"),
                                      0.0) | {"ttfc": np.nan}
                    for ac in world.ac_ids}

@@ -260,3 +260,19 @@ def test_a_pedestrian_walking_into_a_standing_car_is_not_its_collision(speed, ex
         ev = detect_all(["ac_0"], state, w.vehicle.length, w.vehicle.width, w.snapshot,
                         w.roadmap, [route], np.array([route.goal_s - s0]), 3.0)[0]
     assert ev.collision_pedestrian is expected
+
+
+def test_a_held_controller_decides_every_rth_step_of_each_ac():
+    from eval.testing.validity import held
+
+    calls = []
+
+    def act(ac):
+        calls.append(ac)
+        return (float(len(calls)), 0.0)
+
+    repeat = held(act, 3)
+    got = [repeat(ac) for _ in range(4) for ac in ("ac_0", "ac_1")]
+    assert calls == ["ac_0", "ac_1", "ac_0", "ac_1"]  # their calls 0 and 3
+    assert [a[0] for a in got[::2]] == [1, 1, 1, 3] and [a[0] for a in got[1::2]] == [2, 2, 2, 4]
+    assert held(act, 1) is act
