@@ -167,7 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"{', '.join(ALGORITHMS)}, or all (every one, in parallel where CPUs allow)")
     t.add_argument("--env", default="env_1", help=f"{_names(ENVS)} or a scenario .yaml")
     t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
-    t.add_argument("--steps", type=int, default=None, help="environment steps (default: from the preset)")
+    t.add_argument("--steps", type=int, default=None,
+                   help="environment steps (default: from the preset); with --resume, the run's new budget")
     t.add_argument("--seed", type=int, default=0, help="seed of the run (environments, weights, exploration)")
     t.add_argument("--preset", default="quick", choices=presets or None,
                    help=f"run preset, from eval/training/hyperparams/runs.yaml: {', '.join(presets)}")

@@ -20,7 +20,7 @@ def cmd_train(args) -> int:
         return _train_pbt(args)
     try:
         if args.resume is not None:
-            run = train(None, resume=args.resume, quiet=args.quiet, keep=args.keep)
+            run = train(None, resume=args.resume, quiet=args.quiet, keep=args.keep, steps=args.steps)
             print(f"run folder: {run}")
             return 0
         algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]

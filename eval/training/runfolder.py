@@ -94,6 +94,30 @@ def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
     return run
 
 
+def extend_budget(run: Path, cfg: TrainConfig, done: int, steps: int) -> TrainConfig:
+    """``cfg`` with its budget raised to ``steps`` environment steps, written to the run's
+    config.yaml (``cosim train --resume RUN --steps N``: train a run further; later resumes
+    keep the new budget). Lowering it is refused, and so is extending a finished run whose
+    ACs kept only best.pt (``--keep best``): training on needs every AC's latest.pt.
+
+    Raises:
+        TrainError: ``steps`` below the steps done, or an AC without latest.pt.
+    """
+    if steps < max(done, cfg.steps):
+        raise TrainError(f"--steps {steps} is below the {max(done, cfg.steps)} env steps {run} already "
+                         f"has as its budget; give a larger --steps to train it further")
+    if steps == cfg.steps:
+        return cfg
+    missing = [ac.name for ac in sorted((run / "checkpoints").iterdir())
+               if ac.is_dir() and not (ac / "latest.pt").exists()] if done >= cfg.steps else []
+    if missing:
+        raise TrainError(f"{run} is finished and kept only best.pt for {', '.join(missing)} (--keep best); "
+                         "training it further needs latest.pt: train runs you will extend with --keep all")
+    cfg = dataclasses.replace(cfg, steps=int(steps))
+    atomic_write(run / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    return cfg
+
+
 def load_run_config(run: Path) -> TrainConfig:
     """The TrainConfig in a run folder's config.yaml, checked key by key.
 

@@ -28,6 +28,7 @@ from eval.training.config import ASYNC_ALGOS, TrainConfig, TrainError
 from eval.training.plots import plot_convergence
 from eval.training.runfolder import (
     RunLock,
+    extend_budget,
     load_run_config,
     new_run_dir,
     prune_finished,
@@ -41,13 +42,15 @@ log = logging.getLogger(__name__)
 
 def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = None,
           quiet: bool = False, progress: bool = True,
-          on_checkpoint: Callable[[Path, int, float], None] | None = None, keep: str = "all") -> Path:
+          on_checkpoint: Callable[[Path, int, float], None] | None = None, keep: str = "all",
+          steps: int | None = None) -> Path:
     """Run (or resume) one training run; return its folder.
 
     ``on_checkpoint(run, env_steps, mean_return)`` is called after each committed
     checkpoint (how Ray Tune trials report, eval/scale/benchmark.py and eval/scale/pbt.py).
     ``keep`` is what the folder keeps once the run is finished (eval/training/runfolder.py
-    KEEP_POLICIES; ``"all"``, the library default, deletes nothing).
+    KEEP_POLICIES; ``"all"``, the library default, deletes nothing). ``steps`` with ``resume``
+    raises the run's budget to that many environment steps (runfolder.extend_budget).
 
     Raises:
         TrainError: the run folder is held by another process (naming its PID), or
@@ -60,6 +63,8 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
         try:
             state = read_state(run)
             recover_checkpoints(run, None if state is None else int(state["env_steps"]))
+            if steps is not None:
+                cfg = extend_budget(run, cfg, 0 if state is None else int(state["env_steps"]), int(steps))
             if state is None:  # stopped before its first checkpoint: start again from step 0
                 log.info("resume: %s has no checkpoint yet; restarting it from step 0", run)
                 shutil.rmtree(run / "tb", ignore_errors=True)

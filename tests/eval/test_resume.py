@@ -204,3 +204,30 @@ def _run_folder_with_config(tmp_path: Path) -> Path:
     run.mkdir()
     (run / "config.yaml").write_text("algo: ppo\nenv: env_1\nagents: 2\nsteps: 40\npreset: smoke\n")
     return run
+
+
+def test_resume_with_more_steps_trains_a_run_further(tmp_path, capsys):
+    """`cosim train --resume RUN --steps N` raises the budget (config.yaml keeps it) and trains
+    on from the run's latest.pt; a lower budget, and a finished run that kept only best.pt,
+    are refused in one line."""
+    import yaml
+
+    from eval.training.runfolder import read_state
+    from eval.training.train import make_config
+
+    cfg = make_config("ppo", "env_1", "smoke", agents=1, steps=40)
+    run = train(cfg, tmp_path / "runs", quiet=True, progress=False, keep="all")
+    assert read_state(run)["env_steps"] == 40
+    assert main(["train", "--resume", str(run), "--steps", "80", "--quiet"]) == 0
+    assert read_state(run)["env_steps"] == 80
+    assert yaml.safe_load((run / "config.yaml").read_text())["steps"] == 80
+    episodes = list(csv.DictReader((run / "episodes.csv").open()))
+    assert max(int(e["env_step"]) for e in episodes) > 40  # episodes after the extension were logged
+    capsys.readouterr()
+    assert main(["train", "--resume", str(run), "--steps", "60", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--steps 60 is below the 80" in err
+    pruned = train(cfg, tmp_path / "pruned", quiet=True, progress=False, keep="best")
+    with pytest.raises(TrainError, match=r"kept only best.pt for ac_0.*--keep all"):
+        train(None, resume=pruned, steps=80, quiet=True, progress=False)
+    assert (pruned / "run.lock").read_text() == "", "the lock was released"
