@@ -218,15 +218,15 @@ def test_resume_with_more_steps_trains_a_run_further(tmp_path, capsys):
     cfg = make_config("ppo", "env_1", "smoke", agents=1, steps=40)
     run = train(cfg, tmp_path / "runs", quiet=True, progress=False, keep="all")
     assert read_state(run)["env_steps"] == 40
-    assert main(["train", "--resume", str(run), "--steps", "80", "--quiet"]) == 0
-    assert read_state(run)["env_steps"] == 80
-    assert yaml.safe_load((run / "config.yaml").read_text())["steps"] == 80
+    assert main(["train", "--resume", str(run), "--steps", "130", "--quiet"]) == 0
+    assert read_state(run)["env_steps"] == 130
+    assert yaml.safe_load((run / "config.yaml").read_text())["steps"] == 130
     episodes = list(csv.DictReader((run / "episodes.csv").open()))
-    assert max(int(e["env_step"]) for e in episodes) > 40  # episodes after the extension were logged
+    assert [int(e["env_step"]) for e in episodes] == [100]  # the 60-step episode after the extension
     capsys.readouterr()
     assert main(["train", "--resume", str(run), "--steps", "60", "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--steps 60 is below the 80" in err
+    assert err.count("\n") == 1 and "--steps 60 is below the 130" in err
     pruned = train(cfg, tmp_path / "pruned", quiet=True, progress=False, keep="best")
     with pytest.raises(TrainError, match=r"kept only best.pt for ac_0.*--keep all"):
         train(None, resume=pruned, steps=80, quiet=True, progress=False)
