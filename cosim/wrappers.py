@@ -58,7 +58,26 @@ def stacked_space(space: gymnasium.spaces.Box, k: int) -> gymnasium.spaces.Box:
                                 np.concatenate([space.high] * k, axis=-1), dtype=space.dtype)
 
 
-class FrameStack(BaseParallelWrapper):
+class _Forwarding(BaseParallelWrapper):
+    """A ParallelEnv wrapper whose agents and spaces are the wrapped env's unless it says
+    otherwise (the properties BaseParallelWrapper leaves to ``__getattr__``)."""
+
+    @property
+    def agents(self) -> list:
+        return self.env.agents
+
+    @property
+    def possible_agents(self) -> list:
+        return self.env.possible_agents
+
+    def observation_space(self, agent):
+        return self.env.observation_space(agent)
+
+    def action_space(self, agent):
+        return self.env.action_space(agent)
+
+
+class FrameStack(_Forwarding):
     """Each agent observes its last ``k`` camera frames, stacked oldest first (84x84x3k).
 
     ``reset`` starts every agent's history with ``k`` copies of its first frame; ``step``
@@ -74,14 +93,6 @@ class FrameStack(BaseParallelWrapper):
             raise ValueError(f"FrameStack needs k >= 1 frames, got {k}")
         self._spaces = {a: stacked_space(env.observation_space(a), self.k) for a in env.possible_agents}
         self._history = {a: FrameHistory(self.k) for a in env.possible_agents}
-
-    @property
-    def agents(self) -> list:
-        return self.env.agents
-
-    @property
-    def possible_agents(self) -> list:
-        return self.env.possible_agents
 
     def observation_space(self, agent):
         return self._spaces[agent]
@@ -100,7 +111,7 @@ class FrameStack(BaseParallelWrapper):
         return {a: self._history[a].push(o) for a, o in obs.items()}
 
 
-class ActionRepeat(BaseParallelWrapper):
+class ActionRepeat(_Forwarding):
     """Each agent's action is held for ``k`` environment steps: one ``step`` of this wrapper
     is up to ``k`` steps of ``env`` (docs/task.md, "Action repeat").
 
@@ -115,20 +126,6 @@ class ActionRepeat(BaseParallelWrapper):
     def __init__(self, env, k: int):
         super().__init__(env)
         self.k = check_action_repeat(k)
-
-    @property
-    def agents(self) -> list:
-        return self.env.agents
-
-    @property
-    def possible_agents(self) -> list:
-        return self.env.possible_agents
-
-    def observation_space(self, agent):
-        return self.env.observation_space(agent)
-
-    def action_space(self, agent):
-        return self.env.action_space(agent)
 
     def step(self, actions):
         obs, rewards, terms, truncs, infos = {}, {a: 0.0 for a in actions}, {}, {}, {}
@@ -275,7 +272,7 @@ class RouteGuide:
         return {"image": image, "measurements": self.measurements(info["speed"], info["distance_to_goal"])}
 
 
-class NavObservation(BaseParallelWrapper):
+class NavObservation(_Forwarding):
     """The ``nav`` observation: ``Dict(image=<the camera frames>, measurements=Box(7))``.
 
     The measurements (:func:`nav_measurements`) are forward speed, the route command one-hot
@@ -291,14 +288,6 @@ class NavObservation(BaseParallelWrapper):
                                                   "measurements": nav_space()})
                         for a in env.possible_agents}
         self._guides: dict[str, RouteGuide] | None = None
-
-    @property
-    def agents(self) -> list:
-        return self.env.agents
-
-    @property
-    def possible_agents(self) -> list:
-        return self.env.possible_agents
 
     def observation_space(self, agent):
         return self._spaces[agent]
