@@ -205,22 +205,29 @@ def find_run(out: Path, cell: Cell, seed: int) -> Path | None:
     return found[-1] if found else None
 
 
-def run_status(run: Path | None) -> str:
-    """``missing`` (no run folder), ``unfinished`` or ``finished`` (its steps all done)."""
+def run_status(run: Path | None, steps: int | None = None) -> str:
+    """``missing`` (no run folder), ``unfinished`` or ``finished`` (its steps all done: its own
+    budget, or ``steps`` when that is larger: a run trained further, see :func:`train_command`)."""
     from eval.training.runfolder import load_run_config, read_state
 
     if run is None:
         return "missing"
     state = read_state(run)
-    done = state is not None and int(state["env_steps"]) >= load_run_config(run).steps
+    budget = max(load_run_config(run).steps, steps or 0)
+    done = state is not None and int(state["env_steps"]) >= budget
     return "finished" if done else "unfinished"
 
 
 def train_command(out: Path, cell: Cell, args, run: Path | None) -> list[str]:
-    """``cosim train`` for a cell: ``--resume RUN`` when it has a run folder, else a new run."""
+    """``cosim train`` for a cell: ``--resume RUN`` when it has a run folder (with ``--steps``
+    when the plan's budget is larger than the run's: a run copied in from a shorter study with
+    its latest.pt trains on, ``cosim train --resume RUN --steps N``), else a new run."""
+    from eval.training.runfolder import load_run_config
+
     base = [sys.executable, "-m", "eval.cli", "train"]
     if run is not None:
-        return [*base, "--resume", str(run), "--quiet"]
+        more = args.steps is not None and load_run_config(run).steps < args.steps
+        return [*base, "--resume", str(run), "--quiet", *(["--steps", str(args.steps)] if more else [])]
     cmd = [*base, "--algo", cell.algo, "--env", env_arg(out, cell), "--preset", args.preset,
            "--seed", str(args.seed), "--out", str(out / "runs" / cell.arm), "--quiet"]
     if args.steps is not None:
@@ -432,7 +439,7 @@ def plan_work(out: Path, args) -> tuple[list[Cell], list[Cell]]:
     """(cells to train or resume, cells trained but not tested)."""
     to_train, to_test = [], []
     for cell in cells(args):
-        status = run_status(find_run(out, cell, args.seed))
+        status = run_status(find_run(out, cell, args.seed), args.steps)
         if status != "finished":
             to_train.append(cell)
         elif not (out / "test" / f"{cell.name}.parquet").exists():
@@ -497,7 +504,7 @@ def main(argv=None) -> int:
                 running.remove(proc)
                 cell = proc.cell  # type: ignore[attr-defined]
                 mins = (time.monotonic() - proc.started) / 60  # type: ignore[attr-defined]
-                if proc.returncode == 0 and run_status(find_run(out, cell, args.seed)) == "finished":
+                if proc.returncode == 0 and run_status(find_run(out, cell, args.seed), args.steps) == "finished":
                     say(f"train {cell.name}: finished ({mins:.1f} min)")
                     chores.append(("test", cell))
                 else:

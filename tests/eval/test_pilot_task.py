@@ -73,6 +73,13 @@ def test_reruns_skip_finished_runs_resume_unfinished_ones_and_skip_finished_test
     assert old[old.index("--steps") + 1] == "500" and old[old.index("--preset") + 1] == "quick"
     nav = pilot.train_command(tmp_path, C("nav", "env_3", "dqn"), args, None)
     assert nav[-2:] == ["--obs", "nav"]
+    # a finished run of a shorter budget, in a plan with more steps, trains on to the plan's
+    longer = _args(pilot, tmp_path, "--arms", "new", "--envs", "env_4", "--steps", "300")
+    assert pilot.run_status(pilot.find_run(tmp_path, C("new", "env_4", "dqn"), 0), 300) == "unfinished"
+    done = pilot.find_run(tmp_path, C("new", "env_4", "dqn"), 0)
+    assert pilot.train_command(tmp_path, C("new", "env_4", "dqn"), longer, done)[-5:] == [
+        "--resume", str(done), "--quiet", "--steps", "300"]
+    assert pilot.train_command(tmp_path, C("new", "env_4", "ppo"), args, unfinished)[-1] == "--quiet"
 
 
 def test_a_rerun_with_another_plan_is_refused_and_nav_needs_the_obs_flag(pilot, tmp_path):
