@@ -105,6 +105,8 @@ def budget_rows(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str]) 
             continue
         obs = _one(f"{r.get('obs', '?')} {r.get('image_size', '?')}px x {r.get('frame_stack', '?')} frames"
                    for r in runs)
+        repeat = _one(r.get("action_repeat", 1) for r in runs)
+        action += "" if repeat == "1" else f", each held {repeat} steps"
         rows.append([labels.get(a, a), _one(r.get("preset") for r in runs),
                      _one(f"{int(r['steps']):,}" for r in runs if "steps" in r),
                      _one(r.get("agents") for r in runs),

@@ -338,8 +338,9 @@ def _checkpoint_entry(path: Path, sel) -> dict:
 
 
 TRAINING_KEYS = ("algo", "env", "preset", "steps", "agents", "seed", "horizon", "obs", "image_size",
-                 "frame_stack", "collisions_end_episode")
-"""What the report says of a checkpoint's training run (keys of its config.yaml)."""
+                 "frame_stack", "collisions_end_episode", "share_params")
+"""What the report says of a checkpoint's training run (keys of its config.yaml; and its
+agents' ``action_repeat``, docs/task.md "Action repeat")."""
 
 
 def trained_with(run: Path | None) -> dict:
@@ -353,7 +354,8 @@ def trained_with(run: Path | None) -> dict:
         cfg = yaml.safe_load((Path(run) / "config.yaml").read_text()) or {}
     except (OSError, yaml.YAMLError):
         return {}
-    return {k: cfg[k] for k in TRAINING_KEYS if k in cfg}
+    repeat = (cfg.get("agent_config") or {}).get("action_repeat", 1)
+    return {k: cfg[k] for k in TRAINING_KEYS if k in cfg} | {"action_repeat": repeat}
 
 
 def task_version(envs: Sequence[str]) -> dict:

@@ -307,3 +307,22 @@ def test_chromium_shows_the_preset_the_budget_and_the_commit_on_the_first_screen
     commit = (prov["git"] or {}).get("commit")
     assert commit is None or commit[:10] in seen
     assert "Files" not in seen.splitlines()  # the first screen only, not the whole page
+
+
+def test_the_budget_rows_say_when_actions_were_held(tmp_path):
+    """A run trained with action_repeat 2 (config.yaml's agent_config) is reported as such."""
+    import yaml
+
+    from eval.reporting.page import budget_rows
+    from eval.reporting.report import trained_with
+
+    run = tmp_path / "env_1__ppo__0__20260101-000000"
+    run.mkdir()
+    (run / "config.yaml").write_text(yaml.safe_dump({"algo": "ppo", "steps": 100, "frame_stack": 4,
+                                                     "agent_config": {"action_repeat": 2}}))
+    held = trained_with(run)
+    assert held["action_repeat"] == 2 and held["steps"] == 100
+    plain = {**held, "action_repeat": 1}
+    prov = {"checkpoints": [{"algorithm": "ppo", "trained": held}, {"algorithm": "dqn", "trained": plain}]}
+    rows = {r[0]: r for r in budget_rows(prov, ["ppo", "dqn"], {})}
+    assert rows["ppo"][-1] == "Discrete(9), each held 2 steps" and rows["dqn"][-1] == "Discrete(9)"
