@@ -57,6 +57,7 @@ __all__ = [
     "save_checkpoint",
     "space_from_dict",
     "space_to_dict",
+    "warm_start",
 ]
 
 logger = logging.getLogger(__name__)
@@ -337,3 +338,32 @@ def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None,
         ) from err
     logger.info("loaded %s checkpoint from %s", algo, path)
     return agent
+
+
+def warm_start(agent, path) -> None:
+    """Start ``agent`` from the policy weights of the checkpoint at ``path`` (full or policy):
+    its policy networks (``agents.registry.POLICY_NETWORKS``) are copied in and its target
+    networks set to copies of them (``TARGET_NETWORKS``); its optimizer states, counters and
+    schedules (epsilon, learning starts, noise) stay those of a fresh agent, so the warm-started
+    run explores and learns as a new run of its own config would, from these weights
+    (``cosim train --init-from``, docs/agents.md "Warm start").
+
+    Raises:
+        CheckpointError: unreadable, another algorithm, or other observation or action spaces
+            than ``agent``'s (naming both).
+    """
+    from agents.registry import POLICY_NETWORKS, TARGET_NETWORKS
+
+    path = Path(path)
+    source = load_checkpoint(path, expected_algo=agent.algo)
+    for what in ("observation_space", "action_space"):
+        theirs, ours = space_to_dict(getattr(source, what)), space_to_dict(getattr(agent, what))
+        if theirs != ours:
+            raise CheckpointError(f"checkpoint {path} was trained with {what} {getattr(source, what)}, "
+                                  f"this run has {getattr(agent, what)}; warm-start from a run with "
+                                  "the same --obs, --frame-stack and action type")
+    for name in POLICY_NETWORKS[agent.algo]:
+        agent.networks[name].load_state_dict(source.networks[name].state_dict())
+    for target, online in TARGET_NETWORKS[agent.algo].items():
+        agent.networks[target].load_state_dict(agent.networks[online].state_dict())
+    logger.info("warm-started %s from %s", agent.algo, path)

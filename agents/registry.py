@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-__all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DETERMINISTIC", "DISCRETE", "POLICY_NETWORKS", "STOCHASTIC",
+__all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DETERMINISTIC", "DISCRETE", "POLICY_NETWORKS", "STOCHASTIC", "TARGET_NETWORKS",
            "Algorithm", "available", "get", "get_agent_class", "get_async_trainer", "get_config_class"]
 
 
@@ -38,6 +38,9 @@ class Algorithm:
     return of its samples, so an evaluation samples it (``act(obs)``; eval.testing.protocol.SAMPLED);
     False: a deterministic policy (greedy in Q, or a deterministic actor) whose exploration
     (epsilon, action noise) is training-only, so an evaluation acts greedily."""
+    targets: tuple[tuple[str, str], ...] = ()
+    """(target network, the online network it follows) pairs: what a warm start
+    (agents.checkpoint.warm_start) sets to a copy of the online network it loaded."""
     config: str = ""
     """The hyperparameter dataclass, ``"agents.configs:Class"`` (torch-free, so the layers above
     hold a typed config without importing the algorithm); the agent class's ``config_class``."""
@@ -59,12 +62,12 @@ CATALOGUE: tuple[Algorithm, ...] = (
     Algorithm("impala", "agents.impala:IMPALA", "discrete", "async", ("actor_critic",), stochastic=True,
               config="agents.configs:IMPALAConfig", async_trainer="agents.impala:train_impala"),
     Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",), stochastic=False,
-              config="agents.configs:DQNConfig"),
+              targets=(("target_network", "q_network"),), config="agents.configs:DQNConfig"),
     # DDPG/TD3: the actor acts on the critic's encoder (critic.encode), so the critic is policy too
     Algorithm("ddpg", "agents.ddpg:DDPG", "continuous", "sync", ("actor", "critic"), stochastic=False,
-              config="agents.configs:DDPGConfig"),
+              targets=(("actor_target", "actor"), ("critic_target", "critic")), config="agents.configs:DDPGConfig"),
     Algorithm("td3", "agents.td3:TD3", "continuous", "sync", ("actor", "critic"), stochastic=False,
-              config="agents.configs:TD3Config"),
+              targets=(("actor_target", "actor"), ("critic_target", "critic")), config="agents.configs:TD3Config"),
 )
 # ---------------------------------------------------------------------------------------
 
@@ -79,6 +82,8 @@ DETERMINISTIC: tuple[str, ...] = tuple(a.name for a in CATALOGUE if not a.stocha
 """The algorithms whose policy is deterministic (exploration only in training)."""
 POLICY_NETWORKS: dict[str, tuple[str, ...]] = {a.name: a.policy for a in CATALOGUE}
 """name -> the networks a policy checkpoint keeps."""
+TARGET_NETWORKS: dict[str, dict[str, str]] = {a.name: dict(a.targets) for a in CATALOGUE}
+"""name -> {target network: the online network it follows}."""
 
 POLICY_DTYPES = ("float32", "float16")
 """How a policy checkpoint (agents/checkpoint.py, ``policy_only``) stores float weights:

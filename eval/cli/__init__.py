@@ -200,6 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the run's ACs act with ONE network that learns from all their transitions "
                         "(parameter sharing; default: one network per AC, the paper's; ppo dqn ddpg "
                         "td3; docs/agents.md)")
+    t.add_argument("--init-from", type=Path, default=None, metavar="RUN_OR_CKPT",
+                   help="warm start: each AC's policy weights from this run folder (its ac_k/best.pt) "
+                        "or checkpoint, same algorithm and --obs; optimizers and exploration start "
+                        "fresh (a curriculum; default: random weights; docs/agents.md)")
     t.add_argument("--validation-episodes", type=_int_in(0), default=None, metavar="N",
                    help="held-out episodes under the test's rules at every checkpoint that pick each "
                         "AC's best.pt (default: the preset's, else 2; 0: off, best.pt by training "

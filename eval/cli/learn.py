@@ -23,6 +23,8 @@ def cmd_train(args) -> int:
             run = train(None, resume=args.resume, quiet=args.quiet, keep=args.keep, steps=args.steps)
             print(f"run folder: {run}")
             return 0
+        if args.init_from is not None and args.algo == "all":
+            raise TrainError("--init-from warm-starts one algorithm from its own run; choose it with --algo")
         algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
         hyper = parse_set(args.hyper)
         configs = [
@@ -33,7 +35,8 @@ def cmd_train(args) -> int:
                         obs=args.obs, learner_threads=args.learner_threads,
                         validation_episodes=args.validation_episodes,
                         validation_steps=args.validation_steps,
-                        share_params=args.share_params and (args.algo != "all" or a not in ASYNC_ALGOS))
+                        share_params=args.share_params and (args.algo != "all" or a not in ASYNC_ALGOS),
+                        init_from=args.init_from)
             for a in algos
         ]
     except TrainError as exc:
@@ -185,7 +188,8 @@ def _train_pbt(args) -> int:
                               envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
                               frame_stack=args.frame_stack, obs=args.obs, collisions=args.collisions,
                               validation_episodes=args.validation_episodes,
-                              validation_steps=args.validation_steps, share_params=args.share_params)
+                              validation_steps=args.validation_steps, share_params=args.share_params,
+                              init_from=args.init_from)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import yaml
@@ -109,6 +110,12 @@ class TrainConfig:
     own car's transitions. True (``--share-params``): the run's ACs act with ONE network that
     learns from all their transitions (agents/shared.py; docs/agents.md, "Parameter sharing");
     every AC's checkpoint holds that network. PPO, DQN, DDPG and TD3 only."""
+    init_from: str | None = None
+    """None (the default): every network starts from random weights. A run folder or a
+    checkpoint file (``--init-from``): a warm start, each AC's policy networks copied from it
+    (a run folder: the source's checkpoints/ac_k/best.pt, ac_0's where it has no ac_k) before
+    training, optimizers and schedules fresh (agents.checkpoint.warm_start; docs/agents.md,
+    "Warm start"). Stored as an absolute path."""
     policy_dtype: str = "float32"
     """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
     bytes, rounded; the smoke preset's): the preset's policy_dtype (eval/training/presets.py)."""
@@ -144,7 +151,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 torch_threads: int = 0, frame_stack: int | None = None, obs: str = "image",
                 learner_threads: int = 0, collisions: str = "continue",
                 validation_episodes: int | None = None, validation_steps: int | None = None,
-                share_params: bool = False) -> TrainConfig:
+                share_params: bool = False, init_from: str | Path | None = None) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
@@ -156,7 +163,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     ``collisions``: "continue" (the default, the test's rule: the episode goes on and every
     contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
     ``obs``: "image" (the default) or "nav" (TrainConfig.obs). ``share_params``: one network for
-    all the run's ACs (TrainConfig.share_params).
+    all the run's ACs (TrainConfig.share_params). ``init_from``: a run folder or checkpoint to
+    warm-start from (TrainConfig.init_from).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -212,6 +220,11 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     if share_params and algo in ASYNC_ALGOS:
         raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
                          f"{algo} builds its own learners: drop --share-params for it")
+    if init_from is not None:
+        init_from = str(Path(init_from).resolve())
+        if not (Path(init_from).is_file() or (Path(init_from) / "checkpoints" / "ac_0" / "best.pt").is_file()):
+            raise TrainError(f"--init-from {init_from}: not a checkpoint file nor a run folder with "
+                             "checkpoints/ac_0/best.pt; name a finished run of the same algorithm and --obs")
     config_cls = registry.get_config_class(algo)  # PPOConfig, ... (agents/configs.py, no torch)
     chosen = agent_preset or p.agent_preset
     try:  # the preset's typed config (with its YAML's changes), then the --set changes
@@ -227,6 +240,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         learner_threads=int(learner_threads),
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
         validation_steps=validation_steps, policy_dtype=p.policy_dtype, share_params=bool(share_params),
+        init_from=init_from,
     )
 
 

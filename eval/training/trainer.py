@@ -124,6 +124,7 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
                 raise TrainError(str(exc)) from None
         else:
             core = cls.from_spaces(obs_space, act_space, cfg.agent_config, seed=cfg.seed, device=device)
+            _warm_start(cfg, core, 0)
         return share(core, [f"ac_{k}" for k in range(cfg.agents)])
     out = {}
     for k in range(cfg.agents):
@@ -138,7 +139,30 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
         else:
             # the typed config make_config built (a PPOConfig, ...), as it is
             out[aid] = cls.from_spaces(obs_space, act_space, cfg.agent_config, seed=cfg.seed + k, device=device)
+            _warm_start(cfg, out[aid], k)
     return out
+
+
+def init_checkpoint(source: str | Path, k: int) -> Path:
+    """The checkpoint AC ``k`` of a run warm-started from ``source`` starts from: the file itself,
+    or in a run folder checkpoints/ac_k/best.pt (ac_0's where the source has no ac_k)."""
+    source = Path(source)
+    if source.is_file():
+        return source
+    own = source / "checkpoints" / f"ac_{k}" / "best.pt"
+    return own if own.is_file() else source / "checkpoints" / "ac_0" / "best.pt"
+
+
+def _warm_start(cfg: TrainConfig, agent, k: int) -> None:
+    """A fresh agent of a run with ``--init-from``: its policy weights from the source (TrainConfig.init_from)."""
+    if cfg.init_from is None:
+        return
+    from agents.checkpoint import CheckpointError, warm_start
+
+    try:
+        warm_start(agent, init_checkpoint(cfg.init_from, k))
+    except CheckpointError as exc:
+        raise TrainError(f"--init-from: {exc}") from None
 
 
 def _log_every() -> float:
@@ -259,7 +283,8 @@ def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, p
     obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
     probe.close()
     start_step = runlog.env_steps
-    initial = _load_or_build(cfg, runlog.run, resumed, obs_space, act_space) if resumed else None
+    initial = (_load_or_build(cfg, runlog.run, resumed, obs_space, act_space)
+               if resumed or cfg.init_from is not None else None)
     bar = _bar(cfg, runlog, quiet, progress)
     last = {"step": start_step, "ckpt": start_step}
     last_log = [time.monotonic(), start_step]

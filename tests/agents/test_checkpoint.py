@@ -259,3 +259,44 @@ def test_retune_sets_config_and_learning_rates_and_keeps_weights_and_moments(alg
     other = get_agent_class("dqn" if algo != "dqn" else "ppo").config_class()
     with pytest.raises(agents.CheckpointError, match=f"holds a '{algo}' agent; retune it with a"):
         retune_checkpoint(tmp_path / "latest.pt", other)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "dqn", "td3"])
+def test_warm_start_copies_the_policy_sets_targets_and_keeps_a_fresh_learner(algo, tmp_path):
+    """`cosim train --init-from`: the policy networks come from the checkpoint (full or policy
+    file), the target networks follow them, and the optimizer and counters stay fresh."""
+    from agents.checkpoint import warm_start
+    from agents.registry import TARGET_NETWORKS
+
+    source = _trained(algo)
+    source.save(tmp_path / "full.pt")
+    source.save(tmp_path / "policy.pt", policy_only=True)
+    for name in ("full.pt", "policy.pt"):
+        fresh = get_agent_class(algo).from_spaces(*SPACES[algo], config=FAST[algo], seed=11)
+        before = {k: [t.clone() for t in net.state_dict().values()] for k, net in fresh.networks.items()}
+        warm_start(fresh, tmp_path / name)
+        for net in POLICY_NETWORKS[algo]:
+            for key, tensor in fresh.networks[net].state_dict().items():
+                assert torch.equal(tensor, source.networks[net].state_dict()[key]), (name, net, key)
+        for target, online in TARGET_NETWORKS[algo].items():
+            assert not all(torch.equal(a, b) for a, b in
+                           zip(before[target], fresh.networks[online].state_dict().values()))
+            for key, tensor in fresh.networks[target].state_dict().items():
+                assert torch.equal(tensor, fresh.networks[online].state_dict()[key]), (target, key)
+        assert fresh.steps == 0 < source.steps  # counters (epsilon, learning starts) start again
+        assert all(not opt.state_dict()["state"] for opt in fresh.optimizers.values())
+
+
+def test_warm_start_refuses_another_algorithm_or_other_spaces(tmp_path):
+    import gymnasium as gym
+
+    from agents.checkpoint import CheckpointError, warm_start
+
+    _trained("dqn").save(tmp_path / "dqn.pt")
+    ppo = get_agent_class("ppo").from_spaces(*SPACES["ppo"], config=FAST["ppo"], seed=0)
+    with pytest.raises(CheckpointError, match="holds a 'dqn' agent, not 'ppo'"):
+        warm_start(ppo, tmp_path / "dqn.pt")
+    wider = gym.spaces.Box(-1.0, 1.0, (SPACES["dqn"][0].shape[0] + 1,), np.float32)
+    other = get_agent_class("dqn").from_spaces(wider, SPACES["dqn"][1], config=FAST["dqn"], seed=0)
+    with pytest.raises(CheckpointError, match="trained with observation_space .* same --obs"):
+        warm_start(other, tmp_path / "dqn.pt")

@@ -182,3 +182,47 @@ def test_share_params_is_refused_for_a3c_and_impala():
         with pytest.raises(TrainError, match="--share-params is for ppo, dqn, ddpg, td3"):
             make_config(algo, "env_1", "smoke", share_params=True)
     assert make_config("td3", "env_1", "smoke").share_params is False  # the paper's: one network per AC
+
+
+def test_init_from_warm_starts_each_ac_from_a_run_and_is_recorded(tmp_path, capsys):
+    """`cosim train --init-from RUN`: every AC starts from the source run's ac_k/best.pt (ac_0's
+    where the source has fewer ACs), shared or not; config.yaml records the absolute path;
+    a path with no checkpoint, another --obs and --algo all are refused in one line."""
+    import torch
+    import yaml
+
+    import agents
+    from eval.cli import main
+    from eval.training.train import train
+    from eval.training.trainer import _load_or_build, make_env
+
+    source = train(make_config("dqn", "env_1", "smoke", agents=1, steps=40, validation_episodes=0),
+                   tmp_path / "src", quiet=True, progress=False, keep="best")
+    best = agents.load(source / "checkpoints" / "ac_0" / "best.pt")
+    for share in (False, True):
+        cfg = make_config("dqn", "env_1", "smoke", agents=2, steps=40, share_params=share,
+                          init_from=source)
+        assert cfg.init_from == str(source.resolve())
+        env = make_env(cfg)
+        try:
+            slots = _load_or_build(cfg, tmp_path, False, env.observation_space("ac_0"), env.action_space("ac_0"))
+        finally:
+            env.close()
+        for aid in ("ac_0", "ac_1"):
+            for key, tensor in best.q_network.state_dict().items():
+                assert torch.equal(slots[aid].q_network.state_dict()[key], tensor), (share, aid, key)
+    capsys.readouterr()
+    out = tmp_path / "runs"
+    assert main(["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "40",
+                 "--init-from", str(source), "--out", str(out), "--quiet"]) == 0
+    run = next(out.iterdir())
+    assert yaml.safe_load((run / "config.yaml").read_text())["init_from"] == str(source.resolve())
+    for args, match in (([str(tmp_path / "nowhere")], "not a checkpoint file nor a run folder"),
+                        ([str(source), "--obs", "nav"], "same --obs"),
+                        ([str(source), "--algo", "all"], "choose it with --algo")):
+        capsys.readouterr()
+        cmd = ["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "40",
+               "--out", str(out), "--quiet", "--init-from"] + args
+        assert main(cmd) == 2, args
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and match in err, err
