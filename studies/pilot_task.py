@@ -20,7 +20,12 @@ Arms (docs/task.md), each with the same budget (``--preset``, ``--steps``):
   ``--share-params``, one network for the run's six ACs (agents/shared.py), which then learns
   from six times the transitions at the same environment steps and compute;
 - ``nav-shared-r2`` (not run unless named): ``nav-shared`` with each action held for 2
-  environment steps (``--set action_repeat=2``, docs/task.md "Action repeat").
+  environment steps (``--set action_repeat=2``, docs/task.md "Action repeat");
+- ``curriculum`` (not run unless named): ``nav-shared-r2`` trained first on Straight (env_1)
+  for ``--pretrain-steps`` (default 40,000; one run per algorithm, ``OUT/runs/pretrain/``, not
+  tested), then on each environment for the rest of ``--steps`` from its weights
+  (``cosim train --init-from``, docs/agents.md "Warm start"): the same env steps per run as
+  the other arms, the pretrain's counted in. A cell starts once its pretrain has finished.
 
 Every run is trained by a ``cosim train`` subprocess (``--jobs`` at once) into
 ``OUT/runs/<arm>/``, its output in ``OUT/logs/``. A rerun of the same command skips finished
@@ -72,7 +77,7 @@ from cosim.errors import CosimError  # noqa: E402
 from cosim.scenario import load_scenario, scenarios_dir  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
-ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2")
+ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum")
 DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -84,13 +89,18 @@ ARM_FLAGS = {
     "shared": ["--share-params"],
     "nav-shared": ["--obs", "nav", "--share-params"],
     "nav-shared-r2": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
+    "curriculum": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
 }
+PRETRAIN_ENV = "env_1"
+"""Where the curriculum arm learns to drive first: Straight, no turn (the quick PPO reached 0.94
+of its goals there)."""
+PRETRAIN_STEPS = 40_000
 REFERENCES = ("always-brake", "safe-non-turner", "autopilot-discrete", "autopilot")
 OLD_REFERENCES = ("autopilot-discrete",)
 """References also driven with the old wheel when the old arm runs (the old arm's ceiling)."""
 SMOKE = {"preset": "smoke", "envs": ["env_4"], "algos": ["ppo", "dqn"], "steps": 40,
          "episodes": 1, "test_steps": 40}
-PLAN_KEYS = ("preset", "steps", "seed", "episodes", "test_steps")
+PLAN_KEYS = ("preset", "steps", "seed", "episodes", "test_steps", "pretrain_steps")
 
 
 class PilotError(CosimError, ValueError):
@@ -116,6 +126,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--episodes", type=int, default=None, help="test episodes per run (default 5)")
     p.add_argument("--test-steps", type=int, default=None,
                    help="steps per test episode (default: the scenario's horizon)")
+    p.add_argument("--pretrain-steps", type=int, default=None,
+                   help=f"the curriculum arm's env steps on {PRETRAIN_ENV}, part of --steps "
+                        f"(default {PRETRAIN_STEPS:,})")
     p.add_argument("--jobs", type=int, default=1, help="training runs at once (default 1)")
     p.add_argument("--smoke", action="store_true",
                    help="the CI check: --preset smoke --envs env_4 --algos ppo dqn --steps 40 "
@@ -133,6 +146,15 @@ def parse(argv=None) -> argparse.Namespace:
     if args.jobs < 1 or args.episodes < 1 or (args.steps is not None and args.steps < 1) or (
             args.test_steps is not None and args.test_steps < 1):
         p.error("--jobs, --episodes, --steps and --test-steps must be >= 1")
+    if "curriculum" in args.arms:
+        budget = args.steps
+        if budget is None:
+            from eval.training.presets import load_presets
+
+            budget = max(load_presets()[args.preset].steps[a] for a in args.algos)
+        args.pretrain_steps = args.pretrain_steps or min(PRETRAIN_STEPS, budget // 2)
+        if not 1 <= args.pretrain_steps < budget:
+            p.error(f"--pretrain-steps must be 1..{budget - 1} (below the run's --steps {budget})")
     args.out = args.out.resolve()
     return args
 
@@ -150,7 +172,35 @@ class Cell:
 
 
 def cells(args) -> list[Cell]:
+    """The tested cells, arm x environment x algorithm (a curriculum's pretrain is not one)."""
     return [Cell(arm, env, algo) for arm in args.arms for env in args.envs for algo in args.algos]
+
+
+def pretrain_cell(algo: str) -> Cell:
+    """The curriculum arm's first stage for ``algo``: nav-shared-r2 on Straight."""
+    return Cell("pretrain", PRETRAIN_ENV, algo)
+
+
+def depends_on(cell: Cell) -> Cell | None:
+    """The cell that must finish before ``cell`` starts (a curriculum cell's pretrain)."""
+    return pretrain_cell(cell.algo) if cell.arm == "curriculum" else None
+
+
+def cell_steps(cell: Cell, args) -> int | None:
+    """Env steps of a cell's own run: a curriculum cell's budget less its pretrain's."""
+    if cell.arm == "pretrain":
+        return args.pretrain_steps
+    if cell.arm == "curriculum":
+        return _budget(cell, args) - args.pretrain_steps
+    return args.steps
+
+
+def _budget(cell: Cell, args) -> int:
+    if args.steps is not None:
+        return args.steps
+    from eval.training.presets import load_presets
+
+    return load_presets()[args.preset].steps[cell.algo]
 
 
 def check_plan(out: Path, args) -> None:
@@ -226,13 +276,20 @@ def train_command(out: Path, cell: Cell, args, run: Path | None) -> list[str]:
 
     base = [sys.executable, "-m", "eval.cli", "train"]
     if run is not None:
-        more = args.steps is not None and load_run_config(run).steps < args.steps
-        return [*base, "--resume", str(run), "--quiet", *(["--steps", str(args.steps)] if more else [])]
+        steps = cell_steps(cell, args)
+        more = steps is not None and load_run_config(run).steps < steps
+        return [*base, "--resume", str(run), "--quiet", *(["--steps", str(steps)] if more else [])]
     cmd = [*base, "--algo", cell.algo, "--env", env_arg(out, cell), "--preset", args.preset,
            "--seed", str(args.seed), "--out", str(out / "runs" / cell.arm), "--quiet"]
-    if args.steps is not None:
-        cmd += ["--steps", str(args.steps)]
-    return cmd + ARM_FLAGS[cell.arm]
+    if cell_steps(cell, args) is not None:
+        cmd += ["--steps", str(cell_steps(cell, args))]
+    source = depends_on(cell)
+    if source is not None:
+        found = find_run(out, source, args.seed)
+        if found is None:
+            raise PilotError(f"{cell.name} starts from {source.name}, which has no run yet")
+        cmd += ["--init-from", str(found)]
+    return cmd + ARM_FLAGS["nav-shared-r2" if cell.arm == "pretrain" else cell.arm]
 
 
 def check_obs_flag(help_text: str) -> None:
@@ -436,10 +493,14 @@ def summary(table: pd.DataFrame, args) -> str:
 
 # -- the loop ----------------------------------------------------------------------------------
 def plan_work(out: Path, args) -> tuple[list[Cell], list[Cell]]:
-    """(cells to train or resume, cells trained but not tested)."""
+    """(cells to train or resume, a curriculum's pretrains first; cells trained but not tested)."""
     to_train, to_test = [], []
+    pretrains = list(dict.fromkeys(depends_on(c) for c in cells(args) if depends_on(c)))
+    for cell in pretrains:
+        if run_status(find_run(out, cell, args.seed), cell_steps(cell, args)) != "finished":
+            to_train.append(cell)
     for cell in cells(args):
-        status = run_status(find_run(out, cell, args.seed), args.steps)
+        status = run_status(find_run(out, cell, args.seed), cell_steps(cell, args))
         if status != "finished":
             to_train.append(cell)
         elif not (out / "test" / f"{cell.name}.parquet").exists():
@@ -461,6 +522,12 @@ def run_test(out: Path, cell: Cell, args) -> bool:
         f"contact steps {s['contact_steps'].mean():.1f} per AC-episode "
         f"({time.monotonic() - start:.0f} s)")
     return True
+
+
+def startable(out: Path, cell: Cell, args) -> bool:
+    """Whether ``cell`` can start now: it depends on nothing, or its pretrain has finished."""
+    source = depends_on(cell)
+    return source is None or run_status(find_run(out, source, args.seed), cell_steps(source, args)) == "finished"
 
 
 def start_training(out: Path, cell: Cell, args) -> subprocess.Popen:
@@ -504,15 +571,26 @@ def main(argv=None) -> int:
                 running.remove(proc)
                 cell = proc.cell  # type: ignore[attr-defined]
                 mins = (time.monotonic() - proc.started) / 60  # type: ignore[attr-defined]
-                if proc.returncode == 0 and run_status(find_run(out, cell, args.seed), args.steps) == "finished":
+                done = run_status(find_run(out, cell, args.seed), cell_steps(cell, args)) == "finished"
+                if proc.returncode == 0 and done:
                     say(f"train {cell.name}: finished ({mins:.1f} min)")
-                    chores.append(("test", cell))
+                    if cell.arm != "pretrain":
+                        chores.append(("test", cell))
                 else:
                     say(f"train {cell.name}: FAILED (exit {proc.returncode}, {mins:.1f} min); see "
                         f"{out / 'logs' / (cell.name + '.log')}; rerun to resume")
                     failed.append(cell.name)
-            while to_train and len(running) < args.jobs:  # before a chore: it takes minutes
-                running.append(start_training(out, to_train.pop(0), args))
+            while len(running) < args.jobs:  # before a chore: it takes minutes
+                ready = [c for c in to_train if startable(out, c, args)]
+                if not ready:
+                    break
+                to_train.remove(ready[0])
+                running.append(start_training(out, ready[0], args))
+            if to_train and not running and not any(startable(out, c, args) for c in to_train):
+                for cell in to_train:  # their pretrain failed: nothing can start
+                    say(f"train {cell.name}: not started, {depends_on(cell).name} did not finish")
+                    failed.append(cell.name)
+                to_train.clear()
             if chores:
                 kind, what = chores.pop(0)
                 if kind == "references":

@@ -82,6 +82,33 @@ def test_reruns_skip_finished_runs_resume_unfinished_ones_and_skip_finished_test
     assert pilot.train_command(tmp_path, C("new", "env_4", "ppo"), args, unfinished)[-1] == "--quiet"
 
 
+def test_the_curriculum_arm_pretrains_on_straight_first_then_warm_starts_each_cell(pilot, tmp_path):
+    """The curriculum arm: one pretrain run per algorithm on env_1 first, with --pretrain-steps;
+    its cells wait for it, then start from it with the rest of the budget."""
+    C = pilot.Cell
+    args = _args(pilot, tmp_path, "--arms", "curriculum", "--algos", "ppo", "--steps", "150",
+                 "--pretrain-steps", "40")
+    to_train, to_test = pilot.plan_work(tmp_path, args)
+    assert [c.name for c in to_train] == ["pretrain__env_1__ppo", "curriculum__env_3__ppo",
+                                          "curriculum__env_4__ppo"] and to_test == []
+    pre = pilot.train_command(tmp_path, to_train[0], args, None)
+    assert pre[pre.index("--env") + 1] == "env_1" and pre[pre.index("--steps") + 1] == "40"
+    assert pre[-5:] == ["--obs", "nav", "--share-params", "--set", "action_repeat=2"]
+    assert not pilot.startable(tmp_path, to_train[1], args)
+    with pytest.raises(pilot.PilotError, match="starts from pretrain__env_1__ppo, which has no run"):
+        pilot.train_command(tmp_path, to_train[1], args, None)
+    source = _fake_run(tmp_path, "pretrain", "env_1", "ppo", 20, total=40)
+    assert not pilot.startable(tmp_path, to_train[1], args)  # unfinished
+    (source / "state.json").write_text(json.dumps({"env_steps": 40, "csv_rows": 0}))
+    assert pilot.startable(tmp_path, to_train[1], args)
+    cmd = pilot.train_command(tmp_path, to_train[1], args, None)
+    assert cmd[cmd.index("--steps") + 1] == "110" and cmd[cmd.index("--init-from") + 1] == str(source)
+    assert [c.name for c in pilot.plan_work(tmp_path, args)[0]] == ["curriculum__env_3__ppo",
+                                                                    "curriculum__env_4__ppo"]
+    with pytest.raises(SystemExit):
+        _args(pilot, tmp_path, "--arms", "curriculum", "--steps", "150", "--pretrain-steps", "150")
+
+
 def test_a_rerun_with_another_plan_is_refused_and_nav_needs_the_obs_flag(pilot, tmp_path):
     pilot.check_plan(tmp_path, _args(pilot, tmp_path, "--steps", "500"))
     pilot.check_plan(tmp_path, _args(pilot, tmp_path, "--steps", "500", "--arms", "new"))  # arms may change
