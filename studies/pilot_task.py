@@ -530,6 +530,22 @@ def startable(out: Path, cell: Cell, args) -> bool:
     return source is None or run_status(find_run(out, source, args.seed), cell_steps(source, args)) == "finished"
 
 
+def start_ready(out: Path, to_train: list[Cell], running: list, failed: list[str], args) -> None:
+    """Start cells of ``to_train`` whose pretrain has finished, up to ``--jobs`` running; when
+    none runs and none can start (their pretrain failed), list them as failed."""
+    while len(running) < args.jobs:
+        ready = [c for c in to_train if startable(out, c, args)]
+        if not ready:
+            break
+        to_train.remove(ready[0])
+        running.append(start_training(out, ready[0], args))
+    if to_train and not running:
+        for cell in to_train:
+            say(f"train {cell.name}: not started, {depends_on(cell).name} did not finish")
+            failed.append(cell.name)
+        to_train.clear()
+
+
 def start_training(out: Path, cell: Cell, args) -> subprocess.Popen:
     run = find_run(out, cell, args.seed)
     cmd = train_command(out, cell, args, run)
@@ -580,17 +596,7 @@ def main(argv=None) -> int:
                     say(f"train {cell.name}: FAILED (exit {proc.returncode}, {mins:.1f} min); see "
                         f"{out / 'logs' / (cell.name + '.log')}; rerun to resume")
                     failed.append(cell.name)
-            while len(running) < args.jobs:  # before a chore: it takes minutes
-                ready = [c for c in to_train if startable(out, c, args)]
-                if not ready:
-                    break
-                to_train.remove(ready[0])
-                running.append(start_training(out, ready[0], args))
-            if to_train and not running and not any(startable(out, c, args) for c in to_train):
-                for cell in to_train:  # their pretrain failed: nothing can start
-                    say(f"train {cell.name}: not started, {depends_on(cell).name} did not finish")
-                    failed.append(cell.name)
-                to_train.clear()
+            start_ready(out, to_train, running, failed, args)  # before a chore: it takes minutes
             if chores:
                 kind, what = chores.pop(0)
                 if kind == "references":

@@ -220,11 +220,6 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     if share_params and algo in ASYNC_ALGOS:
         raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
                          f"{algo} builds its own learners: drop --share-params for it")
-    if init_from is not None:
-        init_from = str(Path(init_from).resolve())
-        if not (Path(init_from).is_file() or (Path(init_from) / "checkpoints" / "ac_0" / "best.pt").is_file()):
-            raise TrainError(f"--init-from {init_from}: not a checkpoint file nor a run folder with "
-                             "checkpoints/ac_0/best.pt; name a finished run of the same algorithm and --obs")
     config_cls = registry.get_config_class(algo)  # PPOConfig, ... (agents/configs.py, no torch)
     chosen = agent_preset or p.agent_preset
     try:  # the preset's typed config (with its YAML's changes), then the --set changes
@@ -240,8 +235,19 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         learner_threads=int(learner_threads),
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
         validation_steps=validation_steps, policy_dtype=p.policy_dtype, share_params=bool(share_params),
-        init_from=init_from,
+        init_from=_init_source(init_from),
     )
+
+
+def _init_source(init_from: str | Path | None) -> str | None:
+    """``--init-from`` as an absolute path, refused when it holds no checkpoint."""
+    if init_from is None:
+        return None
+    path = Path(init_from).resolve()
+    if not (path.is_file() or (path / "checkpoints" / "ac_0" / "best.pt").is_file()):
+        raise TrainError(f"--init-from {path}: not a checkpoint file nor a run folder with "
+                         "checkpoints/ac_0/best.pt; name a finished run of the same algorithm and --obs")
+    return str(path)
 
 
 def parse_set(items: list[str]) -> dict[str, str]:

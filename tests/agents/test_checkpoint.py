@@ -280,7 +280,7 @@ def test_warm_start_copies_the_policy_sets_targets_and_keeps_a_fresh_learner(alg
                 assert torch.equal(tensor, source.networks[net].state_dict()[key]), (name, net, key)
         for target, online in TARGET_NETWORKS[algo].items():
             assert not all(torch.equal(a, b) for a, b in
-                           zip(before[target], fresh.networks[online].state_dict().values()))
+                           zip(before[target], fresh.networks[online].state_dict().values(), strict=True))
             for key, tensor in fresh.networks[target].state_dict().items():
                 assert torch.equal(tensor, fresh.networks[online].state_dict()[key]), (target, key)
         assert fresh.steps == 0 < source.steps  # counters (epsilon, learning starts) start again

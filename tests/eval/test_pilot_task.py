@@ -85,7 +85,6 @@ def test_reruns_skip_finished_runs_resume_unfinished_ones_and_skip_finished_test
 def test_the_curriculum_arm_pretrains_on_straight_first_then_warm_starts_each_cell(pilot, tmp_path):
     """The curriculum arm: one pretrain run per algorithm on env_1 first, with --pretrain-steps;
     its cells wait for it, then start from it with the rest of the budget."""
-    C = pilot.Cell
     args = _args(pilot, tmp_path, "--arms", "curriculum", "--algos", "ppo", "--steps", "150",
                  "--pretrain-steps", "40")
     to_train, to_test = pilot.plan_work(tmp_path, args)
