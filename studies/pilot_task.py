@@ -25,7 +25,10 @@ Arms (docs/task.md), each with the same budget (``--preset``, ``--steps``):
   for ``--pretrain-steps`` (default 40,000; one run per algorithm, ``OUT/runs/pretrain/``, not
   tested), then on each environment for the rest of ``--steps`` from its weights
   (``cosim train --init-from``, docs/agents.md "Warm start"): the same env steps per run as
-  the other arms, the pretrain's counted in. A cell starts once its pretrain has finished.
+  the other arms, the pretrain's counted in. A cell starts once its pretrain has finished;
+- ``warm`` (not run unless named, with ``--init-from CKPT``): ``nav-shared-r2`` started from
+  the weights of a checkpoint of that config (``cosim train --init-from``), e.g. the behaviour
+  clone of the discrete autopilot that studies/bc_warmstart.py writes.
 
 Every run is trained by a ``cosim train`` subprocess (``--jobs`` at once) into
 ``OUT/runs/<arm>/``, its output in ``OUT/logs/``. A rerun of the same command skips finished
@@ -77,7 +80,7 @@ from cosim.errors import CosimError  # noqa: E402
 from cosim.scenario import load_scenario, scenarios_dir  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
-ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum")
+ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum", "warm")
 DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -90,6 +93,7 @@ ARM_FLAGS = {
     "nav-shared": ["--obs", "nav", "--share-params"],
     "nav-shared-r2": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
     "curriculum": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
+    "warm": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
 }
 PRETRAIN_ENV = "env_1"
 """Where the curriculum arm learns to drive first: Straight, no turn (the quick PPO reached 0.94
@@ -100,7 +104,7 @@ OLD_REFERENCES = ("autopilot-discrete",)
 """References also driven with the old wheel when the old arm runs (the old arm's ceiling)."""
 SMOKE = {"preset": "smoke", "envs": ["env_4"], "algos": ["ppo", "dqn"], "steps": 40,
          "episodes": 1, "test_steps": 40}
-PLAN_KEYS = ("preset", "steps", "seed", "episodes", "test_steps", "pretrain_steps")
+PLAN_KEYS = ("preset", "steps", "seed", "episodes", "test_steps", "pretrain_steps", "init_from")
 
 
 class PilotError(CosimError, ValueError):
@@ -129,6 +133,8 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--pretrain-steps", type=int, default=None,
                    help=f"the curriculum arm's env steps on {PRETRAIN_ENV}, part of --steps "
                         f"(default {PRETRAIN_STEPS:,})")
+    p.add_argument("--init-from", default=None, metavar="CKPT",
+                   help="the warm arm's starting weights (a PPO or DQN checkpoint of nav-shared-r2's config)")
     p.add_argument("--jobs", type=int, default=1, help="training runs at once (default 1)")
     p.add_argument("--smoke", action="store_true",
                    help="the CI check: --preset smoke --envs env_4 --algos ppo dqn --steps 40 "
@@ -155,6 +161,10 @@ def parse(argv=None) -> argparse.Namespace:
         args.pretrain_steps = args.pretrain_steps or min(PRETRAIN_STEPS, budget // 2)
         if not 1 <= args.pretrain_steps < budget:
             p.error(f"--pretrain-steps must be 1..{budget - 1} (below the run's --steps {budget})")
+    if ("warm" in args.arms) != (args.init_from is not None):
+        p.error("the warm arm and --init-from CKPT go together")
+    if args.init_from is not None:
+        args.init_from = str(Path(args.init_from).resolve())
     args.out = args.out.resolve()
     return args
 
@@ -289,6 +299,8 @@ def train_command(out: Path, cell: Cell, args, run: Path | None) -> list[str]:
         if found is None:
             raise PilotError(f"{cell.name} starts from {source.name}, which has no run yet")
         cmd += ["--init-from", str(found)]
+    if cell.arm == "warm":
+        cmd += ["--init-from", args.init_from]
     return cmd + ARM_FLAGS["nav-shared-r2" if cell.arm == "pretrain" else cell.arm]
 
 

@@ -106,6 +106,12 @@ def test_the_curriculum_arm_pretrains_on_straight_first_then_warm_starts_each_ce
                                                                     "curriculum__env_4__ppo"]
     with pytest.raises(SystemExit):
         _args(pilot, tmp_path, "--arms", "curriculum", "--steps", "150", "--pretrain-steps", "150")
+    warm = _args(pilot, tmp_path, "--arms", "warm", "--algos", "ppo", "--init-from", "clone.pt")
+    cmd = pilot.train_command(tmp_path, pilot.Cell("warm", "env_3", "ppo"), warm, None)
+    assert cmd[cmd.index("--init-from") + 1] == str(Path("clone.pt").resolve())
+    for alone in (["--arms", "warm"], ["--arms", "new", "--init-from", "clone.pt"]):
+        with pytest.raises(SystemExit):
+            _args(pilot, tmp_path, *alone)
 
 
 def test_a_rerun_with_another_plan_is_refused_and_nav_needs_the_obs_flag(pilot, tmp_path):
