@@ -15,9 +15,15 @@ then PPO from it (issue 25, a diagnostic beside the pure-RL pilots).
    learner's mistakes lead to, with the way back (Laskey et al. 2017, DART). Kept per decision:
    the observation, the autopilot's action and the discounted return (gamma of PPO's config,
    over the decisions' summed rewards, times the preset's reward_scale).
-2. **Clone** (``OUT/bc_ppo.pt``, a full PPO checkpoint of that run config): one network for
-   every environment's demonstrations (agents/imitation.py ``clone``: cross-entropy on the
-   actions, squared error on the returns).
+2. **Clone** (``OUT/clones/clone_0.pt``): one PPO network of that run config for every
+   environment's demonstrations (agents/imitation.py ``clone``: cross-entropy on the actions,
+   squared error on the returns).
+2b. **DAgger** (Ross et al. 2011), ``--dagger N`` rounds: round i lets clone i-1 drive (its
+   sampled actions, no added noise) while the autopilot labels every decision
+   (``OUT/demos/<env>_dagger<i>.npz``), then trains that clone further on all the
+   demonstrations so far for ``--dagger-epochs`` (``OUT/clones/clone_<i>.pt``). The states a
+   clone's own mistakes lead to (a queue it is about to run into) get the autopilot's answer.
+   The last clone is ``OUT/bc_ppo.pt``, a full PPO checkpoint.
 3. **Test the clone** as the pilots test a run (studies/pilot_task.py): its ACs together, every
    slot driven by the clone, the test's rules, held-out seeds 10,000+, PPO sampled; written to
    ``OUT/test/<env>.parquet`` and ``OUT/summary.md`` beside the pilots' reference rows.
@@ -65,6 +71,8 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--episodes", type=int, default=None, help="demonstration episodes per environment (default 12)")
     p.add_argument("--noise", type=float, default=0.2, help="chance an AC executes a random action (default 0.2)")
     p.add_argument("--epochs", type=int, default=None, help="cloning epochs (default 6)")
+    p.add_argument("--dagger", type=int, default=0, help="DAgger rounds after the first clone (default 0)")
+    p.add_argument("--dagger-epochs", type=int, default=3, help="epochs of each DAgger round (default 3)")
     p.add_argument("--test-episodes", type=int, default=None, help="held-out test episodes (default 5)")
     p.add_argument("--test-steps", type=int, default=None, help="steps per test episode (default: the horizon)")
     p.add_argument("--smoke", action="store_true", help="the CI check: " + " ".join(
@@ -80,8 +88,10 @@ def parse(argv=None) -> argparse.Namespace:
     args.episodes = args.episodes or 12
     args.epochs = args.epochs or 6
     args.test_episodes = args.test_episodes or 5
-    if min(args.episodes, args.epochs, args.test_episodes) < 1 or not 0 <= args.noise < 1:
-        p.error("--episodes, --epochs and --test-episodes must be >= 1, --noise in [0, 1)")
+    if min(args.episodes, args.epochs, args.test_episodes, args.dagger_epochs) < 1 or args.dagger < 0 or not (
+            0 <= args.noise < 1):
+        p.error("--episodes, --epochs, --dagger-epochs and --test-episodes must be >= 1, --dagger >= 0, "
+                "--noise in [0, 1)")
     args.out = args.out.resolve()
     return args
 
@@ -102,8 +112,9 @@ def discounted(rewards: list[float], gamma: float) -> np.ndarray:
     return out
 
 
-def collect(env_name: str, args) -> dict[str, np.ndarray]:
-    """Demonstrations of one environment (module docstring, step 1)."""
+def collect(env_name: str, args, driver=None, first_seed: int = 0) -> dict[str, np.ndarray]:
+    """Demonstrations of one environment (module docstring, step 1): the autopilot's labels;
+    it drives (with ``--noise``), or ``driver`` (a PPO agent, sampled) does (step 2b)."""
     from eval.testing.rollout import AutopilotPolicy
     from eval.training.trainer import make_env
 
@@ -115,13 +126,16 @@ def collect(env_name: str, args) -> dict[str, np.ndarray]:
     images, measures, actions, returns, goals = [], [], [], [], []
     try:
         for episode in range(args.episodes):
-            obs, _ = env.reset(seed=episode)
+            obs, _ = env.reset(seed=first_seed + episode)
             pilots = {ac: AutopilotPolicy(base, ac) for ac in env.agents}
             trail = {ac: [] for ac in env.agents}  # (image, measurements, action, reward)
             while env.agents:
                 labels = {ac: int(pilots[ac].act(None)) for ac in env.agents}
-                executed = {ac: (int(rng.integers(9)) if rng.random() < args.noise else a)
-                            for ac, a in labels.items()}
+                if driver is not None:
+                    executed = dict(zip(labels, sampled(driver, [obs[ac] for ac in labels], rng), strict=True))
+                else:
+                    executed = {ac: (int(rng.integers(9)) if rng.random() < args.noise else a)
+                                for ac, a in labels.items()}
                 now = obs
                 obs, rewards, terms, truncs, infos = env.step(executed)
                 for ac, a in labels.items():
@@ -140,36 +154,52 @@ def collect(env_name: str, args) -> dict[str, np.ndarray]:
             "goals": np.asarray(goals, bool)}
 
 
-def demos(out: Path, env_name: str, args) -> dict[str, np.ndarray]:
-    """``OUT/demos/<env>.npz``, collected once."""
-    path = out / "demos" / f"{env_name}.npz"
+def sampled(agent, obs: list, rng: np.random.Generator) -> list[int]:
+    """Actions drawn from a PPO agent's policy for a list of observations, in one forward pass."""
+    import torch
+
+    from agents import observations
+    from agents.networks import obs_to_tensor
+
+    with torch.no_grad():
+        logits, _ = agent.net(obs_to_tensor(observations.stack(obs), agent.device))
+    probs = torch.softmax(logits, -1).cpu().numpy().astype(np.float64)
+    return [int(rng.choice(len(p), p=p / p.sum())) for p in probs]
+
+
+def demos(out: Path, env_name: str, args, round_: int = 0, driver=None) -> dict[str, np.ndarray]:
+    """``OUT/demos/<env>.npz`` (round 0, the autopilot drives) or ``<env>_dagger<i>.npz``
+    (round i, ``driver`` drives), collected once; each round on its own training seeds."""
+    path = out / "demos" / (f"{env_name}.npz" if round_ == 0 else f"{env_name}_dagger{round_}.npz")
     if not path.exists():
         start = time.monotonic()
-        data = collect(env_name, args)
+        data = collect(env_name, args, driver, first_seed=1000 * round_)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
         np.savez(tmp, **data)
         tmp.replace(path)
-        say(f"demos {env_name}: {len(data['actions'])} decisions, autopilot goal rate "
-            f"{data['goals'].mean():.2f} with noise {args.noise} ({time.monotonic() - start:.0f} s)")
+        who = f"autopilot with noise {args.noise}" if driver is None else f"clone {round_ - 1}"
+        say(f"demos {env_name} round {round_}: {len(data['actions'])} decisions, goal rate "
+            f"{data['goals'].mean():.2f} driven by the {who} ({time.monotonic() - start:.0f} s)")
     with np.load(path) as f:
         return {k: f[k] for k in f.files}
 
 
 # -- 2. clone ----------------------------------------------------------------------------------
 def build_clone(out: Path, args) -> Path:
-    """``OUT/bc_ppo.pt``: a PPO agent of the run config cloned on every environment's demos."""
-    from agents.imitation import clone
+    """``OUT/bc_ppo.pt``: a PPO agent of the run config cloned on every environment's demos,
+    then ``--dagger`` rounds (module docstring, steps 2 and 2b); each clone kept, so a rerun
+    goes on from the last one written."""
+    import shutil
+
+    import agents as agents_pkg
     from agents.registry import get_agent_class
     from eval.training.trainer import make_env
 
-    path = out / "bc_ppo.pt"
-    if path.exists():
-        return path
+    final = out / "bc_ppo.pt"
+    if final.exists():
+        return final
     data = [demos(out, env, args) for env in args.envs]
-    obs = {k: np.concatenate([d[k] for d in data]) for k in ("image", "measurements")}
-    actions = np.concatenate([d["actions"] for d in data])
-    returns = np.concatenate([d["returns"] for d in data])
     cfg = run_config(args.envs[0], args.preset)
     probe = make_env(cfg)
     try:
@@ -177,17 +207,34 @@ def build_clone(out: Path, args) -> Path:
                                                    cfg.agent_config, seed=0)
     finally:
         probe.close()
+    for round_ in range(args.dagger + 1):
+        if round_ > 0:
+            data += [demos(out, env, args, round_, agent) for env in args.envs]
+        path = out / "clones" / f"clone_{round_}.pt"
+        if path.exists():
+            agent = agents_pkg.load(path)
+            continue
+        fit(agent, data, args.epochs if round_ == 0 else args.dagger_epochs, f"clone {round_}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        agent.save(path)
+    shutil.copyfile(path, final)
+    return final
+
+
+def fit(agent, data: list[dict], epochs: int, name: str) -> None:
+    """Clone ``agent`` on the demonstrations ``data`` (every round so far) for ``epochs``."""
+    from agents.imitation import clone
+
+    obs = {k: np.concatenate([d[k] for d in data]) for k in ("image", "measurements")}
+    actions = np.concatenate([d["actions"] for d in data])
     start = time.monotonic()
 
     def report(epoch: int, m: dict) -> None:
-        say(f"clone epoch {epoch + 1}/{args.epochs}: accuracy {m['accuracy']:.3f}, cross-entropy "
-            f"{m['cross_entropy']:.3f}, value loss {m['value_loss']:.4f} ({time.monotonic() - start:.0f} s)")
+        say(f"{name} epoch {epoch + 1}/{epochs} on {len(actions)} decisions: accuracy {m['accuracy']:.3f}, "
+            f"cross-entropy {m['cross_entropy']:.3f}, value loss {m['value_loss']:.4f} "
+            f"({time.monotonic() - start:.0f} s)")
 
-    metrics = clone(agent, obs, actions, returns, epochs=args.epochs, on_epoch=report)
-    agent.save(path)
-    (out / "clone.json").write_text(pd.Series({**metrics, "decisions": len(actions),
-                                               "epochs": args.epochs, "noise": args.noise}).to_json(indent=2))
-    return path
+    clone(agent, obs, actions, np.concatenate([d["returns"] for d in data]), epochs=epochs, on_epoch=report)
 
 
 # -- 3. test -----------------------------------------------------------------------------------
