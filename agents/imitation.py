@@ -41,7 +41,8 @@ def clone(agent, obs, actions: np.ndarray, returns: np.ndarray | None = None, *,
     Args:
         agent: An actor-critic agent (:func:`cloned_network`), trained in place.
         obs: A batch of observations of the agent's space (an array, or a dict of arrays
-            for a nav space), N first.
+            for a nav space), N first; or a list of such batches, N rows in all, taken as one
+            (so demonstrations gathered in rounds are never copied into one array).
         actions: (N,) the demonstrated discrete actions.
         returns: (N,) discounted returns from each state, in the units the agent learns
             (already multiplied by its ``reward_scale``); None: the value head is not trained.
@@ -56,8 +57,12 @@ def clone(agent, obs, actions: np.ndarray, returns: np.ndarray | None = None, *,
         (the fraction of minibatch actions the policy's argmax matched, before each step).
     """
     net = cloned_network(agent)
+    chunks = list(obs) if isinstance(obs, list) else [obs]
+    ends = np.cumsum([len(next(iter(c.values())) if isinstance(c, dict) else c) for c in chunks])
     actions = np.asarray(actions, dtype=np.int64)
     n = len(actions)
+    if ends[-1] != n:
+        raise ValueError(f"behaviour cloning got {ends[-1]} observations and {n} actions")
     if n == 0 or (returns is not None and len(returns) != n):
         raise ValueError(f"behaviour cloning needs as many returns as actions and at least one, "
                          f"got {n} actions and {None if returns is None else len(returns)} returns")
@@ -69,8 +74,8 @@ def clone(agent, obs, actions: np.ndarray, returns: np.ndarray | None = None, *,
         sums = dict.fromkeys(("loss", "cross_entropy", "value_loss", "accuracy"), 0.0)
         order = rng.permutation(n)
         for start in range(0, n, batch_size):
-            idx = order[start:start + batch_size]
-            logits, values = net(obs_to_tensor(observations.take(obs, idx), agent.device))
+            idx = np.sort(order[start:start + batch_size])
+            logits, values = net(obs_to_tensor(_rows(chunks, ends, idx), agent.device))
             target = torch.as_tensor(actions[idx], device=agent.device)
             ce = F.cross_entropy(logits, target)
             loss = ce
@@ -93,3 +98,13 @@ def clone(agent, obs, actions: np.ndarray, returns: np.ndarray | None = None, *,
             on_epoch(epoch, metrics)
     net.eval()
     return metrics
+
+
+def _rows(chunks: list, ends: np.ndarray, idx: np.ndarray):
+    """Rows ``idx`` (sorted) of the batches ``chunks`` taken as one (their cumulative sizes ``ends``)."""
+    if len(chunks) == 1:
+        return observations.take(chunks[0], idx)
+    which = np.searchsorted(ends, idx, side="right")
+    starts = np.concatenate([[0], ends[:-1]])
+    return observations.concatenate([observations.take(chunks[c], idx[which == c] - starts[c])
+                                     for c in np.unique(which)])

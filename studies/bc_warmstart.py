@@ -225,7 +225,7 @@ def fit(agent, data: list[dict], epochs: int, name: str) -> None:
     """Clone ``agent`` on the demonstrations ``data`` (every round so far) for ``epochs``."""
     from agents.imitation import clone
 
-    obs = {k: np.concatenate([d[k] for d in data]) for k in ("image", "measurements")}
+    obs = [{k: d[k] for k in ("image", "measurements")} for d in data]  # not copied into one array
     actions = np.concatenate([d["actions"] for d in data])
     start = time.monotonic()
 

@@ -49,3 +49,20 @@ def test_cloning_refuses_agents_without_an_actor_critic_and_mismatched_returns()
     ppo = get_agent_class("ppo").from_spaces(*SPACES["ppo"], config=FAST["ppo"], seed=0)
     with pytest.raises(ValueError, match="as many returns as actions"):
         clone(ppo, np.zeros((4, 4), np.float32), np.zeros(4), np.zeros(3))
+
+
+def test_a_list_of_batches_trains_as_their_concatenation():
+    """Demonstrations gathered in rounds (DAgger) are passed as a list and never copied into
+    one array; the network learns exactly what it learns from the concatenated batch."""
+    obs, actions, returns = _demos(300, 2)
+    parts = [{k: v[a:b] for k, v in obs.items()} for a, b in ((0, 100), (100, 130), (130, 300))]
+    nets = []
+    for batch in (obs, parts):
+        agent = get_agent_class("ppo").from_spaces(SPACE, gym.spaces.Discrete(9), seed=0)
+        clone(agent, batch, actions, returns, epochs=2, batch_size=32, seed=5)
+        nets.append(agent.net.state_dict())
+    for key, tensor in nets[0].items():
+        assert torch.equal(tensor, nets[1][key]), key
+    agent = get_agent_class("ppo").from_spaces(SPACE, gym.spaces.Discrete(9), seed=0)
+    with pytest.raises(ValueError, match="got 130 observations and 300 actions"):
+        clone(agent, parts[:2], actions)
