@@ -79,12 +79,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--test-steps", type=int, default=None, help="steps per test episode (default: the horizon)")
     p.add_argument("--smoke", action="store_true", help="the CI check: " + " ".join(
         f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in SMOKE.items()))
-    args = p.parse_args(argv)
-    given = {k for k, v in vars(args).items() if v is not None}
-    if args.smoke:
-        for k, v in SMOKE.items():
-            if k not in given:
-                setattr(args, k, v)
+    args = pilot_task.smoke_defaults(p.parse_args(argv), SMOKE)
     args.envs = args.envs or ["env_3", "env_4"]
     args.preset = args.preset or "standard"
     args.episodes = args.episodes or 12

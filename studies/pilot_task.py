@@ -115,6 +115,15 @@ def say(msg: str) -> None:
     print(f"[pilot] {msg}", file=sys.stderr, flush=True)
 
 
+def smoke_defaults(args: argparse.Namespace, smoke: dict) -> argparse.Namespace:
+    """With ``--smoke``, the ``smoke`` values for the options the command did not give."""
+    if args.smoke:
+        for key, value in smoke.items():
+            if getattr(args, key) is None:
+                setattr(args, key, value)
+    return args
+
+
 def parse(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -139,12 +148,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--smoke", action="store_true",
                    help="the CI check: --preset smoke --envs env_4 --algos ppo dqn --steps 40 "
                         "--episodes 1 --test-steps 40 (options given explicitly win)")
-    args = p.parse_args(argv)
-    given = {k for k, v in vars(args).items() if v is not None}
-    if args.smoke:
-        for k, v in SMOKE.items():
-            if k not in given:
-                setattr(args, k, v)
+    args = smoke_defaults(p.parse_args(argv), SMOKE)
     args.preset = args.preset or "quick"
     args.algos = args.algos or ["ppo", "dqn"]
     args.envs = args.envs or ["env_3", "env_4"]
