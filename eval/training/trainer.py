@@ -72,6 +72,8 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
             lock.release()
             raise
     else:
+        if cfg.init_from is not None:  # a source that does not fit is refused before a run folder exists
+            _check_init_source(cfg)
         run = new_run_dir(out, cfg)
         lock = RunLock(run)
         state = None
@@ -151,6 +153,17 @@ def init_checkpoint(source: str | Path, k: int) -> Path:
         return source
     own = source / "checkpoints" / f"ac_{k}" / "best.pt"
     return own if own.is_file() else source / "checkpoints" / "ac_0" / "best.pt"
+
+
+def _check_init_source(cfg: TrainConfig) -> None:
+    """Warm-start the run's agents once in memory (the env probed for its spaces), so that
+    ``--init-from`` with another algorithm or observation fails before anything is written."""
+    probe = make_env(cfg)
+    try:
+        obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
+    finally:
+        probe.close()
+    _load_or_build(cfg, Path(), False, obs_space, act_space)
 
 
 def _warm_start(cfg: TrainConfig, agent, k: int) -> None:

@@ -226,3 +226,4 @@ def test_init_from_warm_starts_each_ac_from_a_run_and_is_recorded(tmp_path, caps
         assert main(cmd) == 2, args
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and match in err, err
+        assert [p.name for p in out.iterdir()] == [run.name], "a refused run leaves no folder"
