@@ -85,15 +85,18 @@ DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
 """The steering before issue 25 as a scenario ``vehicle:`` block (docs/guide.md)."""
+R2_FLAGS = ["--obs", "nav", "--share-params", "--set", "action_repeat=2"]
+"""nav-shared-r2's flags, which the curriculum's two stages and the warm arm train with too."""
 ARM_FLAGS = {
     "old": ["--collisions", "end", "--frame-stack", "1", "--validation-episodes", "0"],
     "new": [],
     "nav": ["--obs", "nav"],
     "shared": ["--share-params"],
     "nav-shared": ["--obs", "nav", "--share-params"],
-    "nav-shared-r2": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
-    "curriculum": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
-    "warm": ["--obs", "nav", "--share-params", "--set", "action_repeat=2"],
+    "nav-shared-r2": R2_FLAGS,
+    "curriculum": R2_FLAGS,
+    "warm": R2_FLAGS,
+    "pretrain": R2_FLAGS,  # the curriculum's first stage (pretrain_cell), not an arm of its own
 }
 PRETRAIN_ENV = "env_1"
 """Where the curriculum arm learns to drive first: Straight, no turn (the quick PPO reached 0.94
@@ -305,7 +308,7 @@ def train_command(out: Path, cell: Cell, args, run: Path | None) -> list[str]:
         cmd += ["--init-from", str(found)]
     if cell.arm == "warm":
         cmd += ["--init-from", args.init_from]
-    return cmd + ARM_FLAGS["nav-shared-r2" if cell.arm == "pretrain" else cell.arm]
+    return cmd + ARM_FLAGS[cell.arm]
 
 
 def check_obs_flag(help_text: str) -> None:

@@ -156,14 +156,18 @@ def init_checkpoint(source: str | Path, k: int) -> Path:
 
 
 def _check_init_source(cfg: TrainConfig) -> None:
-    """Warm-start the run's agents once in memory (the env probed for its spaces), so that
-    ``--init-from`` with another algorithm or observation fails before anything is written."""
+    """Warm-start one agent in memory (the env probed for its spaces), so that ``--init-from``
+    with another algorithm or observation fails before anything is written (every AC's source
+    comes from the same run, so one is enough)."""
+    from agents.registry import get_agent_class
+
     probe = make_env(cfg)
     try:
         obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
     finally:
         probe.close()
-    _load_or_build(cfg, Path(), False, obs_space, act_space)
+    agent = get_agent_class(cfg.algo).from_spaces(obs_space, act_space, cfg.agent_config, seed=cfg.seed)
+    _warm_start(cfg, agent, 0)
 
 
 def _warm_start(cfg: TrainConfig, agent, k: int) -> None:
