@@ -3,7 +3,9 @@
 Runs env_3 (signalised four-way with pedestrians) with 1, 3 and 6 learning cars
 driven by a fixed cheap policy (throttle with a gentle random steer, so the
 policy itself costs nothing), resetting whenever every AC is done; resets are not
-timed. Prints steps/s (median of repeats) and the time split per phase.
+timed. Prints steps/s (median of repeats) and the time split per phase; then, with 6 ACs, the
+cost of the junction gate (``SumoBridge.gate_entries``: SUMO's cars and people wait for
+an AC on their path): the same runs with the gate switched off, interleaved on/off.
 
     python bench/sumo_side.py [--steps 3000] [--repeats 3]
 """
@@ -16,6 +18,7 @@ import time
 
 import numpy as np
 
+from cosim.sumo_bridge import SumoBridge
 from cosim.world import World
 
 
@@ -55,6 +58,23 @@ def main() -> None:
         ph = best[1]
         print(f"| {n} | {statistics.median(rates):.0f} | {ph['dynamics']:.3f} | {ph['sumo']:.3f} | "
               f"{ph['snapshot']:.3f} | {ph['events']:.3f} |")
+    gate_cost(args.steps, args.repeats)
+
+
+def gate_cost(steps: int, repeats: int) -> None:
+    """6 ACs with the junction gate on and off, interleaved; medians and their ratio."""
+    gate = SumoBridge.gate_entries
+    rates: dict[str, list[float]] = {"on": [], "off": []}
+    try:
+        for r in range(repeats):
+            for mode in ("on", "off"):
+                SumoBridge.gate_entries = gate if mode == "on" else (lambda self, *a: None)
+                rates[mode].append(run(6, steps, seed=10 + r)[0])
+    finally:
+        SumoBridge.gate_entries = gate
+    on, off = statistics.median(rates["on"]), statistics.median(rates["off"])
+    print("\n| 6 ACs | steps/s (median) |\n|---|---|")
+    print(f"| gate on | {on:.0f} |\n| gate off | {off:.0f} |\n| on / off | {on / off:.2f} |")
 
 
 if __name__ == "__main__":

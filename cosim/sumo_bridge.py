@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.errors import SimulatorUnavailable, SumoError
+from cosim.geometry import Polyline
 from cosim.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -41,6 +42,13 @@ PERSON_RADIUS = 0.3  # metres; a person's footprint is a circle
 _VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE = 0x42, 0x43, 0x40, 0x4F
 GRIDLOCK_WAIT = 15.0  # seconds a background car may stand inside a junction (see _clear_gridlock)
 GRIDLOCK_CHECK_EVERY = 10  # steps between checks
+# a background car within GATE_REACH m of a junction waits there while an AC's body lies on
+# its path through the junction (within half its width + GATE_MARGIN m): see gate_entries
+GATE_REACH = 12.0
+GATE_MARGIN = 0.3
+GATE_NEAR = 25.0  # metres: only cars this close to an AC are checked
+GATE_DECEL = 4.0  # m/s^2: a car that cannot stop before the junction at this rate is let go
+GATE_AHEAD = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # seconds: where an AC will be, for people
 _CMD_GET_VEHICLE_VARIABLE, _CMD_GET_PERSON_VARIABLE = 0xA4, 0xAE
 
 
@@ -56,6 +64,17 @@ def _libsumo():
             "`pip install eclipse-sumo==1.28.0 libsumo==1.28.0`"
         ) from exc
     return libsumo
+
+
+def _near(xy, pts: np.ndarray) -> bool:
+    """Whether point `xy` is within GATE_NEAR m of any of `pts` (k, 2)."""
+    return bool(np.min(np.hypot(pts[:, 0] - xy[0], pts[:, 1] - xy[1])) <= GATE_NEAR)
+
+
+def _touches(path: Polyline, pts: np.ndarray, reach: np.ndarray) -> bool:
+    """Whether any of `pts` lies beside `path` (not beyond its ends) within its `reach`."""
+    along, lat = path.project_many(pts)
+    return bool(np.any((along > 0.0) & (along < path.length) & (np.abs(lat) < reach)))
 
 
 def sumo_to_heading(angle_deg: float | np.ndarray):
@@ -152,6 +171,10 @@ class SumoBridge:
         self._acs: dict[str, tuple[str, int, float]] = {}  # id -> (route id, lane, pos)
         self._pinned: dict[str, tuple[float, float, str]] = {}  # person id -> (x, y, edge)
         self._steps = 0  # SUMO steps since the last start (paces the gridlock check)
+        self._held: set[str] = set()  # background cars gate_entries holds before a junction
+        self._held_people: set[str] = set()  # and people it holds before a crossing
+        self._crossing_half: dict[str, float] = {}  # crossing edge -> half its width
+        self._paths: dict[str, Polyline] = {}  # internal lane -> its path through the junction
         self.time = 0.0
 
     # -- lifecycle -----------------------------------------------------------
@@ -195,6 +218,8 @@ class SumoBridge:
                 self._fail(f"SUMO could not restart scenario {self.scenario.name!r}", exc, seed)
             self._acs.clear()
             self._pinned.clear()
+            self._held.clear()
+            self._held_people.clear()
             self.time = 0.0
             self._steps = 0
             return
@@ -224,6 +249,9 @@ class SumoBridge:
             self._fail(f"SUMO could not start scenario {self.scenario.name!r}", exc, seed)
         self._acs.clear()
         self._pinned.clear()
+        self._held.clear()
+        self._held_people.clear()
+        self._paths.clear()
         self.time = 0.0
         self._steps = 0
 
@@ -463,6 +491,126 @@ class SumoBridge:
         except self._errors as exc:
             self._fail("SUMO failed during simulationStep", exc)
         self.time += self.scenario.dt
+
+    def gate_entries(self, ac_corners: dict[str, np.ndarray],
+                     ac_ahead: dict[str, np.ndarray] | None = None) -> None:
+        """Hold background cars before a junction while an AC is on their path through it.
+
+        An AC moved by ``moveToXY`` registers no approach to the junction's links, and SUMO
+        checks a foe in the junction only at the point where the two lanes' centre lines
+        cross, as if it kept its speed: a car waiting at the stop line starts once an AC's
+        front has passed that point, though the AC's body may still lie across the mouth it
+        enters (two left turns from neighbouring arms run within 2 m of each other there),
+        and it starts while an AC that slows in the junction has still to cross. So before
+        each step a background car within GATE_REACH m of a junction, still able to stop
+        before it, is held (speed 0) while an AC is on its path through the junction: a
+        corner of the AC's body (`ac_corners`, AC id -> (4, 2)), or, for an AC inside a
+        junction, the rest of its own path through it, within half the car's width +
+        GATE_MARGIN (+ half the AC's width for the path) of that car's path. It is
+        released after. Cars already in a junction are left to SUMO (holding them there
+        would park them in the AC's way). People get the same for zebra crossings, which
+        SUMO lets them step onto in front of an AC for the same reason: one on the walking
+        area before a crossing waits while an AC's body, its rest of the junction, or where
+        it will be in the next seconds (`ac_ahead`, AC id -> (k, 2) centres) is on the
+        crossing. docs/scenarios.md, "SUMO's cars and people wait for an AC".
+        """
+        ls = self._ls
+        pts, reach, ahead_pts, ahead_reach = [], [], [], []
+        for ac, corners in ac_corners.items():
+            corners = np.asarray(corners, dtype=float)
+            half_w = np.linalg.norm(corners[1] - corners[0]) / 2
+            # the body: its corners, and its centre line (rear to front) at half its width
+            axis = np.linspace((corners[2] + corners[3]) / 2, (corners[0] + corners[1]) / 2, 5)
+            pts += [corners, axis]
+            reach += [np.zeros(len(corners)), np.full(len(axis), half_w)]
+            lane = ls.vehicle.getLaneID(ac) if ac in self._acs else ""
+            if lane.startswith(":"):  # the rest of its path through this junction
+                path = self._junction_path(lane)
+                at, _ = path.project(*corners.mean(axis=0))
+                rest = np.array([path.point_at(a) for a in np.arange(at, path.length, 1.0)])
+                pts.append(rest.reshape(-1, 2))
+                reach.append(np.full(len(rest), half_w))
+            if ac_ahead is not None and ac in ac_ahead:  # where it will be in the next seconds
+                ahead_pts.append(np.asarray(ac_ahead[ac], dtype=float).reshape(-1, 2))
+                ahead_reach.append(np.full(len(ahead_pts[-1]), half_w))
+        if not pts:
+            self._release(set(), set())
+            return
+        xy, rad = np.concatenate(pts), np.concatenate(reach)
+        cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
+        hold = {vid for vid, var in cars.items()
+                if vid not in self._acs and _near(var[_VAR_POSITION], xy)
+                and self._blocked_entry(vid, var[_VAR_SPEED], xy, rad)}
+        walkers: set[str] = set()
+        if self.pedestrians:
+            pxy = np.concatenate([xy, *ahead_pts])
+            prad = np.concatenate([rad, *ahead_reach])
+            people = ls.poi.getContextSubscriptionResults("cosim_region_p") or {}
+            walkers = {pid for pid, var in people.items()
+                       if _near(var[_VAR_POSITION], pxy) and self._blocked_crossing(pid, pxy, prad)}
+        self._release(hold, walkers)
+
+    def _release(self, hold: set[str], walkers: set[str]) -> None:
+        """Hold the cars in `hold` and people in `walkers`; let go of the rest held so far."""
+        ls = self._ls
+        for vid in hold - self._held:
+            ls.vehicle.setSpeed(vid, 0.0)
+        for vid in self._held - hold:
+            with contextlib.suppress(*self._errors):  # it may have left the simulation
+                ls.vehicle.setSpeed(vid, -1.0)  # back to SUMO's own speed
+        for pid in walkers - self._held_people:
+            ls.person.setSpeed(pid, 0.0)
+        for pid in self._held_people - walkers:
+            with contextlib.suppress(*self._errors):
+                ls.person.setSpeed(pid, -1.0)
+        self._held, self._held_people = hold, walkers
+
+    def _blocked_crossing(self, pid: str, pts: np.ndarray, rad: np.ndarray) -> bool:
+        """Whether person `pid` stands at a zebra crossing (on the walking area before it)
+        that one of `pts` (each with its radius `rad`) is on."""
+        ls = self._ls
+        try:
+            road, nxt = ls.person.getRoadID(pid), ls.person.getNextEdge(pid)
+        except self._errors:
+            return False
+        if not (road.startswith(":") and "_w" in road and nxt.startswith(":") and "_c" in nxt):
+            return False
+        if nxt not in self._paths:
+            shape = np.asarray([p[:2] for p in ls.lane.getShape(f"{nxt}_0")], dtype=float)
+            self._paths[nxt] = Polyline.from_points(shape)
+            self._crossing_half[nxt] = ls.lane.getWidth(f"{nxt}_0") / 2
+        return _touches(self._paths[nxt], pts, rad + self._crossing_half[nxt] + GATE_MARGIN)
+
+    def _blocked_entry(self, vid: str, speed: float, pts: np.ndarray, rad: np.ndarray) -> bool:
+        """Whether background car `vid` is about to enter a junction on a path that one of
+        `pts` (each with its radius `rad`) touches."""
+        ls = self._ls
+        try:
+            lane = ls.vehicle.getLaneID(vid)
+        except self._errors:
+            return False  # left the simulation in the last step (a finished AC, a cleared car)
+        if not lane or lane.startswith(":"):
+            return False
+        to_go = ls.lane.getLength(lane) - ls.vehicle.getLanePosition(vid)
+        if to_go > GATE_REACH or speed * speed / (2 * GATE_DECEL) > to_go:
+            return False
+        links = ls.vehicle.getNextLinks(vid)
+        if not links or not links[0][4].startswith(":"):
+            return False
+        path = self._junction_path(links[0][4])
+        return _touches(path, pts, rad + ls.vehicle.getWidth(vid) / 2 + GATE_MARGIN)
+
+    def _junction_path(self, internal: str) -> Polyline:
+        """The centre line through the junction from `internal` on (its internal lanes)."""
+        if internal not in self._paths:
+            ls, shape, lane = self._ls, [], internal
+            while lane.startswith(":") and len(shape) < 200:
+                pts = [p[:2] for p in ls.lane.getShape(lane)]
+                shape += pts if not shape else pts[1:]
+                nxt = ls.lane.getLinks(lane)  # (lane, prio, open, foe, via internal lane, ...)
+                lane = (nxt[0][4] if nxt[0][4].startswith(":") else nxt[0][0]) if nxt else ""
+            self._paths[internal] = Polyline.from_points(np.asarray(shape, dtype=float))
+        return self._paths[internal]
 
     def _clear_gridlock(self) -> None:
         """Remove background cars that have stood inside a junction for GRIDLOCK_WAIT s.

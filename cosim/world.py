@@ -30,9 +30,10 @@ import numpy as np
 from cosim.dynamics import VehicleParams, bicycle_step
 from cosim.errors import EnvStateError, ScenarioError
 from cosim.events import Events, detect_all, reward_terms
+from cosim.geometry import rect_corners_many
 from cosim.roadmap import RoadMap, road_map
 from cosim.scenario import Scenario, load_scenario
-from cosim.sumo_bridge import Snapshot, SumoBridge
+from cosim.sumo_bridge import GATE_AHEAD, Snapshot, SumoBridge
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +183,13 @@ class World:
         # 3. poses to SUMO
         for k, i in enumerate(idx):
             self.bridge.move_ac(self.ac_ids[i], nx[k], ny[k], nh[k], self.vehicle.length)
+        corners = rect_corners_many(np.stack([nx, ny], axis=1), nh, self.vehicle.length,
+                                    self.vehicle.width)
+        ahead = np.asarray(GATE_AHEAD)[None, :] * np.maximum(nv, 0.0)[:, None]  # (n, T) metres
+        ahead_xy = np.stack([nx[:, None] + np.cos(nh)[:, None] * ahead,
+                             ny[:, None] + np.sin(nh)[:, None] * ahead], axis=2)
+        self.bridge.gate_entries({self.ac_ids[i]: corners[k] for k, i in enumerate(idx)},
+                                 {self.ac_ids[i]: ahead_xy[k] for k, i in enumerate(idx)})
         t1 = time.perf_counter()
         # 4. SUMO step
         self.bridge.step()
