@@ -40,6 +40,7 @@ _warned_traci = False  # the TraCI warning was logged in this process
 
 PERSON_RADIUS = 0.3  # metres; a person's footprint is a circle
 _VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE = 0x42, 0x43, 0x40, 0x4F
+_VAR_ROAD_ID, _VAR_LANE_ID, _VAR_LANEPOSITION = 0x50, 0x51, 0x56
 GRIDLOCK_WAIT = 15.0  # seconds a background car may stand inside a junction (see _clear_gridlock)
 GRIDLOCK_CHECK_EVERY = 10  # steps between checks
 # a background car within GATE_REACH m of a junction waits there while an AC's body lies on
@@ -66,15 +67,23 @@ def _libsumo():
     return libsumo
 
 
-def _near(xy, pts: np.ndarray) -> bool:
-    """Whether point `xy` is within GATE_NEAR m of any of `pts` (k, 2)."""
-    return bool(np.min(np.hypot(pts[:, 0] - xy[0], pts[:, 1] - xy[1])) <= GATE_NEAR)
+def _near(actors: list, pts: np.ndarray) -> list:
+    """The (id, subscription results) of `actors` within GATE_NEAR m of any of `pts` (k, 2)."""
+    if not actors:
+        return []
+    at = np.array([var[_VAR_POSITION] for _, var in actors], dtype=float)
+    d2 = ((at[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+    return [a for a, close in zip(actors, d2 <= GATE_NEAR ** 2, strict=True) if close]
 
 
 def _touches(path: Polyline, pts: np.ndarray, reach: np.ndarray) -> bool:
     """Whether any of `pts` lies beside `path` (not beyond its ends) within its `reach`."""
-    along, lat = path.project_many(pts)
-    return bool(np.any((along > 0.0) & (along < path.length) & (np.abs(lat) < reach)))
+    lo, hi = path.points.min(axis=0), path.points.max(axis=0)
+    box = np.all((pts >= lo - reach[:, None]) & (pts <= hi + reach[:, None]), axis=1)
+    if not box.any():
+        return False
+    along, lat = path.project_many(pts[box])
+    return bool(np.any((along > 0.0) & (along < path.length) & (np.abs(lat) < reach[box])))
 
 
 def sumo_to_heading(angle_deg: float | np.ndarray):
@@ -173,7 +182,9 @@ class SumoBridge:
         self._steps = 0  # SUMO steps since the last start (paces the gridlock check)
         self._held: set[str] = set()  # background cars gate_entries holds before a junction
         self._held_people: set[str] = set()  # and people it holds before a crossing
-        self._crossing_half: dict[str, float] = {}  # crossing edge -> half its width
+        self._next: dict[tuple[str, str], str | None] = {}  # (actor, lane) -> internal lane / crossing
+        self._half: dict[str, float] = {}  # car or crossing -> half its width
+        self._lane_length: dict[str, float] = {}
         self._paths: dict[str, Polyline] = {}  # internal lane -> its path through the junction
         self.time = 0.0
 
@@ -220,6 +231,8 @@ class SumoBridge:
             self._pinned.clear()
             self._held.clear()
             self._held_people.clear()
+            self._next.clear()
+            self._half.clear()
             self.time = 0.0
             self._steps = 0
             return
@@ -251,7 +264,10 @@ class SumoBridge:
         self._pinned.clear()
         self._held.clear()
         self._held_people.clear()
+        self._next.clear()
+        self._half.clear()
         self._paths.clear()
+        self._lane_length.clear()
         self.time = 0.0
         self._steps = 0
 
@@ -287,13 +303,13 @@ class SumoBridge:
         ls.poi.add("cosim_region", cx, cy, (0, 0, 0, 0))
         ls.poi.subscribeContext(
             "cosim_region", _CMD_GET_VEHICLE_VARIABLE, radius,
-            [_VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE],
+            [_VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE, _VAR_LANE_ID, _VAR_LANEPOSITION],
         )
         if self.pedestrians:
             ls.poi.add("cosim_region_p", cx, cy, (0, 0, 0, 0))
             ls.poi.subscribeContext(
                 "cosim_region_p", _CMD_GET_PERSON_VARIABLE, radius,
-                [_VAR_POSITION, _VAR_ANGLE, _VAR_SPEED],
+                [_VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_ROAD_ID],
             )
 
     def close(self) -> None:
@@ -492,8 +508,7 @@ class SumoBridge:
             self._fail("SUMO failed during simulationStep", exc)
         self.time += self.scenario.dt
 
-    def gate_entries(self, ac_corners: dict[str, np.ndarray],
-                     ac_ahead: dict[str, np.ndarray] | None = None) -> None:
+    def gate_entries(self, ids: list[str], corners: np.ndarray, ahead: np.ndarray | None = None) -> None:
         """Hold background cars before a junction while an AC is on their path through it.
 
         An AC moved by ``moveToXY`` registers no approach to the junction's links, and SUMO
@@ -504,51 +519,64 @@ class SumoBridge:
         and it starts while an AC that slows in the junction has still to cross. So before
         each step a background car within GATE_REACH m of a junction, still able to stop
         before it, is held (speed 0) while an AC is on its path through the junction: a
-        corner of the AC's body (`ac_corners`, AC id -> (4, 2)), or, for an AC inside a
+        corner or centre-line point of an AC's body (`corners`, (n, 4, 2) for the ACs `ids`), or, for an AC inside a
         junction, the rest of its own path through it, within half the car's width +
         GATE_MARGIN (+ half the AC's width for the path) of that car's path. It is
         released after. Cars already in a junction are left to SUMO (holding them there
         would park them in the AC's way). People get the same for zebra crossings, which
         SUMO lets them step onto in front of an AC for the same reason: one on the walking
         area before a crossing waits while an AC's body, its rest of the junction, or where
-        it will be in the next seconds (`ac_ahead`, AC id -> (k, 2) centres) is on the
+        it will be in the next seconds (`ahead`, (n, k, 2) centres) is on the
         crossing. docs/scenarios.md, "SUMO's cars and people wait for an AC".
         """
         ls = self._ls
-        pts, reach, ahead_pts, ahead_reach = [], [], [], []
-        for ac, corners in ac_corners.items():
-            corners = np.asarray(corners, dtype=float)
-            half_w = np.linalg.norm(corners[1] - corners[0]) / 2
-            # the body: its corners, and its centre line (rear to front) at half its width
-            axis = np.linspace((corners[2] + corners[3]) / 2, (corners[0] + corners[1]) / 2, 5)
-            pts += [corners, axis]
-            reach += [np.zeros(len(corners)), np.full(len(axis), half_w)]
-            lane = ls.vehicle.getLaneID(ac) if ac in self._acs else ""
-            if lane.startswith(":"):  # the rest of its path through this junction
-                path = self._junction_path(lane)
-                at, _ = path.project(*corners.mean(axis=0))
-                rest = np.array([path.point_at(a) for a in np.arange(at, path.length, 1.0)])
-                pts.append(rest.reshape(-1, 2))
-                reach.append(np.full(len(rest), half_w))
-            if ac_ahead is not None and ac in ac_ahead:  # where it will be in the next seconds
-                ahead_pts.append(np.asarray(ac_ahead[ac], dtype=float).reshape(-1, 2))
-                ahead_reach.append(np.full(len(ahead_pts[-1]), half_w))
-        if not pts:
+        cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
+        corners = np.asarray(corners, dtype=float).reshape(-1, 4, 2)
+        if not len(corners):
             self._release(set(), set())
             return
+        half_w = float(np.linalg.norm(corners[0, 1] - corners[0, 0]) / 2)
+        # the bodies: corners, and the centre line (rear to front) at half the width
+        rear, front = (corners[:, 2] + corners[:, 3]) / 2, (corners[:, 0] + corners[:, 1]) / 2
+        axis = rear[:, None, :] + np.linspace(0.0, 1.0, 5)[None, :, None] * (front - rear)[:, None, :]
+        pts, reach = [corners.reshape(-1, 2), axis.reshape(-1, 2)], [np.zeros(corners.size // 2),
+                                                                     np.full(axis.size // 2, half_w)]
+        for k, ac in enumerate(ids):
+            lane = cars[ac][_VAR_LANE_ID] if ac in cars and ac in self._acs else ""
+            if lane.startswith(":"):  # the rest of its path through this junction
+                path = self._junction_path(lane)
+                at, _ = path.project(*corners[k].mean(axis=0))
+                s = np.arange(at, path.length, 1.0)
+                pts.append(np.column_stack([np.interp(s, path.cumlen, path.points[:, 0]),
+                                            np.interp(s, path.cumlen, path.points[:, 1])]))
+                reach.append(np.full(len(s), half_w))
         xy, rad = np.concatenate(pts), np.concatenate(reach)
-        cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
-        hold = {vid for vid, var in cars.items()
-                if vid not in self._acs and _near(var[_VAR_POSITION], xy)
-                and self._blocked_entry(vid, var[_VAR_SPEED], xy, rad)}
+        # cars on a lane (not yet in the junction), within reach of its end, able to stop
+        near_end = [(vid, var) for vid, var in cars.items()
+                    if vid not in self._acs and var[_VAR_LANE_ID]
+                    and not var[_VAR_LANE_ID].startswith(":")
+                    and self._to_go(var) <= GATE_REACH
+                    and var[_VAR_SPEED] ** 2 / (2 * GATE_DECEL) <= self._to_go(var)]
+        hold = {vid for vid, var in _near(near_end, xy)
+                if self._blocked_entry(vid, var[_VAR_LANE_ID], xy, rad)}
         walkers: set[str] = set()
         if self.pedestrians:
-            pxy = np.concatenate([xy, *ahead_pts])
-            prad = np.concatenate([rad, *ahead_reach])
+            later = np.zeros((0, 2)) if ahead is None else np.asarray(ahead, dtype=float).reshape(-1, 2)
+            pxy = np.concatenate([xy, later])
+            prad = np.concatenate([rad, np.full(len(later), half_w)])
             people = ls.poi.getContextSubscriptionResults("cosim_region_p") or {}
-            walkers = {pid for pid, var in people.items()
-                       if _near(var[_VAR_POSITION], pxy) and self._blocked_crossing(pid, pxy, prad)}
+            on_walking_area = [(pid, var) for pid, var in people.items()
+                               if var[_VAR_ROAD_ID].startswith(":") and "_w" in var[_VAR_ROAD_ID]]
+            walkers = {pid for pid, var in _near(on_walking_area, pxy)
+                       if self._blocked_crossing(pid, var[_VAR_ROAD_ID], pxy, prad)}
         self._release(hold, walkers)
+
+    def _to_go(self, var: dict) -> float:
+        """Metres from a car (subscription results `var`) to the end of its lane."""
+        lane = var[_VAR_LANE_ID]
+        if lane not in self._lane_length:
+            self._lane_length[lane] = self._ls.lane.getLength(lane)
+        return self._lane_length[lane] - var[_VAR_LANEPOSITION]
 
     def _release(self, hold: set[str], walkers: set[str]) -> None:
         """Hold the cars in `hold` and people in `walkers`; let go of the rest held so far."""
@@ -565,40 +593,41 @@ class SumoBridge:
                 ls.person.setSpeed(pid, -1.0)
         self._held, self._held_people = hold, walkers
 
-    def _blocked_crossing(self, pid: str, pts: np.ndarray, rad: np.ndarray) -> bool:
-        """Whether person `pid` stands at a zebra crossing (on the walking area before it)
-        that one of `pts` (each with its radius `rad`) is on."""
-        ls = self._ls
-        try:
-            road, nxt = ls.person.getRoadID(pid), ls.person.getNextEdge(pid)
-        except self._errors:
+    def _blocked_crossing(self, pid: str, road: str, pts: np.ndarray, rad: np.ndarray) -> bool:
+        """Whether person `pid`, on walking area `road`, is about to step onto a zebra
+        crossing that one of `pts` (each with its radius `rad`) is on."""
+        key = (pid, road)
+        if key not in self._next:
+            try:
+                nxt = self._ls.person.getNextEdge(pid)
+            except self._errors:
+                return False
+            self._next[key] = nxt if nxt.startswith(":") and "_c" in nxt else None
+        crossing = self._next[key]
+        if crossing is None:
             return False
-        if not (road.startswith(":") and "_w" in road and nxt.startswith(":") and "_c" in nxt):
-            return False
-        if nxt not in self._paths:
-            shape = np.asarray([p[:2] for p in ls.lane.getShape(f"{nxt}_0")], dtype=float)
-            self._paths[nxt] = Polyline.from_points(shape)
-            self._crossing_half[nxt] = ls.lane.getWidth(f"{nxt}_0") / 2
-        return _touches(self._paths[nxt], pts, rad + self._crossing_half[nxt] + GATE_MARGIN)
+        if crossing not in self._half:
+            lane = f"{crossing}_0"
+            shape = np.asarray([p[:2] for p in self._ls.lane.getShape(lane)], dtype=float)
+            self._paths[crossing] = Polyline.from_points(shape)
+            self._half[crossing] = self._ls.lane.getWidth(lane) / 2
+        return _touches(self._paths[crossing], pts, rad + self._half[crossing] + GATE_MARGIN)
 
-    def _blocked_entry(self, vid: str, speed: float, pts: np.ndarray, rad: np.ndarray) -> bool:
-        """Whether background car `vid` is about to enter a junction on a path that one of
-        `pts` (each with its radius `rad`) touches."""
-        ls = self._ls
-        try:
-            lane = ls.vehicle.getLaneID(vid)
-        except self._errors:
-            return False  # left the simulation in the last step (a finished AC, a cleared car)
-        if not lane or lane.startswith(":"):
+    def _blocked_entry(self, vid: str, lane: str, pts: np.ndarray, rad: np.ndarray) -> bool:
+        """Whether background car `vid`, on `lane`, enters the junction at its end on a path
+        that one of `pts` (each with its radius `rad`) touches."""
+        key = (vid, lane)
+        if key not in self._next:
+            try:
+                links = self._ls.vehicle.getNextLinks(vid)
+                self._half[vid] = self._ls.vehicle.getWidth(vid) / 2
+            except self._errors:
+                return False  # left the simulation in the last step (a finished AC, a cleared car)
+            self._next[key] = links[0][4] if links and links[0][4].startswith(":") else None
+        internal = self._next[key]
+        if internal is None:
             return False
-        to_go = ls.lane.getLength(lane) - ls.vehicle.getLanePosition(vid)
-        if to_go > GATE_REACH or speed * speed / (2 * GATE_DECEL) > to_go:
-            return False
-        links = ls.vehicle.getNextLinks(vid)
-        if not links or not links[0][4].startswith(":"):
-            return False
-        path = self._junction_path(links[0][4])
-        return _touches(path, pts, rad + ls.vehicle.getWidth(vid) / 2 + GATE_MARGIN)
+        return _touches(self._junction_path(internal), pts, rad + self._half[vid] + GATE_MARGIN)
 
     def _junction_path(self, internal: str) -> Polyline:
         """The centre line through the junction from `internal` on (its internal lanes)."""

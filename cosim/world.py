@@ -188,8 +188,7 @@ class World:
         ahead = np.asarray(GATE_AHEAD)[None, :] * np.maximum(nv, 0.0)[:, None]  # (n, T) metres
         ahead_xy = np.stack([nx[:, None] + np.cos(nh)[:, None] * ahead,
                              ny[:, None] + np.sin(nh)[:, None] * ahead], axis=2)
-        self.bridge.gate_entries({self.ac_ids[i]: corners[k] for k, i in enumerate(idx)},
-                                 {self.ac_ids[i]: ahead_xy[k] for k, i in enumerate(idx)})
+        self.bridge.gate_entries([self.ac_ids[i] for i in idx], corners, ahead_xy)
         t1 = time.perf_counter()
         # 4. SUMO step
         self.bridge.step()
