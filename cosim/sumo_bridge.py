@@ -182,7 +182,7 @@ class SumoBridge:
         self._steps = 0  # SUMO steps since the last start (paces the gridlock check)
         self._held: set[str] = set()  # background cars gate_entries holds before a junction
         self._held_people: set[str] = set()  # and people it holds before a crossing
-        self._next: dict[tuple[str, str], str | None] = {}  # (actor, lane) -> internal lane / crossing
+        self._next: dict[tuple[str, str], str | None] = {}  # (car, lane) -> its next internal lane
         self._half: dict[str, float] = {}  # car or crossing -> half its width
         self._lane_length: dict[str, float] = {}
         self._paths: dict[str, Polyline] = {}  # internal lane -> its path through the junction
@@ -525,9 +525,8 @@ class SumoBridge:
         released after. Cars already in a junction are left to SUMO (holding them there
         would park them in the AC's way). People get the same for zebra crossings, which
         SUMO lets them step onto in front of an AC for the same reason: one on the walking
-        area before a crossing waits while an AC's body, its rest of the junction, or where
-        it will be in the next seconds (`ahead`, (n, k, 2) centres) is on the
-        crossing. docs/scenarios.md, "SUMO's cars and people wait for an AC".
+        area before a crossing waits while an AC's body, or where it will be in the next
+        seconds (`ahead`, (n, k, 2) centres), is on the crossing. docs/scenarios.md, "SUMO's cars and people wait for an AC".
         """
         ls = self._ls
         cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
@@ -562,13 +561,16 @@ class SumoBridge:
         walkers: set[str] = set()
         if self.pedestrians:
             later = np.zeros((0, 2)) if ahead is None else np.asarray(ahead, dtype=float).reshape(-1, 2)
-            pxy = np.concatenate([xy, later])
-            prad = np.concatenate([rad, np.full(len(later), half_w)])
+            body = len(corners) * 9  # the bodies' points lead `xy`; an AC's rest of the
+            # junction is left out here: a person waits for an AC on or driving onto the
+            # crossing, not for one standing before it (it may be waiting for that person)
+            pxy = np.concatenate([xy[:body], later])
+            prad = np.concatenate([rad[:body], np.full(len(later), half_w)])
             people = ls.poi.getContextSubscriptionResults("cosim_region_p") or {}
             on_walking_area = [(pid, var) for pid, var in people.items()
                                if var[_VAR_ROAD_ID].startswith(":") and "_w" in var[_VAR_ROAD_ID]]
             walkers = {pid for pid, var in _near(on_walking_area, pxy)
-                       if self._blocked_crossing(pid, var[_VAR_ROAD_ID], pxy, prad)}
+                       if self._blocked_crossing(pid, pxy, prad)}
         self._release(hold, walkers)
 
     def _to_go(self, var: dict) -> float:
@@ -593,18 +595,14 @@ class SumoBridge:
                 ls.person.setSpeed(pid, -1.0)
         self._held, self._held_people = hold, walkers
 
-    def _blocked_crossing(self, pid: str, road: str, pts: np.ndarray, rad: np.ndarray) -> bool:
-        """Whether person `pid`, on walking area `road`, is about to step onto a zebra
-        crossing that one of `pts` (each with its radius `rad`) is on."""
-        key = (pid, road)
-        if key not in self._next:
-            try:
-                nxt = self._ls.person.getNextEdge(pid)
-            except self._errors:
-                return False
-            self._next[key] = nxt if nxt.startswith(":") and "_c" in nxt else None
-        crossing = self._next[key]
-        if crossing is None:
+    def _blocked_crossing(self, pid: str, pts: np.ndarray, rad: np.ndarray) -> bool:
+        """Whether person `pid`, on a walking area, is about to step onto a zebra crossing
+        that one of `pts` (each with its radius `rad`) is on."""
+        try:  # not cached: a person may cross twice from one walking area (there and back)
+            crossing = self._ls.person.getNextEdge(pid)
+        except self._errors:
+            return False
+        if not (crossing.startswith(":") and "_c" in crossing):
             return False
         if crossing not in self._half:
             lane = f"{crossing}_0"
