@@ -69,7 +69,7 @@ def _libsumo():
 
 def _near(actors: list, pts: np.ndarray) -> list:
     """The (id, subscription results) of `actors` within GATE_NEAR m of any of `pts` (k, 2)."""
-    if not actors:
+    if not actors or not len(pts):
         return []
     at = np.array([var[_VAR_POSITION] for _, var in actors], dtype=float)
     d2 = ((at[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2).min(axis=1)
@@ -508,7 +508,8 @@ class SumoBridge:
             self._fail("SUMO failed during simulationStep", exc)
         self.time += self.scenario.dt
 
-    def gate_entries(self, ids: list[str], corners: np.ndarray, ahead: np.ndarray | None = None) -> None:
+    def gate_entries(self, ids: list[str], corners: np.ndarray, ahead: np.ndarray | None = None,
+                     moving: np.ndarray | None = None) -> None:
         """Hold background cars before a junction while an AC is on their path through it.
 
         An AC moved by ``moveToXY`` registers no approach to the junction's links, and SUMO
@@ -525,8 +526,8 @@ class SumoBridge:
         released after. Cars already in a junction are left to SUMO (holding them there
         would park them in the AC's way). People get the same for zebra crossings, which
         SUMO lets them step onto in front of an AC for the same reason: one on the walking
-        area before a crossing waits while an AC's body, or where it will be in the next
-        seconds (`ahead`, (n, k, 2) centres), is on the crossing. docs/scenarios.md, "SUMO's cars and people wait for an AC".
+        area before a crossing waits while a moving AC (`moving`, (n,) bools; all when None)
+        is on the crossing or will be in the next seconds (`ahead`, (n, k, 2) centres). docs/scenarios.md, "SUMO's cars and people wait for an AC".
         """
         ls = self._ls
         cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
@@ -559,13 +560,16 @@ class SumoBridge:
         hold = {vid for vid, var in _near(near_end, xy)
                 if self._blocked_entry(vid, var[_VAR_LANE_ID], xy, rad)}
         walkers: set[str] = set()
-        if self.pedestrians:
-            later = np.zeros((0, 2)) if ahead is None else np.asarray(ahead, dtype=float).reshape(-1, 2)
-            body = len(corners) * 9  # the bodies' points lead `xy`; an AC's rest of the
-            # junction is left out here: a person waits for an AC on or driving onto the
-            # crossing, not for one standing before it (it may be waiting for that person)
-            pxy = np.concatenate([xy[:body], later])
-            prad = np.concatenate([rad[:body], np.full(len(later), half_w)])
+        if self.pedestrians and len(corners):
+            # a person waits for a moving AC on the crossing or driving onto it, not for one
+            # standing (it may be waiting for that person: both would wait for good), nor
+            # for the rest of an AC's path (it may stop before the crossing)
+            go = np.ones(len(corners), bool) if moving is None else np.asarray(moving, bool)
+            later = np.zeros((len(corners), 0, 2)) if ahead is None else np.asarray(ahead, float)
+            pxy = np.concatenate([corners[go].reshape(-1, 2), axis[go].reshape(-1, 2),
+                                  later[go].reshape(-1, 2)])
+            prad = np.concatenate([np.zeros(4 * go.sum()),
+                                   np.full(len(pxy) - 4 * go.sum(), half_w)])
             people = ls.poi.getContextSubscriptionResults("cosim_region_p") or {}
             on_walking_area = [(pid, var) for pid, var in people.items()
                                if var[_VAR_ROAD_ID].startswith(":") and "_w" in var[_VAR_ROAD_ID]]

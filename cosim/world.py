@@ -29,7 +29,7 @@ import numpy as np
 
 from cosim.dynamics import VehicleParams, bicycle_step
 from cosim.errors import EnvStateError, ScenarioError
-from cosim.events import Events, detect_all, reward_terms
+from cosim.events import PEDESTRIAN_MIN_SPEED, Events, detect_all, reward_terms
 from cosim.geometry import rect_corners_many
 from cosim.roadmap import RoadMap, road_map
 from cosim.scenario import Scenario, load_scenario
@@ -188,7 +188,8 @@ class World:
         ahead = np.asarray(GATE_AHEAD)[None, :] * np.maximum(nv, 0.0)[:, None]  # (n, T) metres
         ahead_xy = np.stack([nx[:, None] + np.cos(nh)[:, None] * ahead,
                              ny[:, None] + np.sin(nh)[:, None] * ahead], axis=2)
-        self.bridge.gate_entries([self.ac_ids[i] for i in idx], corners, ahead_xy)
+        self.bridge.gate_entries([self.ac_ids[i] for i in idx], corners, ahead_xy,
+                                 nv >= PEDESTRIAN_MIN_SPEED)
         t1 = time.perf_counter()
         # 4. SUMO step
         self.bridge.step()
