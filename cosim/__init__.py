@@ -13,7 +13,7 @@ from cosim.env import CosimParallelEnv, parallel_env
 from cosim.scenario import available_scenarios, load_scenario
 from cosim.single import GYM_IDS, SingleAgentEnv, register_envs, single_env
 
-TASK_VERSION = 2
+TASK_VERSION = 3
 """The driving task's version, recorded in every run's manifest.json and every report's
 provenance.json (``task_version``) so a results folder says which task it measured:
 
@@ -24,6 +24,9 @@ provenance.json (``task_version``) so a results folder says which task it measur
    4 stacked frames by default; best.pt by validation under the test's rules. Runs record
    the options that select variants (``--obs``, ``--frame-stack``, ``--collisions``,
    ``--share-params``) in their config.yaml.
+3. since 2026-11-26: as 2, and SUMO's cars and people wait for an AC on their path through a
+   junction (``SumoBridge.gate_entries``; docs/scenarios.md): background traffic no longer
+   sets off into an AC that is still in the junction.
 """
 
 __all__ = [

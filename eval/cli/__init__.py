@@ -335,12 +335,13 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
         description=f"Train every (algorithm, environment, seed) as a Ray Tune trial, test them "
                     f"(Scenario 1 and 2 in each environment) and write the report. Without options "
                     f"it runs the `standard` preset: {len(ALGORITHMS)} algorithms x {len(ENVS)} "
-                    f"environments x 1 seed = {trials} trials of ~15 min each on a 2-core machine "
-                    f"(~{trials * 15 / 60:.1f} h), then the test with the whole reference suite. "
+                    f"environments x 1 seed = {trials} trials of 27-41 min of learning each on a "
+                    f"2-core machine with 4 frames (~{trials * 34 * 1.24 / 60:.0f} h with validation, "
+                    "docs/benchmarks.md), then the test with the whole reference suite. "
                     "Start with --preset smoke (the same grid at 120 steps per trial, a few minutes).")
     b.add_argument("--preset", choices=presets or None, default="standard",
-                   help="run preset (eval/training/hyperparams/runs.yaml); standard: ~15 min per trial "
-                        "on 2 cores, smoke: under a minute")
+                   help="run preset (eval/training/hyperparams/runs.yaml); standard: 27-41 min of "
+                        "learning per trial on 2 cores, smoke: under a minute")
     b.add_argument("--envs", nargs="+", default=list(ENVS), metavar="ENV",
                    help=f"environments of the grid: {_names(ENVS)} or scenario .yaml files")
     b.add_argument("--algos", nargs="+", default=list(ALGORITHMS), metavar="ALGO",
