@@ -517,17 +517,22 @@ class SumoBridge:
         cross, as if it kept its speed: a car waiting at the stop line starts once an AC's
         front has passed that point, though the AC's body may still lie across the mouth it
         enters (two left turns from neighbouring arms run within 2 m of each other there),
-        and it starts while an AC that slows in the junction has still to cross. So before
-        each step a background car within GATE_REACH m of a junction, still able to stop
-        before it, is held (speed 0) while an AC is on its path through the junction: a
-        corner or centre-line point of an AC's body (`corners`, (n, 4, 2) for the ACs `ids`), or, for an AC inside a
-        junction, the rest of its own path through it, within half the car's width +
-        GATE_MARGIN (+ half the AC's width for the path) of that car's path. It is
-        released after. Cars already in a junction are left to SUMO (holding them there
-        would park them in the AC's way). People get the same for zebra crossings, which
-        SUMO lets them step onto in front of an AC for the same reason: one on the walking
-        area before a crossing waits while a moving AC (`moving`, (n,) bools; all when None)
-        is on the crossing or will be in the next seconds (`ahead`, (n, k, 2) centres). docs/scenarios.md, "SUMO's cars and people wait for an AC".
+        and it starts while an AC that slows in the junction has still to cross.
+
+        So before each step, a background car within GATE_REACH m of a junction that can
+        still stop before it is held (speed 0) while an AC is on its path through the
+        junction, and released after. "On its path" means: a corner or a centre-line point
+        of an AC's body (`corners`, (n, 4, 2), of the ACs `ids`) or, for an AC inside a
+        junction, a point of the rest of its own path through it, within half the car's
+        width + GATE_MARGIN (+ half the AC's width for centre points) of the car's path.
+        Cars already in a junction are left to SUMO (holding them there would park them in
+        the AC's way).
+
+        People get the same at zebra crossings, which SUMO lets them step onto in front of
+        an AC for the same reason: one on the walking area before a crossing waits while a
+        moving AC (`moving`, (n,) bools; all when None) is on the crossing or will be in the
+        next seconds (`ahead`, (n, k, 2) centres). docs/scenarios.md, "SUMO's cars and
+        people wait for an AC".
         """
         ls = self._ls
         cars = ls.poi.getContextSubscriptionResults("cosim_region") or {}
@@ -560,7 +565,7 @@ class SumoBridge:
         hold = {vid for vid, var in _near(near_end, xy)
                 if self._blocked_entry(vid, var[_VAR_LANE_ID], xy, rad)}
         walkers: set[str] = set()
-        if self.pedestrians and len(corners):
+        if self.pedestrians:
             # a person waits for a moving AC on the crossing or driving onto it, not for one
             # standing (it may be waiting for that person: both would wait for good), nor
             # for the rest of an AC's path (it may stop before the crossing)
@@ -588,12 +593,14 @@ class SumoBridge:
         """Hold the cars in `hold` and people in `walkers`; let go of the rest held so far."""
         ls = self._ls
         for vid in hold - self._held:
-            ls.vehicle.setSpeed(vid, 0.0)
+            with contextlib.suppress(*self._errors):  # e.g. an AC that finished this step
+                ls.vehicle.setSpeed(vid, 0.0)
         for vid in self._held - hold:
             with contextlib.suppress(*self._errors):  # it may have left the simulation
                 ls.vehicle.setSpeed(vid, -1.0)  # back to SUMO's own speed
         for pid in walkers - self._held_people:
-            ls.person.setSpeed(pid, 0.0)
+            with contextlib.suppress(*self._errors):
+                ls.person.setSpeed(pid, 0.0)
         for pid in self._held_people - walkers:
             with contextlib.suppress(*self._errors):
                 ls.person.setSpeed(pid, -1.0)
