@@ -159,6 +159,15 @@ def trial_resources(cfg: TrainConfig, max_cpus: int | None = None, gpus: float =
     return {"cpu": cpus, "gpu": gpus}
 
 
+def packed(cells: list, max_cpus: int | None = None) -> list:
+    """``cells`` in the order Tune should start them: those that keep fewer CPUs busy first
+    (a stable sort, so the grid's order holds within each group). Tune starts trials in
+    order and a trial that does not fit waits with every one behind it: on 2 cores a
+    2-CPU A3C trial behind a 1-CPU PPO trial left a core idle for the whole PPO trial."""
+    return sorted(cells, key=lambda c: trial_resources(
+        c if isinstance(c, TrainConfig) else TrainConfig(**c), max_cpus)["cpu"])
+
+
 # -- one trial ---------------------------------------------------------------------------
 def _seed_everything(seed: int) -> None:
     """Same global RNG state at the start of a trial, in a fresh Ray worker or in this process."""
@@ -428,7 +437,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
         else:
             tuner = tune.Tuner(
                 trainable,
-                param_space={"cell": tune.grid_search([c.to_dict() for c in todo]),
+                param_space={"cell": tune.grid_search([c.to_dict() for c in packed(todo, local_cpus)]),
                              "scratch": str(out / "trials"), "keep": keep},
                 # a finished trial's worker takes the next trial: no process start and torch
                 # import per trial (each trial reseeds and sets its torch threads itself)

@@ -133,6 +133,22 @@ def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
         BenchmarkPlan(collisions="stop")
 
 
+def test_tune_starts_the_one_cpu_trials_first_so_two_share_two_cores():
+    """standard: A3C and IMPALA step 2 environments (2 CPUs), the others 1; on 2 cores a
+    2-CPU trial at the head of Tune's queue left one core idle beside a 1-CPU trial."""
+    from eval.scale.benchmark import BenchmarkPlan, packed, trial_resources
+
+    cells = BenchmarkPlan(preset="standard", envs=("env_1", "env_3"), seeds=1).cells()
+    order = packed(cells, max_cpus=2)
+    cpus = [trial_resources(c, 2)["cpu"] for c in order]
+    assert sorted(cpus) == cpus and set(cpus) == {1, 2}, cpus
+    assert sorted(map(id, order)) == sorted(map(id, cells)), "the same cells, reordered"
+    ones = [(c.env, c.algo) for c in order if trial_resources(c, 2)["cpu"] == 1]
+    assert ones == [(c.env, c.algo) for c in cells if trial_resources(c, 2)["cpu"] == 1], \
+        "the grid's order holds within a group"
+    assert [trial_resources(c, 1)["cpu"] for c in packed(cells, max_cpus=1)] == [1] * len(cells)
+
+
 def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch):
     from eval.scale import benchmark
     from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, run_sequential
