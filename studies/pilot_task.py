@@ -377,19 +377,11 @@ def references(out: Path, env: str, car: str, policies, agents: int, episodes: i
 
 # -- results -----------------------------------------------------------------------------------
 def slot_routes(env: str) -> pd.DataFrame:
-    """Per slot of ``env``: its route's movement (cosim.roadmap.movement, entry to exit) and
-    whether it turns anywhere (a pair of consecutive edges that is not straight: the turns the
-    safe-non-turner holds before; every roundabout route turns on entering)."""
-    from cosim.roadmap import movement, read_net
+    """Per slot of ``env``: its route's movement and whether it turns
+    (eval.reporting.science.slot_routes, which the 6x5 study's turning-slot goal rate uses)."""
+    from eval.reporting.science import slot_routes as routes
 
-    sc = load_scenario(env)
-    net = read_net(sc.net)
-    rows = []
-    for i, ac in enumerate(sc.acs):
-        turns = any(movement(net, [a, b]) != "straight" for a, b in zip(ac.route[:-1], ac.route[1:],
-                                                                         strict=True))
-        rows.append({"slot": f"ac_{i}", "movement": movement(net, list(ac.route)), "turning": turns})
-    return pd.DataFrame(rows)
+    return routes(env)
 
 
 def per_slot(records: pd.DataFrame) -> pd.DataFrame:

@@ -6,7 +6,8 @@ tests each trained policy on held-out episode seeds under the test protocol
 over *training seeds*:
 
 - :func:`seed_means`: one value per (scenario, environment, algorithm, seed): the
-  mean over that seed's test episodes (NaN-aware: TTFC and CP only where they apply);
+  mean over that seed's test episodes (NaN-aware: TTFC and CP only where they apply, the
+  goal rate of the turning slots only over the slots whose route turns, :func:`with_turning`);
 - :func:`seed_table`: mean and 95% percentile-bootstrap CI over seeds
   (:func:`eval.reporting.stats.bootstrap_ci`: 2,000 resamples, fixed seed); n = seeds;
 - :func:`reference_table`: the reference rows (eval/testing/validity.py: autopilot, uniform
@@ -42,11 +43,12 @@ from eval.reporting.report import algo_order, env_title
 from eval.reporting.stats import bootstrap_ci, iqm, stratified_bootstrap
 from eval.testing.validity import DEGENERATE, POLICIES
 
-METRICS = ("return", "goal", "DISTANCE", "CV", "CO", "CP", "OS", "TTFC", "SPEED")
-"""The study's metrics (eval/testing/metrics.py names; ``goal`` is the goal rate)."""
-NAMES = {"return": "return", "goal": "goal rate", "DISTANCE": "DISTANCE (m)",
-         "TTFC": "TTFC (s)", "SPEED": "SPEED (km/h)"}
-DIGITS = {"return": 1, "goal": 2, "DISTANCE": 1, "TTFC": 2, "SPEED": 1}
+METRICS = ("return", "goal", "goal_turning", "DISTANCE", "CV", "CO", "CP", "OS", "TTFC", "SPEED")
+"""The study's metrics (eval/testing/metrics.py names; ``goal`` is the goal rate, ``goal_turning``
+the goal rate of the AC-episodes whose slot's route turns: :func:`with_turning`)."""
+NAMES = {"return": "return", "goal": "goal rate", "goal_turning": "goal rate, turning slots",
+         "DISTANCE": "DISTANCE (m)", "TTFC": "TTFC (s)", "SPEED": "SPEED (km/h)"}
+DIGITS = {"return": 1, "goal": 2, "goal_turning": 2, "DISTANCE": 1, "TTFC": 2, "SPEED": 1}
 VERDICT_SCENARIO = 1
 """The references run under Scenario 1 conditions (every AC in the traffic)."""
 MIN_SEEDS = 3
@@ -59,11 +61,42 @@ WINDOW = 20
 
 
 # -- per seed ----------------------------------------------------------------------------
+def slot_routes(env: str) -> pd.DataFrame:
+    """Per slot (``ac_k``) of ``env``: its route's movement (cosim.roadmap.movement, entry to
+    exit) and whether it turns anywhere (a pair of consecutive edges that is not straight:
+    the turns the safe-non-turner holds before; every roundabout route turns on entering)."""
+    from cosim.roadmap import movement, read_net
+    from cosim.scenario import load_scenario
+
+    sc = load_scenario(env)
+    net = read_net(sc.net)
+    rows = []
+    for i, ac in enumerate(sc.acs):
+        turns = any(movement(net, [a, b]) != "straight"
+                    for a, b in zip(ac.route[:-1], ac.route[1:], strict=True))
+        rows.append({"slot": f"ac_{i}", "movement": movement(net, list(ac.route)), "turning": turns})
+    return pd.DataFrame(rows)
+
+
+def with_turning(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` (per (episode, AC), with ``env``, ``agent`` and ``goal``) plus ``goal_turning``:
+    the goal where the AC's slot turns (:func:`slot_routes`), NaN on straight slots, so its
+    mean is the turning slots' goal rate (NaN in an environment without a turn)."""
+    turning = {}
+    for env in rows["env"].unique():
+        r = slot_routes(env)
+        turning[env] = set(r.loc[r["turning"], "slot"])
+    mask = np.array([a in turning[e] for e, a in zip(rows["env"], rows["agent"], strict=True)], bool)
+    return rows.assign(goal_turning=rows["goal"].astype(float).where(mask))
+
+
 def seed_means(per: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.DataFrame:
     """One row per (scenario, env, algorithm, train_seed): the mean over its test episodes
     (and ACs) of each metric; NaN where the metric never applied (CP without people,
-    TTFC without a collision)."""
+    TTFC without a collision, the turning slots' goal rate where no slot turns)."""
     per = per.assign(goal=per["goal"].astype(float))
+    if "goal_turning" in metrics and "goal_turning" not in per:
+        per = with_turning(per)
     keys = ["scenario", "env", "algorithm", "train_seed"]
     return per.groupby(keys, sort=True)[list(metrics)].mean().reset_index()
 
@@ -103,6 +136,8 @@ def reference_table(refs: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.
     """Long table of the reference rows (eval/testing/validity.py per-(episode, AC) rows with an
     ``env`` column): mean and CI over episodes x ACs, under Scenario 1 conditions."""
     rows = []
+    if "goal_turning" in metrics and "goal_turning" not in refs:
+        refs = with_turning(refs)
     for (env, policy), g in refs.groupby(["env", "policy"], sort=False):
         for m in metrics:
             rows.append(_row(VERDICT_SCENARIO, env, "reference", policy, m, g[m].to_numpy(float)))

@@ -60,6 +60,25 @@ def test_seed_table_bootstraps_over_seeds():
     assert t.loc["goal", "cell"] == "0.50 [0.50, 0.50]"  # no spread: zero width
 
 
+def test_the_turning_slots_goal_rate_counts_only_slots_whose_route_turns():
+    """Four-way: ac_0/ac_4/ac_5 turn left, ac_1 right, ac_2/ac_3 go straight; Straight has no
+    turn, so its turning-slot goal rate never applies ('-')."""
+    slots = [f"ac_{i}" for i in range(6)]
+    goals = {"ac_0": 1, "ac_1": 0, "ac_2": 1, "ac_3": 1, "ac_4": 0, "ac_5": 0}
+    per = pd.DataFrame([{"scenario": 1, "env": env, "algorithm": "ppo", "train_seed": 0,
+                         "episode": 0, "agent": a, "goal": bool(goals[a])}
+                        for env in ("env_3", "env_1") for a in slots])
+    routes = science.slot_routes("env_3").set_index("slot")
+    assert set(routes.index[routes["turning"]]) == {"ac_0", "ac_1", "ac_4", "ac_5"}
+    means = science.seed_means(per, metrics=("goal", "goal_turning")).set_index("env")
+    assert means.loc["env_3", "goal"] == pytest.approx(0.5)
+    assert means.loc["env_3", "goal_turning"] == pytest.approx(0.25)  # ac_0 of the four
+    assert np.isnan(means.loc["env_1", "goal_turning"]) and means.loc["env_1", "goal"] == 0.5
+    t = science.seed_table(means.reset_index(), metrics=("goal", "goal_turning"))
+    cell = t[(t["env"] == "env_1") & (t["metric"] == "goal_turning")]["cell"].item()
+    assert cell == "-"
+
+
 def _refs(env="env_1", values: dict | None = None) -> pd.DataFrame:
     """A reference long table: every policy's mean return and goal rate in ``env``."""
     values = values or {}
