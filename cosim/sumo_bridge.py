@@ -522,16 +522,19 @@ class SumoBridge:
         So before each step, a background car within GATE_REACH m of a junction that can
         still stop before it is held (speed 0) while an AC is on its path through the
         junction, and released after. "On its path" means: a corner or a centre-line point
-        of an AC's body (`corners`, (n, 4, 2), of the ACs `ids`) or, for an AC inside a
-        junction, a point of the rest of its own path through it, within half the car's
-        width + GATE_MARGIN (+ half the AC's width for centre points) of the car's path.
+        of an AC's body (`corners`, (n, 4, 2), of the ACs `ids`) or, for a moving AC
+        (`moving`, (n,) bools, 0.5 m/s or more; all when None) inside a junction, a point of
+        the rest of its own path through it, within half the car's width + GATE_MARGIN
+        (+ half the AC's width for centre points) of the car's path. A standing AC holds
+        only the cars its body is in the way of: one that stops with its nose in the
+        junction does not stop the cross traffic for good.
         Cars already in a junction are left to SUMO (holding them there would park them in
         the AC's way).
 
         People get the same at zebra crossings, which SUMO lets them step onto in front of
         an AC for the same reason: one on the walking area before a crossing waits while a
-        moving AC (`moving`, (n,) bools; all when None) is on the crossing or will be in the
-        next seconds (`ahead`, (n, k, 2) centres). docs/scenarios.md, "SUMO's cars and
+        moving AC is on the crossing or will be in the next seconds (`ahead`, (n, k, 2)
+        centres). docs/scenarios.md, "SUMO's cars and
         people wait for an AC".
         """
         ls = self._ls
@@ -546,9 +549,10 @@ class SumoBridge:
         axis = rear[:, None, :] + np.linspace(0.0, 1.0, 5)[None, :, None] * (front - rear)[:, None, :]
         pts, reach = [corners.reshape(-1, 2), axis.reshape(-1, 2)], [np.zeros(corners.size // 2),
                                                                      np.full(axis.size // 2, half_w)]
+        go = np.ones(len(corners), bool) if moving is None else np.asarray(moving, bool)
         for k, ac in enumerate(ids):
             lane = cars[ac][_VAR_LANE_ID] if ac in cars and ac in self._acs else ""
-            if lane.startswith(":"):  # the rest of its path through this junction
+            if lane.startswith(":") and go[k]:  # the rest of its path through this junction
                 path = self._junction_path(lane)
                 at, _ = path.project(*corners[k].mean(axis=0))
                 s = np.arange(at, path.length, 1.0)
@@ -569,7 +573,6 @@ class SumoBridge:
             # a person waits for a moving AC on the crossing or driving onto it, not for one
             # standing (it may be waiting for that person: both would wait for good), nor
             # for the rest of an AC's path (it may stop before the crossing)
-            go = np.ones(len(corners), bool) if moving is None else np.asarray(moving, bool)
             later = np.zeros((len(corners), 0, 2)) if ahead is None else np.asarray(ahead, float)
             pxy = np.concatenate([corners[go].reshape(-1, 2), axis[go].reshape(-1, 2),
                                   later[go].reshape(-1, 2)])

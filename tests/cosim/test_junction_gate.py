@@ -57,6 +57,32 @@ def test_a_car_waits_before_the_junction_while_an_ac_stands_on_its_path_then_goe
         assert "car" not in w.bridge._held
 
 
+@pytest.mark.parametrize("speed, held", [(0.0, False), (3.0, True)])
+def test_only_a_moving_ac_holds_the_cars_on_the_rest_of_its_junction_path(speed, held):
+    """An AC with its nose in the junction (west arm, turning left) and a car at the south
+    stop line going straight north, across the AC's left turn but clear of its body: moving,
+    the AC holds it; standing, it does not (nosing in must not stop the cross traffic)."""
+    with World("env_3", 1, background=False) as w:
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        _all_green(ls)
+        ls.route.add("north", ["xs_n", "xn_n"])
+        ls.vehicle.add("car", "north", departLane="1",
+                       departPos=f"{ls.lane.getLength('xs_n_1') - 6.0:.1f}", departSpeed="0")
+        _away(w)
+        for _ in range(3):
+            w.step(BRAKE)
+        turn = w.route("ac_0").path  # tx_e -> xn_n: the west arm's left turn
+        stop = ls.lane.getShape("tx_e_1")[-1][:2]
+        s0, _ = turn.project(*stop)
+        x, y = turn.point_at(s0 + 2.6)  # the front bumper ~5 m past the stop line
+        for _ in range(5):
+            w.place_ac("ac_0", x, y, turn.heading_at(s0 + 2.6), speed=speed)
+            w.step({"ac_0": (0.0, 0.0)})
+        assert ls.vehicle.getLaneID("ac_0").startswith(":"), "the AC is in the junction"
+        assert ("car" in w.bridge._held) is held
+
+
 def _walker(ls) -> tuple[float, float, float, float]:
     """A person who walks across the north arm's zebra crossing (:X_c0); its shape."""
     ls.person.add("walker", "xn_s", ls.lane.getLength("xn_s_0") - 2.0)
