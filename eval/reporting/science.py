@@ -43,7 +43,7 @@ from eval.reporting.report import algo_order, env_title
 from eval.reporting.stats import bootstrap_ci, iqm, stratified_bootstrap
 from eval.testing.validity import DEGENERATE, POLICIES
 
-METRICS = ("return", "goal", "goal_turning", "DISTANCE", "CV", "CO", "CP", "OS", "TTFC", "SPEED")
+METRICS = ("return", "goal", "goal_turning", "DISTANCE", "CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED")
 """The study's metrics (eval/testing/metrics.py names; ``goal`` is the goal rate, ``goal_turning``
 the goal rate of the AC-episodes whose slot's route turns: :func:`with_turning`)."""
 NAMES = {"return": "return", "goal": "goal rate", "goal_turning": "goal rate, turning slots",
