@@ -462,12 +462,16 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     (out / "results.md").write_text("\n".join(full))
     (out / "verdict.md").write_text(science.verdict_markdown(verdict))
     (out / "iqm.md").write_text(science.iqm_markdown(iqm))
+    goals = science.targets(verdict)
+    goals.to_csv(out / "targets.csv", index=False)
 
     passed = int(verdict["passed"].sum())
     summary = [
         "### Science study results\n", f"`{command}`: {how}\n",
         "Return, Scenario 1 (multi-agent):\n", science.grid_markdown(table, "return", 1, ref_table),
         "\nGoal rate, Scenario 1:\n", science.grid_markdown(table, "goal", 1, ref_table),
+        "\nGoal rate of the turning slots (the AC-episodes whose slot's route turns), Scenario 1:\n",
+        science.grid_markdown(table, "goal_turning", 1, ref_table),
         f"\nValidity verdict (issue 14, item 1): {passed} of {len(verdict)} (algorithm, "
         "environment) pairs have a mean return and goal rate above every degenerate reference "
         f"({', '.join(science.DEGENERATE)}) with the 95% CI's lower end above the reference's "
@@ -477,6 +481,9 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
         "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "
         "95% stratified bootstrap CI resampling seeds within environments):\n",
         science.iqm_markdown(iqm),
+        f"\nIssue 27's target per environment: {int(goals['met'].sum())} of {len(goals)} met (a "
+        "discrete and a continuous algorithm pass the verdict; where a route turns, some "
+        "algorithm's turning slots reach goals):\n", science.targets_markdown(goals),
         "\nConvergence (training return against environment steps, mean over seeds, band: "
         "min-max over seeds): `convergence.png` / `convergence.pdf`. Every metric with "
         "reference rows: `results.md`.\n"]

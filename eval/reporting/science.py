@@ -185,6 +185,9 @@ def verdict(table: pd.DataFrame, references: pd.DataFrame,
                 why.append(f"{NAMES.get(m, m)} CI low {lo:.{DIGITS[m]}f} <= {best} "
                            f"{env_refs[best]:.{DIGITS[m]}f}"
                            + (f" (and {lost - 1} more)" if lost > 1 else ""))
+        # informational (issue 27's target): do the turning slots reach goals at all?
+        row["turning_goal_mean"] = (float(g.loc["goal_turning", "mean"]) if "goal_turning" in g.index
+                                    else float("nan"))
         row["seeds_ok"] = row["n"] >= min_seeds
         if not row["seeds_ok"]:
             why.append(f"{row['n']} seed(s), item 1 needs {min_seeds}")
@@ -195,6 +198,37 @@ def verdict(table: pd.DataFrame, references: pd.DataFrame,
     order = {a: i for i, a in enumerate(algo_order(out["algorithm"].unique()))}
     return out.sort_values(["algorithm", "env"], key=lambda c: c.map(order) if c.name == "algorithm"
                            else c).reset_index(drop=True)
+
+
+def targets(v: pd.DataFrame) -> pd.DataFrame:
+    """Per environment, issue 27's target read off a :func:`verdict`: the discrete and the
+    continuous algorithms that pass (clear every degenerate reference, 3+ seeds), and those
+    whose turning slots reach goals (mean > 0; NaN where no slot's route turns)."""
+    from agents.registry import CONTINUOUS, DISCRETE
+
+    rows = []
+    for env, g in v.groupby("env", sort=False):
+        passed = g.loc[g["passed"], "algorithm"].tolist()
+        turning = g["turning_goal_mean"]
+        rows.append({"env": env, "title": env_title(env),
+                     "discrete": [a for a in passed if a in DISCRETE],
+                     "continuous": [a for a in passed if a in CONTINUOUS],
+                     "has_turns": bool(turning.notna().any()),
+                     "turning": g.loc[turning > 0, "algorithm"].tolist()})
+    t = pd.DataFrame(rows)
+    t["met"] = (t["discrete"].map(bool) & t["continuous"].map(bool)
+                & (~t["has_turns"] | t["turning"].map(bool)))
+    return t
+
+
+def targets_markdown(t: pd.DataFrame) -> str:
+    def names(xs):
+        return ", ".join(xs) if xs else "none"
+    rows = [[r["title"], names(r["discrete"]), names(r["continuous"]),
+             names(r["turning"]) if r["has_turns"] else "(no turning slot)",
+             "met" if r["met"] else "not met"] for _, r in t.iterrows()]
+    return _md(["environment", "discrete algorithms that pass", "continuous algorithms that pass",
+                "algorithms whose turning slots reach goals", "target"], rows)
 
 
 def normalise(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
@@ -349,7 +383,7 @@ def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCEN
                  if any((n, e) in r.index for e in envs)]
         best = []
         for e in envs:
-            means = degenerate_means(references, e, metric)
+            means = {k: v for k, v in degenerate_means(references, e, metric).items() if np.isfinite(v)}
             name = max(means, key=means.get) if means else None
             best.append(f"{means[name]:.{DIGITS.get(metric, 3)}f} ({name})" if name else "")
         if any(best):

@@ -79,6 +79,31 @@ def test_the_turning_slots_goal_rate_counts_only_slots_whose_route_turns():
     assert cell == "-"
 
 
+def test_targets_need_a_discrete_and_a_continuous_pass_and_turning_goals_where_routes_turn():
+    v = pd.DataFrame([
+        # Four-way: ppo and td3 pass, dqn's turning slots reach goals: met
+        {"env": "env_3", "algorithm": "ppo", "passed": True, "turning_goal_mean": 0.0},
+        {"env": "env_3", "algorithm": "td3", "passed": True, "turning_goal_mean": 0.0},
+        {"env": "env_3", "algorithm": "dqn", "passed": False, "turning_goal_mean": 0.2},
+        # Roundabout: both kinds pass, but no turning slot reaches a goal: not met
+        {"env": "env_4", "algorithm": "a3c", "passed": True, "turning_goal_mean": 0.0},
+        {"env": "env_4", "algorithm": "ddpg", "passed": True, "turning_goal_mean": 0.0},
+        # Straight: no turning slot, so passing algorithms of both kinds are enough
+        {"env": "env_1", "algorithm": "impala", "passed": True, "turning_goal_mean": np.nan},
+        {"env": "env_1", "algorithm": "ddpg", "passed": True, "turning_goal_mean": np.nan},
+        # Merge: no continuous algorithm passes
+        {"env": "env_5", "algorithm": "ppo", "passed": True, "turning_goal_mean": 0.5},
+        {"env": "env_5", "algorithm": "td3", "passed": False, "turning_goal_mean": 0.5}])
+    t = science.targets(v).set_index("env")
+    assert t.loc["env_3", "met"] and t.loc["env_3", "turning"] == ["dqn"]
+    assert t.loc["env_3", "discrete"] == ["ppo"] and t.loc["env_3", "continuous"] == ["td3"]
+    assert not t.loc["env_4", "met"] and t.loc["env_4", "turning"] == []
+    assert t.loc["env_1", "met"] and not t.loc["env_1", "has_turns"]
+    assert not t.loc["env_5", "met"] and t.loc["env_5", "continuous"] == []
+    md = science.targets_markdown(science.targets(v))
+    assert "(no turning slot)" in md and md.count("not met") == 2
+
+
 def _refs(env="env_1", values: dict | None = None) -> pd.DataFrame:
     """A reference long table: every policy's mean return and goal rate in ``env``."""
     values = values or {}
