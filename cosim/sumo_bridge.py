@@ -564,8 +564,8 @@ class SumoBridge:
         near_end = [(vid, var) for vid, var in cars.items()
                     if vid not in self._acs and var[_VAR_LANE_ID]
                     and not var[_VAR_LANE_ID].startswith(":")
-                    and self._to_go(var) <= GATE_REACH
-                    and var[_VAR_SPEED] ** 2 / (2 * GATE_DECEL) <= self._to_go(var)]
+                    and var[_VAR_SPEED] ** 2 / (2 * GATE_DECEL) <= (to_go := self._to_go(var))
+                    and to_go <= GATE_REACH]
         hold = {vid for vid, var in _near(near_end, xy)
                 if self._blocked_entry(vid, var[_VAR_LANE_ID], xy, rad)}
         walkers: set[str] = set()

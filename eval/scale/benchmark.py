@@ -159,13 +159,12 @@ def trial_resources(cfg: TrainConfig, max_cpus: int | None = None, gpus: float =
     return {"cpu": cpus, "gpu": gpus}
 
 
-def packed(cells: list, max_cpus: int | None = None) -> list:
+def packed(cells: list[TrainConfig], max_cpus: int | None = None) -> list[TrainConfig]:
     """``cells`` in the order Tune should start them: those that keep fewer CPUs busy first
     (a stable sort, so the grid's order holds within each group). Tune starts trials in
     order and a trial that does not fit waits with every one behind it: on 2 cores a
     2-CPU A3C trial behind a 1-CPU PPO trial left a core idle for the whole PPO trial."""
-    return sorted(cells, key=lambda c: trial_resources(
-        c if isinstance(c, TrainConfig) else TrainConfig(**c), max_cpus)["cpu"])
+    return sorted(cells, key=lambda c: trial_resources(c, max_cpus)["cpu"])
 
 
 # -- one trial ---------------------------------------------------------------------------
