@@ -376,6 +376,9 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
                    help="continue an interrupted benchmark in --out without redoing finished trials; "
                         "with a larger --seeds, add those seeds to a finished one")
     b.add_argument("--quiet", action="store_true", help="no progress lines")
+    b.add_argument("--status", action="store_true",
+                   help="print where the benchmark in --out stands (each trial's state, env steps, "
+                        "best validation score, learning time left) and exit; starts nothing")
     b.set_defaults(func=_refuse(preset_error) if preset_error else learn.cmd_benchmark)
 
 

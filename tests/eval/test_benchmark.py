@@ -715,3 +715,43 @@ def test_the_plan_records_the_obs_and_sharing_variants_and_shares_where_it_can()
     assert "obs" not in default and "share_params" not in default  # old plans still read as equal
     with pytest.raises(BenchmarkError, match="--obs must be image or nav"):
         BenchmarkPlan(preset="smoke", obs="lidar")
+
+
+def test_status_tells_finished_training_stopped_and_pending_trials_from_the_folder(tmp_path, capsys):
+    from eval.cli import main
+    from eval.scale.benchmark import BenchmarkPlan, _prepare, cell_name
+    from eval.scale.gridstatus import grid_status
+
+    out = tmp_path / "b"
+    plan = BenchmarkPlan(preset="smoke", envs=("env_1",), algos=("ppo", "dqn"), seeds=2)
+    _prepare(plan, out, resume=False)
+    budget = {cell_name(c): c.steps for c in plan.cells()}
+
+    def run(where: Path, steps: int, seconds: float, best: dict, holder: int | None = None):
+        where.mkdir(parents=True)
+        (where / "state.json").write_text(json.dumps({"env_steps": steps, "elapsed_s": seconds, "best": best}))
+        (where / "run.lock").write_text(f"{holder}\n" if holder else "")
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # a PID whose process is dead: a trial whose session ended
+    ppo0, ppo1, dqn0 = "env_1__ppo__0__bench", "env_1__ppo__1__bench", "env_1__dqn__0__bench"
+    run(out / "runs" / ppo0, budget[ppo0], 100.0, {"ac_0": 5.0, "ac_1": 7.5})
+    run(out / "trials" / ppo1 / "env_1__ppo__1__20261126-0900", budget[ppo1] // 2, 40.0, {"ac_0": -3.0},
+        holder=os.getpid())
+    run(out / "trials" / dqn0 / "env_1__dqn__0__20261126-0900", 30, 15.0, {}, holder=gone.pid)
+
+    table = grid_status(out).set_index("cell")
+    assert table.state.to_dict() == {ppo0: "finished", ppo1: "training", dqn0: "stopped",
+                                     "env_1__dqn__1__bench": "pending"}
+    assert table.loc[ppo0, "best"] == 7.5 and table.loc[ppo1, "best"] == -3.0
+    # learning left at the algorithm's median rate: PPO's two trials run at budget/100 and
+    # budget/2/40 env steps/s; DQN's at 2 steps/s
+    ppo_rate = sorted([budget[ppo0] / 100.0, budget[ppo1] / 2 / 40.0])
+    assert table.loc[ppo1, "left_s"] == pytest.approx((budget[ppo1] - budget[ppo1] // 2) / (sum(ppo_rate) / 2))
+    assert table.loc["env_1__dqn__1__bench", "left_s"] == pytest.approx(budget["env_1__dqn__1__bench"] / 2.0)
+
+    assert main(["benchmark", "--status", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "1 finished, 1 training, 1 stopped, 1 pending" in printed
+    assert main(["benchmark", "--status", "--out", str(tmp_path / "none")]) == 2
+    assert "no benchmark.json" in capsys.readouterr().err

@@ -1,0 +1,133 @@
+"""`cosim benchmark --status`: where a benchmark folder stands, read from its files alone.
+
+A `standard` grid is a day of a 2-core machine and runs across interrupted sessions
+(``--resume``); this says, without starting Ray or touching a run, which trials are
+finished, which are training now, how far each got, its best validation score so far
+and roughly how much trial time is left. Everything comes from the folder
+(eval/scale/benchmark.py describes its layout):
+
+- ``benchmark.json``: the plan, hence the cells and their budgets;
+- ``runs/<cell>/``: a finished run (moved there when the grid ends);
+- ``trials/<cell>/<run>/state.json``: the last checkpoint of a trial (``env_steps``,
+  ``elapsed_s``: seconds of learning, and ``best``: each AC's best validation score);
+- ``run.lock``: the PID of the process training the run, while it trains.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pandas as pd
+
+from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, cell_name, saved_plan, trial_resources
+
+STATES = ("finished", "training", "stopped", "pending")
+"""finished: budget reached; training: a live process holds the run; stopped: started, its
+process gone (``--resume`` continues it from ``env_steps``); pending: not started."""
+
+
+def load_plan(out: Path) -> BenchmarkPlan:
+    """The plan saved in ``out/benchmark.json``.
+
+    Raises:
+        BenchmarkError: ``out`` holds no benchmark.
+    """
+    saved = Path(out) / "benchmark.json"
+    if not saved.exists():
+        raise BenchmarkError(f"--out {out}: no benchmark.json there; name the folder a "
+                             "`cosim benchmark` wrote (its --out)")
+    plan = saved_plan(saved)
+    return BenchmarkPlan(**{k: tuple(v) if isinstance(v, list) else v for k, v in plan.items()})
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def _holder(run: Path) -> int | None:
+    """The PID in ``run.lock`` when that process is alive (the lock is truncated on release)."""
+    try:
+        text = (run / "run.lock").read_text().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() and _alive(int(text)) else None
+
+
+def _latest_run(folder: Path) -> Path | None:
+    runs = sorted(p for p in folder.glob("*") if (p / "state.json").exists())
+    return runs[-1] if runs else None
+
+
+def grid_status(out: Path) -> pd.DataFrame:
+    """One row per cell of the saved plan: ``cell, env, algo, seed, cpus, state, env_steps,
+    budget, done`` (fraction), ``learning_s`` (seconds of learning so far), ``best`` (the
+    highest per-AC validation score so far, NaN before the first validation) and ``left_s``
+    (seconds of learning left at this algorithm's measured rate; NaN when no trial of the
+    algorithm has progressed yet)."""
+    out = Path(out)
+    plan = load_plan(out)
+    rows = []
+    for cfg in plan.cells():
+        name = cell_name(cfg)
+        run = out / "runs" / name
+        if not (run / "state.json").exists():
+            run = _latest_run(out / "trials" / name)
+        state = json.loads((run / "state.json").read_text()) if run is not None else {}
+        steps = int(state.get("env_steps", 0))
+        best = [float(v) for v in (state.get("best") or {}).values()]
+        if steps >= cfg.steps:
+            what = "finished"
+        elif run is None:
+            what = "pending"
+        else:
+            what = "training" if _holder(run) is not None else "stopped"
+        rows.append({"cell": name, "env": cfg.env, "algo": cfg.algo, "seed": cfg.seed,
+                     "cpus": trial_resources(cfg, os.cpu_count())["cpu"], "state": what,
+                     "env_steps": min(steps, cfg.steps), "budget": cfg.steps,
+                     "learning_s": float(state.get("elapsed_s", 0.0)),
+                     "best": max(best) if best else float("nan")})
+    table = pd.DataFrame(rows)
+    table["done"] = table.env_steps / table.budget
+    moving = table[(table.env_steps > 0) & (table.learning_s > 0)]
+    rate = (moving.env_steps / moving.learning_s).groupby(moving.algo).median()  # env steps/s
+    table["left_s"] = (table.budget - table.env_steps) / table.algo.map(rate)
+    return table
+
+
+def _duration(seconds: float) -> str:
+    if seconds != seconds:  # NaN
+        return "?"
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
+
+
+def status_text(table: pd.DataFrame, cpus: int | None = None) -> str:
+    """The table as `cosim benchmark --status` prints it, with a closing line: the count per
+    state and the learning time left, as the sum over trials and as a wall time on ``cpus``
+    cores (trials packed by their CPUs; validation and start-up not counted)."""
+    cpus = cpus or os.cpu_count() or 1
+    lines = [f"{'trial':<26} {'state':<9} {'env steps':>17} {'done':>5} {'learning':>9} "
+             f"{'best val.':>10} {'left':>8}"]
+    for r in table.itertuples():
+        best = "-" if r.best != r.best else f"{r.best:.0f}"
+        left = "" if r.state == "finished" else _duration(r.left_s)
+        lines.append(f"{r.cell:<26} {r.state:<9} {f'{r.env_steps:,}/{r.budget:,}':>17} "
+                     f"{r.done:>5.0%} {_duration(r.learning_s):>9} {best:>10} {left:>8}")
+    counts = table.state.value_counts()
+    left = table[table.state != "finished"]
+    if left.empty:
+        return "\n".join([*lines, f"all {len(table)} trials finished"])
+    cpu_s = (left.left_s * left.cpus.clip(upper=cpus)).sum(min_count=1)
+    unknown = int(left.left_s.isna().sum())
+    tail = f" (+{unknown} trial(s) of algorithms not started yet)" if unknown else ""
+    lines.append(", ".join(f"{int(counts.get(s, 0))} {s}" for s in STATES)
+                 + f"; learning left: {_duration(left.left_s.sum(min_count=1))} of trial time, "
+                 f"~{_duration(cpu_s / cpus)} on {cpus} cores{tail}")
+    return "\n".join(lines)
