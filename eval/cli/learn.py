@@ -375,9 +375,9 @@ def cmd_benchmark(args) -> int:
     from eval.scale.raysession import INSTALL_HINT, ray_available
 
     if args.status:
-        from eval.scale.gridstatus import grid_status, status_text
+        from eval.scale.gridstatus import grid_status, load_plan, status_text
 
-        print(status_text(grid_status(args.out)))
+        print(status_text(grid_status(args.out), plan=load_plan(args.out)))
         return 0
     if not args.no_ray and not ray_available():
         print(f"cosim benchmark: error: {INSTALL_HINT}", file=sys.stderr)

@@ -21,7 +21,13 @@ from pathlib import Path
 
 import pandas as pd
 
-from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, cell_name, saved_plan, trial_resources
+from eval.scale.benchmark import (
+    BenchmarkError,
+    BenchmarkPlan,
+    cell_name,
+    saved_plan,
+    trial_resources,
+)
 
 STATES = ("finished", "training", "stopped", "pending")
 """finished: budget reached; training: a live process holds the run; stopped: started, its
@@ -71,7 +77,8 @@ def grid_status(out: Path) -> pd.DataFrame:
     budget, done`` (fraction), ``learning_s`` (seconds of learning so far), ``best`` (the
     highest per-AC validation score so far, NaN before the first validation) and ``left_s``
     (seconds of learning left at this algorithm's measured rate; NaN when no trial of the
-    algorithm has progressed yet)."""
+    algorithm has progressed yet), and the ``task_version`` and ``commit`` its run's
+    manifest.json records (None before it started)."""
     out = Path(out)
     plan = load_plan(out)
     rows = []
@@ -89,12 +96,15 @@ def grid_status(out: Path) -> pd.DataFrame:
             what = "pending"
         else:
             what = "training" if _holder(run) is not None else "stopped"
+        made = json.loads((run / "manifest.json").read_text()) if run and (run / "manifest.json").exists() else {}
         rows.append({"cell": name, "env": cfg.env, "algo": cfg.algo, "seed": cfg.seed,
+                     "task_version": made.get("task_version"),
+                     "commit": ((made.get("git") or {}).get("commit") or "")[:7] or None,
                      "cpus": trial_resources(cfg, os.cpu_count())["cpu"], "state": what,
                      "env_steps": min(steps, cfg.steps), "budget": cfg.steps,
                      "learning_s": float(state.get("elapsed_s", 0.0)),
                      "best": max(best) if best else float("nan")})
-    table = pd.DataFrame(rows)
+    table = pd.DataFrame(rows).astype({"task_version": "Int64"})
     table["done"] = table.env_steps / table.budget
     moving = table[(table.env_steps > 0) & (table.learning_s > 0)]
     rate = (moving.env_steps / moving.learning_s).groupby(moving.algo).median()  # env steps/s
@@ -108,12 +118,26 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
 
 
-def status_text(table: pd.DataFrame, cpus: int | None = None) -> str:
-    """The table as `cosim benchmark --status` prints it, with a closing line: the count per
-    state and the learning time left, as the sum over trials and as a wall time on ``cpus``
-    cores (trials packed by their CPUs; validation and start-up not counted)."""
+def _versions(table: pd.DataFrame, column: str) -> str:
+    started = table[column].dropna()
+    if started.empty:
+        return "-"
+    counts = started.value_counts()
+    if len(counts) == 1:
+        return str(counts.index[0])
+    return " and ".join(f"{v} ({n} trials)" for v, n in counts.items())
+
+
+def status_text(table: pd.DataFrame, cpus: int | None = None, plan: BenchmarkPlan | None = None) -> str:
+    """The table as `cosim benchmark --status` prints it: a heading line (the preset, the
+    task version and commit the started trials ran, from their manifests; more than one is
+    said), a line per trial, and a closing line: the count per state and the learning time
+    left, as the sum over trials and as a wall time on ``cpus`` cores (trials packed by
+    their CPUs; validation and start-up not counted)."""
     cpus = cpus or os.cpu_count() or 1
-    lines = [f"{'trial':<26} {'state':<9} {'env steps':>17} {'done':>5} {'learning':>9} "
+    head = f"preset {plan.preset}, " if plan is not None else ""
+    lines = [f"{head}task version {_versions(table, 'task_version')}, commit {_versions(table, 'commit')}",
+             f"{'trial':<26} {'state':<9} {'env steps':>17} {'done':>5} {'learning':>9} "
              f"{'best val.':>10} {'left':>8}"]
     for r in table.itertuples():
         best = "-" if r.best != r.best else f"{r.best:.0f}"

@@ -727,10 +727,12 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     _prepare(plan, out, resume=False)
     budget = {cell_name(c): c.steps for c in plan.cells()}
 
-    def run(where: Path, steps: int, seconds: float, best: dict, holder: int | None = None):
+    def run(where: Path, steps: int, seconds: float, best: dict, holder: int | None = None,
+            commit: str = "a" * 40):
         where.mkdir(parents=True)
         (where / "state.json").write_text(json.dumps({"env_steps": steps, "elapsed_s": seconds, "best": best}))
         (where / "run.lock").write_text(f"{holder}\n" if holder else "")
+        (where / "manifest.json").write_text(json.dumps({"task_version": 3, "git": {"commit": commit}}))
 
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait()  # a PID whose process is dead: a trial whose session ended
@@ -738,7 +740,8 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     run(out / "runs" / ppo0, budget[ppo0], 100.0, {"ac_0": 5.0, "ac_1": 7.5})
     run(out / "trials" / ppo1 / "env_1__ppo__1__20261126-0900", budget[ppo1] // 2, 40.0, {"ac_0": -3.0},
         holder=os.getpid())
-    run(out / "trials" / dqn0 / "env_1__dqn__0__20261126-0900", 30, 15.0, {}, holder=gone.pid)
+    run(out / "trials" / dqn0 / "env_1__dqn__0__20261126-0900", 30, 15.0, {}, holder=gone.pid,
+        commit="b" * 40)
 
     table = grid_status(out).set_index("cell")
     assert table.state.to_dict() == {ppo0: "finished", ppo1: "training", dqn0: "stopped",
@@ -753,5 +756,6 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     assert main(["benchmark", "--status", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "1 finished, 1 training, 1 stopped, 1 pending" in printed
+    assert printed.startswith("preset smoke, task version 3, commit aaaaaaa (2 trials) and bbbbbbb (1 trials)")
     assert main(["benchmark", "--status", "--out", str(tmp_path / "none")]) == 2
     assert "no benchmark.json" in capsys.readouterr().err
