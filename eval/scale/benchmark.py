@@ -366,40 +366,12 @@ def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
     return done
 
 
-def _trial_lines(total: int, done: int, say: Callable[[str], None]):
-    """A Tune callback (in the driver) that says one line per trial as it ends:
-    ``[k/total] trained <cell> (<seconds> s)`` (or FAILED); ``done``: trials finished before."""
-    import time
-
-    from ray import tune
-
-    class TrialLines(tune.Callback):
-        def __init__(self):
-            self.count, self.start = done, {}
-
-        def on_trial_start(self, iteration, trials, trial, **info):
-            self.start.setdefault(trial.trial_id, time.monotonic())
-
-        def _say(self, trial, what: str) -> None:
-            self.count += 1
-            took = time.monotonic() - self.start.get(trial.trial_id, time.monotonic())
-            say(f"[{self.count}/{total}] {what} {cell_name(trial.config['cell'])} ({took:.0f} s)")
-
-        def on_trial_complete(self, iteration, trials, trial, **info):
-            self._say(trial, "trained")
-
-        def on_trial_error(self, iteration, trials, trial, **info):
-            self._say(trial, "FAILED")
-
-    return TrialLines()
-
-
 def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: str | None = None,
             concurrent: int = 2, gpus_per_trial: float = 0.0, keep: str = "best",
             progress: Callable[[str], None] | None = None) -> dict[str, Path]:
     """Train every cell as a Ray Tune trial, ``concurrent`` at a time; ``keep``: what a
     finished run keeps (eval/training/runfolder.py KEEP_POLICIES); ``progress``: called with
-    one line per trial as it ends (a new grid; a restored one ends silently).
+    one line per trial as it ends (eval/scale/trial_lines.py; a restored grid too).
 
     Returns:
         Cell name -> finished run folder under ``out/runs``.
@@ -416,6 +388,8 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
     with ray_session(address):
         more_seeds = _prepare(plan, out, resume)
         from ray import tune
+
+        from eval.scale.trial_lines import TrialLines
 
         cells = plan.cells()
         finished = finished_runs(plan, out)
@@ -445,7 +419,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                                             trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
                 run_config=tune.RunConfig(
                     name="grid", storage_path=str(out / "tune"), verbose=0,
-                    callbacks=[_trial_lines(len(cells), len(finished), progress)] if progress else None,
+                    callbacks=[TrialLines(out, progress)] if progress else None,
                     # a checkpoint is a pointer to the run folder (_tune_trial): the last one is
                     # all a restore needs (PBT, which clones run folders, keeps copies)
                     checkpoint_config=tune.CheckpointConfig(num_to_keep=1),

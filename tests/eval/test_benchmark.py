@@ -423,6 +423,9 @@ def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp):
     resumed = cosim([*args, "--resume"], ray_tmp)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert first.read_text() == finished  # the finished trial was not trained again
+    # the restored grid says when its trial ends, once, counting the one finished before
+    assert resumed.stdout.count("trained env_1__dqn__0__bench") == 1, resumed.stdout
+    assert "[2/2] trained env_1__dqn__0__bench" in resumed.stdout
     for cell in ("env_1__ppo__0__bench", "env_1__dqn__0__bench"):
         assert json.loads((out / "runs" / cell / "state.json").read_text())["env_steps"] == 160
 
