@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command; the exit code follows one policy (docs/reference.md#exit-codes-and-errors):
     0 done, 2 a user error (argparse's usage errors, and any error a user can cause:
     ``cosim.errors.CosimError``, ``agents.errors.AgentError``), 1 a bug or a failed check
-    (check-scenarios), 130 interrupted."""
+    (check-scenarios), 130 interrupted, 141 its output's reader went away (a closed pipe)."""
     from agents.errors import AgentError
     from cosim.errors import CosimError
 
@@ -55,6 +55,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("cosim: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (`cosim ... | head`): as the shell's tools, no message
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # Python's flush at exit would raise again
+        return 141
     except Exception as exc:  # a bug: one line here, the traceback in a log file
         import traceback
 

@@ -72,10 +72,26 @@ def _latest_run(folder: Path) -> Path | None:
     return runs[-1] if runs else None
 
 
+RECENT = 10
+"""Training episodes per AC that the ``goals`` column averages (the latest)."""
+
+
+def _recent_goals(run: Path) -> float:
+    """The goal rate of each AC's latest :data:`RECENT` training episodes (episodes.csv),
+    pooled; NaN before the first episode."""
+    try:
+        episodes = pd.read_csv(run / "episodes.csv", usecols=["agent", "goal_reached"])
+    except (OSError, ValueError, pd.errors.EmptyDataError):  # none yet, or being truncated
+        return float("nan")
+    recent = episodes.groupby("agent").tail(RECENT)
+    return float(recent.goal_reached.astype(float).mean()) if len(recent) else float("nan")
+
+
 def grid_status(out: Path) -> pd.DataFrame:
     """One row per cell of the saved plan: ``cell, env, algo, seed, cpus, state, env_steps,
     budget, done`` (fraction), ``learning_s`` (seconds of learning so far), ``best`` (the
-    highest per-AC validation score so far, NaN before the first validation) and ``left_s``
+    highest per-AC validation score so far, NaN before the first validation), ``goals`` (the
+    goal rate of each AC's latest training episodes, :func:`_recent_goals`), ``left_s``
     (seconds of learning left at this algorithm's measured rate; NaN when no trial of the
     algorithm has progressed yet), and the ``task_version`` and ``commit`` its run's
     manifest.json records (None before it started)."""
@@ -96,6 +112,7 @@ def grid_status(out: Path) -> pd.DataFrame:
             what = "pending"
         else:
             what = "training" if _holder(run) is not None else "stopped"
+        goals = _recent_goals(run) if run is not None else float("nan")
         made = json.loads((run / "manifest.json").read_text()) if run and (run / "manifest.json").exists() else {}
         rows.append({"cell": name, "env": cfg.env, "algo": cfg.algo, "seed": cfg.seed,
                      "task_version": made.get("task_version"),
@@ -103,7 +120,7 @@ def grid_status(out: Path) -> pd.DataFrame:
                      "cpus": trial_resources(cfg, os.cpu_count())["cpu"], "state": what,
                      "env_steps": min(steps, cfg.steps), "budget": cfg.steps,
                      "learning_s": float(state.get("elapsed_s", 0.0)),
-                     "best": max(best) if best else float("nan")})
+                     "best": max(best) if best else float("nan"), "goals": goals})
     table = pd.DataFrame(rows).astype({"task_version": "Int64"})
     table["done"] = table.env_steps / table.budget
     moving = table[(table.env_steps > 0) & (table.learning_s > 0)]
@@ -138,12 +155,13 @@ def status_text(table: pd.DataFrame, cpus: int | None = None, plan: BenchmarkPla
     head = f"preset {plan.preset}, " if plan is not None else ""
     lines = [f"{head}task version {_versions(table, 'task_version')}, commit {_versions(table, 'commit')}",
              f"{'trial':<26} {'state':<9} {'env steps':>17} {'done':>5} {'learning':>9} "
-             f"{'best val.':>10} {'left':>8}"]
+             f"{'best val.':>10} {'goals':>5} {'left':>8}"]
     for r in table.itertuples():
         best = "-" if r.best != r.best else f"{r.best:.0f}"
         left = "" if r.state == "finished" else _duration(r.left_s)
+        goals = "-" if r.goals != r.goals else f"{r.goals:.2f}"
         lines.append(f"{r.cell:<26} {r.state:<9} {f'{r.env_steps:,}/{r.budget:,}':>17} "
-                     f"{r.done:>5.0%} {_duration(r.learning_s):>9} {best:>10} {left:>8}")
+                     f"{r.done:>5.0%} {_duration(r.learning_s):>9} {best:>10} {goals:>5} {left:>8}")
     counts = table.state.value_counts()
     left = table[table.state != "finished"]
     if left.empty:

@@ -8,6 +8,8 @@ Scenario-validation cases (issue 10 item 3) are here too: each names the file an
 the key.
 """
 
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -302,3 +304,15 @@ def test_a_multi_line_error_prints_its_first_line_and_keeps_the_rest_in_a_log(ca
     log = Path(err.split("details in ")[1].rstrip(")\n"))
     assert "boom" in log.read_text()
     log.unlink()
+
+
+def test_a_closed_pipe_ends_the_command_quietly():
+    # `cosim benchmark --status | head`: the reader went away; no "unexpected error", no log
+    code = ("import sys, eval.cli, eval.cli.sim\n"
+            "def gone(args):\n"
+            "    print('a line', flush=True)\n"
+            "    raise BrokenPipeError(32, 'Broken pipe')\n"
+            "eval.cli.sim.cmd_scenarios = gone\n"
+            "sys.exit(eval.cli.main(['scenarios']))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 141 and done.stderr == "", done.stderr

@@ -746,7 +746,13 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     run(out / "trials" / dqn0 / "env_1__dqn__0__20261126-0900", 30, 15.0, {}, holder=gone.pid,
         commit="b" * 40)
 
+    # the goal rate of each AC's latest 10 training episodes: ac_0 reached its last 10 goals
+    # after 5 misses, ac_1 half of its 4
+    rows = [("ac_0", 0)] * 5 + [("ac_0", 1)] * 10 + [("ac_1", 1), ("ac_1", 0)] * 2
+    (out / "runs" / ppo0 / "episodes.csv").write_text(
+        "agent,goal_reached\n" + "".join(f"{a},{bool(g)}\n" for a, g in rows))
     table = grid_status(out).set_index("cell")
+    assert table.loc[ppo0, "goals"] == pytest.approx(12 / 14)
     assert table.state.to_dict() == {ppo0: "finished", ppo1: "training", dqn0: "stopped",
                                      "env_1__dqn__1__bench": "pending"}
     assert table.loc[ppo0, "best"] == 7.5 and table.loc[ppo1, "best"] == -3.0
