@@ -24,7 +24,8 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
    same episode seeds, AC count and steps, saved as ``OUT/references/<env>.csv``;
 4. results (eval/reporting/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
    seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``,
-   ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``),
+   ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``), ``budget.csv``
+   (did each run's training return still rise at the end of its budget?),
    ``summary.md`` (printed: a study's results section, as in docs/results/*/README.md), ``report/`` (the `cosim test`
    report of the held-out records, seeds pooled) and ``science.json`` (plan, checkpoints).
 
@@ -428,12 +429,14 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     runs = {(a, e, s): bench / "runs" / f"{e}__{a}__{s}__bench"
             for e in plan.envs for a in plan.algos for s in range(seeds_of[e])}
     curves = science.convergence_curves(runs)
+    budgets = science.budget_check(runs)
 
     seeds.to_csv(out / "seeds.csv", index=False)
     pd.concat([table, ref_table], ignore_index=True).to_csv(out / "results.csv", index=False)
     verdict.to_csv(out / "verdict.csv", index=False)
     iqm.to_csv(out / "iqm.csv", index=False)
     curves.to_csv(out / "convergence.csv", index=False)
+    budgets.to_csv(out / "budget.csv", index=False)
     science.convergence_figure(curves, out)
 
     t = study["test"]
@@ -484,6 +487,11 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
         f"\nIssue 27's target per environment: {int(goals['met'].sum())} of {len(goals)} met (a "
         "discrete and a continuous algorithm pass the verdict; where a route turns, some "
         "algorithm's turning slots reach goals):\n", science.targets_markdown(goals),
+        f"\nDid the budgets suffice? Training return of the last {science.PLATEAU_FRACTION:.0%} of each "
+        f"run's budget minus the {science.PLATEAU_FRACTION:.0%} before (mean over seeds); rising k/n: in k "
+        "of n seeds the 95% bootstrap interval over AC-episodes lies above 0, so the curve had "
+        "not flattened (bold); 0/n says no clear rise, which noisy returns can also give "
+        "(`budget.csv`):\n", science.budget_markdown(budgets),
         "\nConvergence (training return against environment steps, mean over seeds, band: "
         "min-max over seeds): `convergence.png` / `convergence.pdf`. Every metric with "
         "reference rows: `results.md`.\n"]

@@ -308,6 +308,67 @@ def convergence_curves(runs: Mapping[tuple[str, str, int], Path], points: int = 
     return pd.concat(parts, ignore_index=True)
 
 
+PLATEAU_FRACTION = 0.2
+"""The share of a run's budget in each of the two windows :func:`budget_check` compares."""
+
+
+def late_gain(episodes: pd.DataFrame, budget: int, fraction: float = PLATEAU_FRACTION,
+              resamples: int = 2000, seed: int = 0) -> tuple[float, float, float, int]:
+    """(gain, low, high, n): the mean training return of the episodes that ended in the last
+    ``fraction`` of the budget minus that of the episodes in the ``fraction`` before, with a
+    95% percentile bootstrap interval (each window's AC-episodes resampled apart; n: the
+    smaller window's count). NaNs when a window has no episode. The episodes of one AC are
+    not independent, so the interval is narrower than a repeat of the run would give."""
+    steps = episodes["env_step"].to_numpy(float)
+    returns = episodes["return"].to_numpy(float)
+    late = returns[(steps > budget * (1 - fraction)) & (steps <= budget)]
+    before = returns[(steps > budget * (1 - 2 * fraction)) & (steps <= budget * (1 - fraction))]
+    if len(late) == 0 or len(before) == 0:
+        return float("nan"), float("nan"), float("nan"), 0
+    rng = np.random.default_rng(seed)
+    draws = (late[rng.integers(0, len(late), (resamples, len(late)))].mean(axis=1)
+             - before[rng.integers(0, len(before), (resamples, len(before)))].mean(axis=1))
+    lo, hi = np.percentile(draws, [2.5, 97.5])
+    return float(late.mean() - before.mean()), float(lo), float(hi), min(len(late), len(before))
+
+
+def budget_check(runs: Mapping[tuple[str, str, int], Path], fraction: float = PLATEAU_FRACTION) -> pd.DataFrame:
+    """Did each run's budget let its training curve flatten? Per run (``runs`` maps
+    (algorithm, env, seed) to a run folder): :func:`late_gain` of its episodes.csv, and
+    ``rising`` when the interval's lower end is above 0 (the return still grew over the
+    last ``fraction`` of the budget: a longer run would likely score more). Columns:
+    algorithm, env, seed, budget, gain, low, high, n, rising."""
+    import yaml
+
+    rows = []
+    for (algo, env, seed), run in runs.items():
+        budget = int(yaml.safe_load((Path(run) / "config.yaml").read_text())["steps"])
+        csv = Path(run) / "episodes.csv"
+        episodes = (pd.read_csv(csv, usecols=["env_step", "return"]) if csv.exists() and csv.stat().st_size
+                    else pd.DataFrame({"env_step": [], "return": []}))
+        gain, lo, hi, n = late_gain(episodes, budget, fraction)
+        rows.append({"algorithm": algo, "env": env, "seed": int(seed), "budget": budget, "gain": gain,
+                     "low": lo, "high": hi, "n": n, "rising": bool(n and lo > 0)})
+    return pd.DataFrame(rows)
+
+
+def budget_markdown(check: pd.DataFrame) -> str:
+    """Algorithms x environments: the mean gain over seeds and how many seeds still rise
+    (bold when any does); "-" where no run has episodes in both windows."""
+    envs = sorted(check["env"].unique())
+    rows = []
+    for algo in algo_order(check["algorithm"].unique()):
+        cells = []
+        for env in envs:
+            c = check[(check["algorithm"] == algo) & (check["env"] == env) & (check["n"] > 0)]
+            rising = int(c["rising"].sum())
+            text = f"{c['gain'].mean():+.0f} (rising {rising}/{len(c)})" if len(c) else "-"
+            cells.append(f"**{text}**" if rising else text)
+        budget = int(check.loc[check["algorithm"] == algo, "budget"].max())
+        rows.append([algo, f"{budget:,}", *cells])
+    return _md(["algorithm", "budget (env steps)", *[env_title(e) for e in envs]], rows)
+
+
 def convergence_bands(curves: pd.DataFrame) -> pd.DataFrame:
     """Per (algorithm, env, env_step): mean, min and max over seeds, and the seeds with a
     value; the mean only where every seed of that (algorithm, env) has one (NaN before)."""
@@ -433,5 +494,5 @@ def iqm_markdown(t: pd.DataFrame) -> str:
     return _md(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
 
 
-__all__ = ["METRICS", "convergence_curve", "convergence_curves", "convergence_figure", "iqm_table",
+__all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves", "convergence_figure", "iqm_table",
            "normalise", "reference_table", "seed_means", "seed_table", "verdict"]

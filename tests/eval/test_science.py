@@ -179,6 +179,30 @@ def test_convergence_curve_is_the_mean_of_the_latest_episodes():
     np.testing.assert_allclose(b["high"] - b["low"], [np.nan, np.nan, 1.0, 1.0])
 
 
+def test_budget_check_flags_a_run_whose_return_still_rises_at_its_end(tmp_path):
+    # budget 100: windows (60, 80] and (80, 100]; episodes before 60 do not count
+    flat = pd.DataFrame({"env_step": [10, 65, 70, 75, 85, 90, 95], "return": [-99, 1, 2, 3, 3, 1, 2]})
+    gain, lo, hi, n = science.late_gain(flat, 100)
+    assert gain == pytest.approx(0.0) and -2 <= lo < 0 < hi <= 2 and n == 3  # resamples span +-2
+    rising = flat.assign(**{"return": [-99, 1, 2, 3, 11, 12, 13]})
+    gain, lo, hi, n = science.late_gain(rising, 100)
+    assert gain == pytest.approx(10.0) and 8 <= lo < 10 < hi <= 12 and n == 3  # any resample: 8..12
+    assert np.isnan(science.late_gain(flat[flat.env_step < 80], 100)[0])  # no late episode
+
+    runs = {}
+    for name, episodes in (("flat", flat), ("rising", rising)):
+        run = tmp_path / name
+        run.mkdir()
+        (run / "config.yaml").write_text("steps: 100\n")
+        episodes.to_csv(run / "episodes.csv", index=False)
+        runs[("dqn", "env_1", len(runs))] = run
+    check = science.budget_check(runs)
+    assert check["rising"].tolist() == [False, True]
+    assert "**+5 (rising 1/2)**" in science.budget_markdown(check)
+    none = science.budget_check({("td3", "env_1", 0): runs[("dqn", "env_1", 0)]}).assign(n=0)
+    assert science.budget_markdown(none).splitlines()[-1] == "| td3 | 100 | - |"
+
+
 # -- the smoke study ---------------------------------------------------------------------------
 def _run(out: Path, *extra: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), "--smoke", "--out", str(out), *extra],
