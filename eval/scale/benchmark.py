@@ -260,11 +260,41 @@ def _tune_trial(config: dict) -> None:
 
     checkpoint = tune.get_checkpoint()
     run = run_of_checkpoint(checkpoint) if checkpoint is not None else None
-    if run is not None and (run / "config.yaml").exists():
+    if run is None or not (run / "config.yaml").exists():
+        run = earlier_run(folder, cfg)  # a grid started anew over the same trials/ folder
+        if run is not None and _steps_done(run) >= cfg.steps:
+            report(run, _steps_done(run), float("nan"))  # finished before: Tune only records it
+            return
+    if run is not None:
         _seed_everything(cfg.seed)
         train(None, resume=run, quiet=True, progress=False, on_checkpoint=report, keep=keep)
     else:
         train_cell(cfg, folder, None, report, keep=keep)
+
+
+def _steps_done(run: Path) -> int:
+    return int(json.loads((Path(run) / "state.json").read_text()).get("env_steps", 0))
+
+
+def earlier_run(folder: Path, cfg: TrainConfig) -> Path | None:
+    """The newest run folder under ``folder`` (a trial's ``trials/<cell>``) that trained
+    exactly ``cfg`` (its config.yaml, compared through JSON) and committed a checkpoint
+    (state.json), else None. A grid started anew over an interrupted one (Tune's state lost
+    or deleted, say after a preset changed: docs/guide.md) continues such runs instead of
+    wiping them; a run of another config is trained again from scratch."""
+    from eval.training.runfolder import load_run_config
+
+    want = json.loads(json.dumps(cfg.to_dict()))
+    for run in sorted(Path(folder).glob("*"), reverse=True):
+        if not (run / "state.json").exists() or not (run / "config.yaml").exists():
+            continue
+        try:
+            ran = json.loads(json.dumps(load_run_config(run).to_dict()))
+        except CosimError:
+            continue
+        if ran == want:
+            return run
+    return None
 
 
 # -- the grid ----------------------------------------------------------------------------

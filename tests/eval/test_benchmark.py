@@ -394,7 +394,10 @@ def test_benchmark_writes_the_report_in_one_command(tmp_path, ray_tmp):
 
 @needs_ray
 @pytest.mark.slow
-def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp):
+@pytest.mark.parametrize("tune_state", ["kept", "lost"])
+def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp, tune_state):
+    """``lost``: Tune's experiment is deleted before the resume (the way to change a preset
+    mid-grid, docs/guide.md): the new grid finds each cell's run in trials/ and continues it."""
     out = tmp_path / "b"
     args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn",
             "--steps", "160", "--concurrent", "1", "--train-only", "--out", str(out)]
@@ -420,8 +423,16 @@ def test_ctrl_c_leaves_no_ray_process_and_resume_continues(tmp_path, ray_tmp):
     assert "--resume" in log
     assert not wait_gone(ray_tmp), "Ray processes left after Ctrl-C"
     finished = first.read_text()
+    ppo_state = (out / "runs" / "env_1__ppo__0__bench" / "state.json").read_text()  # exported at Ctrl-C
+    if tune_state == "lost":
+        shutil.rmtree(grid)
     resumed = cosim([*args, "--resume"], ray_tmp)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
+    if tune_state == "lost":  # PPO's finished run kept as it was; DQN's went on from its checkpoint
+        assert (out / "runs" / "env_1__ppo__0__bench" / "state.json").read_text() == ppo_state
+        nodes = (out / "runs" / "env_1__dqn__0__bench" / "trial_nodes.jsonl").read_text().splitlines()
+        assert len(nodes) == 2 and json.loads(nodes[1])["env_steps"] > json.loads(nodes[0])["env_steps"]
+        return
     assert first.read_text() == finished  # the finished trial was not trained again
     # the restored grid says when its trial ends, once, counting the one finished before
     assert resumed.stdout.count("trained env_1__dqn__0__bench") == 1, resumed.stdout
@@ -718,6 +729,53 @@ def test_the_plan_records_the_obs_and_sharing_variants_and_shares_where_it_can()
     assert "obs" not in default and "share_params" not in default  # old plans still read as equal
     with pytest.raises(BenchmarkError, match="--obs must be image or nav"):
         BenchmarkPlan(preset="smoke", obs="lidar")
+
+
+def test_a_new_grid_continues_only_runs_of_the_same_config(tmp_path):
+    import dataclasses
+
+    from eval.scale.benchmark import BenchmarkPlan, earlier_run
+
+    cfg = BenchmarkPlan(preset="smoke", envs=("env_1",), algos=("dqn",)).cells()[0]
+    other = dataclasses.replace(cfg, agent_config=dataclasses.replace(cfg.agent_config, train_freq=8))
+
+    def run(name: str, c, state: bool = True) -> Path:
+        folder = tmp_path / "cell" / name
+        folder.mkdir(parents=True)
+        (folder / "config.yaml").write_text(yaml.safe_dump(c.to_dict(), sort_keys=False))
+        if state:
+            (folder / "state.json").write_text(json.dumps({"env_steps": 40}))
+        return folder
+
+    assert earlier_run(tmp_path / "cell", cfg) is None
+    same = run("env_1__dqn__0__20261126-0900", cfg)
+    run("env_1__dqn__0__20261126-1000", other)             # newer, another train_freq
+    run("env_1__dqn__0__20261126-1100", cfg, state=False)  # newest, no checkpoint committed
+    assert earlier_run(tmp_path / "cell", cfg) == same
+    assert earlier_run(tmp_path / "cell", other).name.endswith("1000")
+
+
+@needs_ray
+def test_a_trial_whose_run_finished_before_reports_it_without_training(tmp_path, monkeypatch):
+    # a session killed after a trial finished and before its export: the new grid's trial
+    # finds the finished run in trials/<cell> and only tells Tune
+    from ray import tune
+
+    from eval.scale import benchmark
+
+    cfg = benchmark.BenchmarkPlan(preset="smoke", envs=("env_1",), algos=("ppo",)).cells()[0]
+    run = tmp_path / "trials" / benchmark.cell_name(cfg) / "env_1__ppo__0__20261126-0900"
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    (run / "state.json").write_text(json.dumps({"env_steps": cfg.steps}))
+    reports = []
+    monkeypatch.setattr(tune, "get_checkpoint", lambda: None)
+    monkeypatch.setattr(tune, "report", lambda metrics, checkpoint: reports.append(
+        (metrics, (Path(checkpoint.path) / benchmark.RUN_POINTER).read_text())))
+    monkeypatch.setattr(benchmark, "_record_node", lambda run, steps: None)
+    monkeypatch.setattr(benchmark, "train", lambda *a, **k: pytest.fail("trained a finished run"))
+    benchmark._tune_trial({"cell": cfg.to_dict(), "scratch": str(tmp_path / "trials"), "keep": "best"})
+    assert reports == [({"env_steps": cfg.steps, "mean_return": float("-inf")}, str(run.resolve()))]
 
 
 def test_status_tells_finished_training_stopped_and_pending_trials_from_the_folder(tmp_path, capsys):
