@@ -142,7 +142,7 @@ def _versions(table: pd.DataFrame, column: str) -> str:
     counts = started.value_counts()
     if len(counts) == 1:
         return str(counts.index[0])
-    return " and ".join(f"{v} ({n} trials)" for v, n in counts.items())
+    return " and ".join(f"{v} ({n} trial{'s' if n > 1 else ''})" for v, n in counts.items())
 
 
 def status_text(table: pd.DataFrame, cpus: int | None = None, plan: BenchmarkPlan | None = None) -> str:

@@ -823,6 +823,6 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     assert main(["benchmark", "--status", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "1 finished, 1 training, 1 stopped, 1 pending" in printed
-    assert printed.startswith("preset smoke, task version 3, commit aaaaaaa (2 trials) and bbbbbbb (1 trials)")
+    assert printed.startswith("preset smoke, task version 3, commit aaaaaaa (2 trials) and bbbbbbb (1 trial)")
     assert main(["benchmark", "--status", "--out", str(tmp_path / "none")]) == 2
     assert "no benchmark.json" in capsys.readouterr().err
