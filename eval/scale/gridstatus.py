@@ -8,7 +8,7 @@ and roughly how much trial time is left. Everything comes from the folder
 
 - ``benchmark.json``: the plan, hence the cells and their budgets;
 - ``runs/<cell>/``: a finished run (moved there when the grid ends);
-- ``trials/<cell>/<run>/state.json``: the last checkpoint of a trial (``env_steps``,
+- ``trials/<cell>/<run>/``: a started trial; its ``state.json``, the last checkpoint (``env_steps``,
   ``elapsed_s``: seconds of learning, and ``best``: each AC's best validation score);
 - ``run.lock``: the PID of the process training the run, while it trains.
 """
@@ -68,7 +68,9 @@ def _holder(run: Path) -> int | None:
 
 
 def _latest_run(folder: Path) -> Path | None:
-    runs = sorted(p for p in folder.glob("*") if (p / "state.json").exists())
+    """The newest run folder under a trial's folder: one with a config.yaml (it started; its
+    state.json appears at its first checkpoint)."""
+    runs = sorted(p for p in folder.glob("*") if (p / "config.yaml").exists())
     return runs[-1] if runs else None
 
 
@@ -103,7 +105,7 @@ def grid_status(out: Path) -> pd.DataFrame:
         run = out / "runs" / name
         if not (run / "state.json").exists():
             run = _latest_run(out / "trials" / name)
-        state = json.loads((run / "state.json").read_text()) if run is not None else {}
+        state = json.loads((run / "state.json").read_text()) if run and (run / "state.json").exists() else {}
         steps = int(state.get("env_steps", 0))
         best = [float(v) for v in (state.get("best") or {}).values()]
         if steps >= cfg.steps:

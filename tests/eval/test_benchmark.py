@@ -791,6 +791,7 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     def run(where: Path, steps: int, seconds: float, best: dict, holder: int | None = None,
             commit: str = "a" * 40):
         where.mkdir(parents=True)
+        (where / "config.yaml").write_text("algo: x\n")
         (where / "state.json").write_text(json.dumps({"env_steps": steps, "elapsed_s": seconds, "best": best}))
         (where / "run.lock").write_text(f"{holder}\n" if holder else "")
         (where / "manifest.json").write_text(json.dumps({"task_version": 3, "git": {"commit": commit}}))
@@ -826,3 +827,10 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     assert printed.startswith("preset smoke, task version 3, commit aaaaaaa (2 trials) and bbbbbbb (1 trial)")
     assert main(["benchmark", "--status", "--out", str(tmp_path / "none")]) == 2
     assert "no benchmark.json" in capsys.readouterr().err
+    started = out / "trials" / "env_1__dqn__1__bench" / "env_1__dqn__1__20261126-0900"
+    started.mkdir(parents=True)  # before its first checkpoint: no state.json yet
+    (started / "config.yaml").write_text("algo: dqn\n")
+    (started / "run.lock").write_text(f"{os.getpid()}\n")
+    assert grid_status(out).set_index("cell").loc["env_1__dqn__1__bench", "state"] == "training"
+    (started / "run.lock").write_text("")  # released: it stopped before a checkpoint
+    assert grid_status(out).set_index("cell").loc["env_1__dqn__1__bench", "state"] == "stopped"
