@@ -375,7 +375,8 @@ def cmd_benchmark(args) -> int:
     from eval.scale.raysession import INSTALL_HINT, ray_available
 
     if args.status:
-        from eval.scale.gridstatus import grid_status, load_plan, status_text
+        from eval.scale.benchmark import load_plan
+        from eval.scale.gridstatus import grid_status, status_text
 
         print(status_text(grid_status(args.out), plan=load_plan(args.out)))
         return 0

@@ -262,18 +262,14 @@ def _tune_trial(config: dict) -> None:
     run = run_of_checkpoint(checkpoint) if checkpoint is not None else None
     if run is None or not (run / "config.yaml").exists():
         run = earlier_run(folder, cfg)  # a grid started anew over the same trials/ folder
-        if run is not None and _steps_done(run) >= cfg.steps:
-            report(run, _steps_done(run), float("nan"))  # finished before: Tune only records it
+        if run is not None and steps_done(run) >= cfg.steps:
+            report(run, steps_done(run), float("nan"))  # finished before: Tune only records it
             return
     if run is not None:
         _seed_everything(cfg.seed)
         train(None, resume=run, quiet=True, progress=False, on_checkpoint=report, keep=keep)
     else:
         train_cell(cfg, folder, None, report, keep=keep)
-
-
-def _steps_done(run: Path) -> int:
-    return int(json.loads((Path(run) / "state.json").read_text()).get("env_steps", 0))
 
 
 def earlier_run(folder: Path, cfg: TrainConfig) -> Path | None:
@@ -352,6 +348,37 @@ def adds_seeds(old: dict, plan: BenchmarkPlan | dict) -> bool:
             and {**old, "seeds": new["seeds"]} == new)
 
 
+def load_plan(out: Path) -> BenchmarkPlan:
+    """The plan saved in ``out/benchmark.json``.
+
+    Raises:
+        BenchmarkError: ``out`` holds no benchmark.
+    """
+    saved = Path(out) / "benchmark.json"
+    if not saved.exists():
+        raise BenchmarkError(f"--out {out}: no benchmark.json there; name the folder a "
+                             "`cosim benchmark` wrote (its --out)")
+    return BenchmarkPlan(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved_plan(saved).items()})
+
+
+def steps_done(run: Path) -> int:
+    """Env steps of a run folder's last committed checkpoint (0 before the first)."""
+    state = Path(run) / "state.json"
+    return int(json.loads(state.read_text()).get("env_steps", 0)) if state.exists() else 0
+
+
+def finished_count(out: Path) -> tuple[int, int]:
+    """(finished, all) cells of the benchmark in ``out``: a finished cell's run is in
+    ``runs/`` or, not yet moved, in ``trials/<cell>`` at its budget."""
+    cells = load_plan(out).cells()
+    done = 0
+    for cfg in cells:
+        name = cell_name(cfg)
+        started = sorted((Path(out) / "trials" / name).glob("*"))
+        done += (Path(out) / "runs" / name).exists() or any(steps_done(r) >= cfg.steps for r in started)
+    return done, len(cells)
+
+
 def finished_runs(plan: BenchmarkPlan, out: Path) -> dict[str, Path]:
     """Cell name -> run folder of every cell of ``plan`` whose run is in ``out/runs``
     (a cell's run is moved there only once it finished)."""
@@ -417,6 +444,8 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
     out = Path(out).resolve()
     with ray_session(address):
         more_seeds = _prepare(plan, out, resume)
+        from functools import partial
+
         from ray import tune
 
         from eval.scale.trial_lines import TrialLines
@@ -449,7 +478,7 @@ def run_ray(plan: BenchmarkPlan, out: Path, *, resume: bool = False, address: st
                                             trial_dirname_creator=lambda t: cell_name(t.config["cell"])),
                 run_config=tune.RunConfig(
                     name="grid", storage_path=str(out / "tune"), verbose=0,
-                    callbacks=[TrialLines(out, progress)] if progress else None,
+                    callbacks=[TrialLines(progress, partial(finished_count, out), cell_name)] if progress else None,
                     # a checkpoint is a pointer to the run folder (_tune_trial): the last one is
                     # all a restore needs (PBT, which clones run folders, keeps copies)
                     checkpoint_config=tune.CheckpointConfig(num_to_keep=1),

@@ -21,31 +21,11 @@ from pathlib import Path
 
 import pandas as pd
 
-from eval.scale.benchmark import (
-    BenchmarkError,
-    BenchmarkPlan,
-    cell_name,
-    saved_plan,
-    trial_resources,
-)
+from eval.scale.benchmark import BenchmarkPlan, cell_name, load_plan, trial_resources
 
 STATES = ("finished", "training", "stopped", "pending")
 """finished: budget reached; training: a live process holds the run; stopped: started, its
 process gone (``--resume`` continues it from ``env_steps``); pending: not started."""
-
-
-def load_plan(out: Path) -> BenchmarkPlan:
-    """The plan saved in ``out/benchmark.json``.
-
-    Raises:
-        BenchmarkError: ``out`` holds no benchmark.
-    """
-    saved = Path(out) / "benchmark.json"
-    if not saved.exists():
-        raise BenchmarkError(f"--out {out}: no benchmark.json there; name the folder a "
-                             "`cosim benchmark` wrote (its --out)")
-    plan = saved_plan(saved)
-    return BenchmarkPlan(**{k: tuple(v) if isinstance(v, list) else v for k, v in plan.items()})
 
 
 def _alive(pid: int) -> bool:

@@ -780,7 +780,7 @@ def test_a_trial_whose_run_finished_before_reports_it_without_training(tmp_path,
 
 def test_status_tells_finished_training_stopped_and_pending_trials_from_the_folder(tmp_path, capsys):
     from eval.cli import main
-    from eval.scale.benchmark import BenchmarkPlan, _prepare, cell_name
+    from eval.scale.benchmark import BenchmarkPlan, _prepare, cell_name, finished_count
     from eval.scale.gridstatus import grid_status
 
     out = tmp_path / "b"
@@ -811,6 +811,7 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     (out / "runs" / ppo0 / "episodes.csv").write_text(
         "agent,goal_reached\n" + "".join(f"{a},{bool(g)}\n" for a, g in rows))
     table = grid_status(out).set_index("cell")
+    assert finished_count(out) == (1, 4)  # what the line per finished trial counts
     assert table.loc[ppo0, "goals"] == pytest.approx(12 / 14)
     assert table.state.to_dict() == {ppo0: "finished", ppo1: "training", dqn0: "stopped",
                                      "env_1__dqn__1__bench": "pending"}
