@@ -30,13 +30,19 @@ class TrialLines(tune.Callback):
         cell name from its config's ``cell``."""
         self.say, self.count, self.name, self.start = say, count, name, {}
 
+    def __setstate__(self, state: dict) -> None:
+        # a grid started between commits 4d850cc and ea5b0b4 pickled this class with ``out``
+        # and ``say`` only: its restore says each line without the count (never fails the grid)
+        self.__dict__.update({"count": None, "name": None, "start": {}, **state})
+
     def on_trial_start(self, iteration, trials, trial, **info):
         self.start[trial.trial_id] = time.monotonic()
 
     def _line(self, trial, what: str) -> None:
         took = time.monotonic() - self.start.get(trial.trial_id, time.monotonic())
-        done, total = self.count()
-        self.say(f"[{done}/{total}] {what} {self.name(trial.config['cell'])} ({took:.0f} s)")
+        counted = "[{}/{}] ".format(*self.count()) if self.count else ""
+        name = self.name(trial.config["cell"]) if self.name else str(trial)
+        self.say(f"{counted}{what} {name} ({took:.0f} s)")
 
     def on_trial_complete(self, iteration, trials, trial, **info):
         self._line(trial, "trained")

@@ -835,3 +835,30 @@ def test_status_tells_finished_training_stopped_and_pending_trials_from_the_fold
     assert grid_status(out).set_index("cell").loc["env_1__dqn__1__bench", "state"] == "training"
     (started / "run.lock").write_text("")  # released: it stopped before a checkpoint
     assert grid_status(out).set_index("cell").loc["env_1__dqn__1__bench", "state"] == "stopped"
+
+
+@needs_ray
+def test_a_trial_line_callback_pickled_by_an_older_grid_still_says_its_lines():
+    # the grid started at e3acfc2 pickled TrialLines(out, say): restoring it must not fail
+    import pickle
+
+    from eval.scale.trial_lines import TrialLines
+
+    said = []
+    old = TrialLines.__new__(TrialLines)  # the instance state that version pickled
+    old.__dict__.update({"out": Path("/nowhere"), "say": print, "start": {}})
+    restored = pickle.loads(pickle.dumps(old))
+    restored.say = said.append
+
+    class Trial:
+        trial_id, config = "t1", {"cell": {}}
+
+        def __str__(self):
+            return "env_1__td3__0__bench"
+
+    restored.on_trial_start(0, [], Trial())
+    restored.on_trial_complete(0, [], Trial())
+    assert len(said) == 1 and said[0].startswith("trained env_1__td3__0__bench (")
+    new = TrialLines(said.append, lambda: (3, 30), lambda cell: "env_2__ppo__0__bench")
+    new.on_trial_complete(0, [], Trial())
+    assert said[1].startswith("[3/30] trained env_2__ppo__0__bench (")
