@@ -40,7 +40,7 @@ import pandas as pd
 
 from eval.labels import ENVS, env_colour  # noqa: F401 - ENVS re-exported (studies/science.py)
 from eval.reporting.report import algo_order, env_title
-from eval.reporting.stats import bootstrap_ci, iqm, stratified_bootstrap
+from eval.reporting.stats import BOOTSTRAP, CI_SEED, bootstrap_ci, iqm, stratified_bootstrap
 from eval.testing.validity import DEGENERATE, POLICIES
 
 METRICS = ("return", "goal", "goal_turning", "DISTANCE", "CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED")
@@ -313,7 +313,7 @@ PLATEAU_FRACTION = 0.2
 
 
 def late_gain(episodes: pd.DataFrame, budget: int, fraction: float = PLATEAU_FRACTION,
-              resamples: int = 2000, seed: int = 0) -> tuple[float, float, float, int]:
+              resamples: int = BOOTSTRAP, seed: int = CI_SEED) -> tuple[float, float, float, int]:
     """(gain, low, high, n): the mean training return of the episodes that ended in the last
     ``fraction`` of the budget minus that of the episodes in the ``fraction`` before, with a
     95% percentile bootstrap interval (each window's AC-episodes resampled apart; n: the
@@ -494,5 +494,5 @@ def iqm_markdown(t: pd.DataFrame) -> str:
     return _md(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
 
 
-__all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves", "convergence_figure", "iqm_table",
-           "normalise", "reference_table", "seed_means", "seed_table", "verdict"]
+__all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",
+           "convergence_figure", "iqm_table", "normalise", "reference_table", "seed_means", "seed_table", "verdict"]

@@ -262,8 +262,9 @@ def _tune_trial(config: dict) -> None:
     run = run_of_checkpoint(checkpoint) if checkpoint is not None else None
     if run is None or not (run / "config.yaml").exists():
         run = earlier_run(folder, cfg)  # a grid started anew over the same trials/ folder
-        if run is not None and steps_done(run) >= cfg.steps:
-            report(run, steps_done(run), float("nan"))  # finished before: Tune only records it
+        done = steps_done(run) if run is not None else 0
+        if done >= cfg.steps:
+            report(run, done, float("nan"))  # finished before: Tune only records it
             return
     if run is not None:
         _seed_everything(cfg.seed)

@@ -7,8 +7,9 @@ keeps no count: at each trial's end it asks ``count`` (the benchmark's finished 
 read from its folder: ``eval.scale.benchmark.finished_count``), which is right in the grid
 that started and in every grid restored after it. It is a module-level class and its
 functions are module-level, so the pickle names them and a restore runs today's code. It
-imports nothing of the project (the benchmark hands it its functions: no import cycle). (Before 2026-11-26 it was a class local to a function, pickled by value with
-its count: a restored grid said ``[1/30]`` for its third finished trial.)
+imports nothing of the project (the benchmark hands it its functions: no import cycle).
+Before 2026-11-26 it was a class local to a function, pickled by value with its count: a
+restored grid said ``[1/30]`` for its third finished trial.
 """
 
 from __future__ import annotations
