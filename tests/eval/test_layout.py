@@ -360,7 +360,7 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
     standard = presets.load_presets()["standard"]
     assert set(rates) == set(registry.ALGORITHMS)
     for algo, rate in rates.items():
-        if algo == "dqn":  # re-sized 2026-11-26 by the UTD pilot (below)
+        if algo in ("dqn", "td3"):  # re-sized 2026-11-26 by the UTD pilot (below)
             continue
         minutes = standard.steps[algo] / rate / 60
         assert 14 <= minutes <= 16, (algo, standard.steps[algo], rate, minutes)
@@ -368,6 +368,10 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
     dqn = config.make_config("dqn", preset="standard")
     assert (dqn.steps, dqn.agent_config.train_freq) == (48000, 8)
     assert "| 8 (adopted, with 48,000 env steps) |" in doc
+    # TD3: one gradient step per 8 transitions, the same 20,000 env steps (the pilot's TD3 arm)
+    td3_run = config.make_config("td3", preset="standard")
+    assert (td3_run.steps, td3_run.agent_config.train_freq) == (20000, 8)
+    assert "| TD3 | 8 (adopted, same 20,000 env steps) |" in doc
     assert (standard.agents, standard.horizon, standard.envs, standard.frame_stack) == (6, 600, 1, 4)  # 4 frames: docs/task.md, "Observation"
     td3 = config.make_config("td3", preset="standard").agent_config
     assert (td3.random_steps, td3.random_low) == (2000, (-0.6, -1.0))
