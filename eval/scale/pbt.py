@@ -125,7 +125,6 @@ def _pbt_trial(config: dict) -> None:
     own = pbt / "hyper" / f"{trial}.json"
     previous = json.loads(own.read_text()) if own.exists() else None
     own.parent.mkdir(parents=True, exist_ok=True)
-    own.write_text(json.dumps(hyper))
     history = pbt / "history" / f"{trial}.jsonl"
     history.parent.mkdir(parents=True, exist_ok=True)
 
@@ -142,6 +141,7 @@ def _pbt_trial(config: dict) -> None:
     folder = pbt / "trials" / trial
     checkpoint = tune.get_checkpoint()
     if checkpoint is None:
+        own.write_text(json.dumps(hyper))
         train_cell(cfg, folder, None, report)
         return
     with checkpoint.as_directory() as restored:
@@ -153,6 +153,9 @@ def _pbt_trial(config: dict) -> None:
             apply_hyper(run, cfg)
             if exploit:
                 _record_exploit(pbt, trial, meta, hyper, previous, restored, run)
+            # after the record, so that an interruption in between leaves the old values as
+            # `previous` for the exploit that a resume applies again
+            own.write_text(json.dumps(hyper))
             if meta["env_steps"] >= cfg.steps:  # cloned at the end: the clone's final result
                 report(run, meta["env_steps"], meta["mean_return"])
 
@@ -162,14 +165,22 @@ def _pbt_trial(config: dict) -> None:
 def _record_exploit(pbt: Path, trial: str, meta: dict, hyper: dict, previous: dict | None,
                     donor_run: Path, run: Path) -> None:
     """``exploits/<step>-<trial>.json``: who cloned whom at which step, the hyperparameters
-    before and after, and digests of the donor's weights and of the weights resumed."""
+    before and after, and digests of the donor's weights and of the weights resumed.
+
+    A record already there is kept: a trial interrupted before it reported again restores
+    the donor's checkpoint once more on ``--resume`` and applies the same exploit, by which
+    time its own hyperparameters (``previous``) are already the new ones."""
+    path = pbt / "exploits" / f"{meta['env_steps']:010d}-{trial}.json"
+    if path.exists():
+        return
     event = {"env_steps": meta["env_steps"], "trial": trial, "donor": meta["trial"],
              "donor_hyper": meta["hyper"], "new_hyper": hyper, "previous_hyper": previous,
              "donor_weights_sha256": weights_digest(donor_run / "checkpoints/ac_0/latest.pt"),
              "resumed_weights_sha256": weights_digest(run / "checkpoints/ac_0/latest.pt")}
-    exploits = pbt / "exploits"
-    exploits.mkdir(parents=True, exist_ok=True)
-    (exploits / f"{meta['env_steps']:010d}-{trial}.json").write_text(json.dumps(event, indent=1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(event, indent=1))
+    tmp.replace(path)
 
 
 # -- the driver --------------------------------------------------------------------------

@@ -179,3 +179,38 @@ def test_pbts_explore_writes_the_perturbed_config_into_the_run_it_resumes(tmp_pa
     loaded = agents.load(tmp_path / "checkpoints/ac_0/latest.pt")
     assert loaded.config == new.agent_config and type(loaded.config) is PPOConfig
     assert loaded.optimizers["optimizer"].param_groups[0]["lr"] == 5e-5
+
+
+def test_an_exploit_applied_again_after_a_resume_keeps_its_first_record(tmp_path):
+    """Ctrl-C before a clone reports leaves Tune's restore point at the donor's checkpoint:
+    ``--resume`` applies the same exploit again, when the trial's own hyperparameters file
+    already holds the new values. The record of the first application (its true
+    ``previous_hyper``) must stay, not be rewritten (the cluster test's lineage check)."""
+    import json
+
+    import gymnasium
+    import numpy as np
+
+    from agents.ppo import PPO
+    from eval.scale.pbt import _record_exploit
+    from eval.training.train import make_config
+
+    cfg = make_config("ppo", "env_1", "smoke")
+    space = gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32)
+    donor, run = tmp_path / "donor", tmp_path / "run"
+    for folder in (donor, run):
+        PPO.from_spaces(space, gymnasium.spaces.Discrete(9), cfg.agent_config).save(
+            folder / "checkpoints/ac_0/latest.pt")
+    meta = {"env_steps": 60, "trial": "t1", "hyper": {"learning_rate": 1e-4}}
+    new, old = {"learning_rate": 2e-4}, {"learning_rate": 9e-4}
+    _record_exploit(tmp_path / "pbt", "t0", meta, new, old, donor, run)
+    (record,) = (tmp_path / "pbt" / "exploits").glob("*.json")
+    assert record.name == "0000000060-t0.json"
+    first = record.read_text()
+    assert json.loads(first)["previous_hyper"] == old
+    _record_exploit(tmp_path / "pbt", "t0", meta, new, new, donor, run)  # the resume's second application
+    assert record.read_text() == first
+    assert [p.name for p in (tmp_path / "pbt" / "exploits").iterdir()] == [record.name]
+    # a later barrier is a new record
+    _record_exploit(tmp_path / "pbt", "t0", {**meta, "env_steps": 120}, new, new, donor, run)
+    assert len(list((tmp_path / "pbt" / "exploits").glob("*.json"))) == 2
