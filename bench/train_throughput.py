@@ -23,6 +23,12 @@ the trainer's own clock from the first reset (agents/workers.py TrainProgress.ti
     python bench/train_throughput.py --device cuda --envs 1 4 8 16 --algos ppo dqn td3   # on a GPU machine
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --share-params both   # sharing vs not
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --action-repeat 1 2   # action repeat
+    python bench/train_throughput.py --agents 6 --envs 1 --algos dqn ddpg td3 --train-freq 8   # update-to-data ratio
+
+``--train-freq 8`` adds, for DQN, DDPG and TD3, a row trained with one gradient step per 8 of
+each AC's transitions (``--set train_freq=8``; the quick preset makes one per 4) and a table of
+the ratio (train_freq 8 / the preset's row, steady env steps/s): the `standard` presets of DQN
+and TD3 use 8 since 2026-11-26 (docs/benchmarks.md "Update-to-data ratio").
 
 ``--share-params on`` trains PPO/DQN/DDPG/TD3 with one network for all ACs (`cosim train
 --share-params`; A3C and IMPALA rows stay independent); ``both`` trains each such algorithm
@@ -80,12 +86,18 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
     return {"steps_s": done / dt, "frames_s": frames / dt}
 
 
+OFF_POLICY = ("dqn", "ddpg", "td3")  # the algorithms with a train_freq (gradient steps per transition)
+
+
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
-               agents: int = AGENTS, device: str = "cpu", share: bool = False, repeat: int = 1) -> dict[str, float]:
+               agents: int = AGENTS, device: str = "cpu", share: bool = False, repeat: int = 1,
+               train_freq: int | None = None) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
                       envs=n, device=device, torch_threads=threads, share_params=share,
                       validation_episodes=0)  # the learning loop alone: validation is timed apart
     changes = {"action_repeat": repeat} | ({"learning_starts": 200} if hasattr(cfg.agent_config, "learning_starts") else {})
+    if train_freq is not None:
+        changes["train_freq"] = train_freq
     cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(**changes))
     t0 = time.monotonic()
     run = train(cfg, Path(out), quiet=True, progress=False)
@@ -153,6 +165,9 @@ def main() -> None:
                         help="one network for all ACs in ppo/dqn/ddpg/td3 (both: each way, and the ratio)")
     parser.add_argument("--action-repeat", type=int, nargs="+", default=[1],
                         help="train every row with each action held this many env steps (several: each, and the ratio)")
+    parser.add_argument("--train-freq", type=int, nargs="+", default=[],
+                        help="DQN/DDPG/TD3 also with one gradient step per this many of each AC's transitions "
+                             "(rows 'algo train_freq F' beside the quick preset's, and the ratio)")
     args = parser.parse_args()
     check_device(args.device)
     raw: dict[int, dict] = {}
@@ -178,11 +193,17 @@ def main() -> None:
                     rows[key] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
                                            args.device, share=True)
                     print(f"{algo} shared, {n} env(s): {rows[key]}", flush=True)
+                for f in args.train_freq if algo in OFF_POLICY else ():
+                    key = (f"{algo} train_freq {f}", n)
+                    rows[key] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
+                                           args.device, train_freq=f)
+                    print(f"{key[0]}, {n} env(s): {rows[key]}", flush=True)
     shared = {"off": "", "on": ", one network for all ACs (--share-params)", "both": ""}[args.share_params]
     print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset, learners on "
           f"{device_name(args.device)}, torch threads {args.torch_threads or 'default'}{shared}\n")
     names = [name for algo in args.algos
-             for name in (algo, f"{algo} shared", *(f"{algo} repeat {r}" for r in args.action_repeat))
+             for name in (algo, f"{algo} shared", *(f"{algo} repeat {r}" for r in args.action_repeat),
+                          *(f"{algo} train_freq {f}" for f in args.train_freq))
              if any(key[0] == name for key in rows)]
     print("| what | envs | env steps/s (steady) | AC-frames/s (steady) | env steps/s (wall) "
           "| training / raw env (steady) |")
@@ -199,6 +220,7 @@ def main() -> None:
     print_ratio_table(rows, args.algos, args.envs, [f"repeat {r}" for r in args.action_repeat if r != 1])
     if args.share_params == "both":
         print_ratio_table(rows, args.algos, args.envs, ["shared"])
+    print_ratio_table(rows, args.algos, args.envs, [f"train_freq {f}" for f in args.train_freq])
     if len(args.envs) > 1 and "ppo" in args.algos:
         lo, hi = args.envs[0], args.envs[-1]
         print(f"\nPPO --envs {hi} / --envs {lo} (steady): {rows[('ppo', hi)]['steps_s'] / rows[('ppo', lo)]['steps_s']:.2f}x")
