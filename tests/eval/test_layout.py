@@ -372,6 +372,9 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
     td3_run = config.make_config("td3", preset="standard")
     assert (td3_run.steps, td3_run.agent_config.train_freq) == (20000, 8)
     assert "| TD3 | 8 (adopted, same 20,000 env steps) |" in doc
+    # DDPG: 8 measured and not adopted
+    assert config.make_config("ddpg", preset="standard").agent_config.train_freq == 4
+    assert "| DDPG | 4 (kept) |" in doc and "| DDPG | 8 (not adopted) |" in doc
     assert (standard.agents, standard.horizon, standard.envs, standard.frame_stack) == (6, 600, 1, 4)  # 4 frames: docs/task.md, "Observation"
     td3 = config.make_config("td3", preset="standard").agent_config
     assert (td3.random_steps, td3.random_low) == (2000, (-0.6, -1.0))
