@@ -86,9 +86,6 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
     return {"steps_s": done / dt, "frames_s": frames / dt}
 
 
-OFF_POLICY = ("dqn", "ddpg", "td3")  # the algorithms with a train_freq (gradient steps per transition)
-
-
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
                agents: int = AGENTS, device: str = "cpu", share: bool = False, repeat: int = 1,
                train_freq: int | None = None) -> dict[str, float]:
@@ -193,7 +190,9 @@ def main() -> None:
                     rows[key] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
                                            args.device, share=True)
                     print(f"{algo} shared, {n} env(s): {rows[key]}", flush=True)
-                for f in args.train_freq if algo in OFF_POLICY else ():
+                # the algorithms whose config has a train_freq (DQN, DDPG, TD3)
+                has_freq = hasattr(make_config(algo, "env_1", "quick").agent_config, "train_freq")
+                for f in args.train_freq if has_freq else ():
                     key = (f"{algo} train_freq {f}", n)
                     rows[key] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
                                            args.device, train_freq=f)

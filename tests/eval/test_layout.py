@@ -349,7 +349,7 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
     """docs/benchmarks.md "Training throughput per algorithm": env steps/s per algorithm with
     the presets' 6 ACs and one frame, quiet machine (the table whose rate column says "6 ACs"),
     the rates the budgets were sized with; with 4 frames they take 27-41 minutes (the table
-    above it), which the docs say. DQN's was re-sized by a measurement of its own."""
+    above it), which the docs say. DQN's and TD3's were re-sized by a measurement of their own."""
     doc = (Path(eval.__file__).resolve().parents[1] / "docs" / "benchmarks.md").read_text()
     section = doc.split("\n## Training throughput per algorithm\n")[1]
     (table,) = [t for t in section.split("\n\n") if t.startswith("| algorithm | env steps/s (6 ACs")]
@@ -370,13 +370,13 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
     assert "| 8 (adopted, with 48,000 env steps) |" in doc
     # TD3: one gradient step per 8 transitions, the same 20,000 env steps (the pilot's TD3 arm)
     td3_run = config.make_config("td3", preset="standard")
-    assert (td3_run.steps, td3_run.agent_config.train_freq) == (20000, 8)
+    td3 = td3_run.agent_config
+    assert (td3_run.steps, td3.train_freq) == (20000, 8)
     assert "| TD3 | 8 (adopted, same 20,000 env steps) |" in doc
     # DDPG: 8 measured and not adopted
     assert config.make_config("ddpg", preset="standard").agent_config.train_freq == 4
     assert "| DDPG | 4 (kept) |" in doc and "| DDPG | 8 (not adopted) |" in doc
     assert (standard.agents, standard.horizon, standard.envs, standard.frame_stack) == (6, 600, 1, 4)  # 4 frames: docs/task.md, "Observation"
-    td3 = config.make_config("td3", preset="standard").agent_config
     assert (td3.random_steps, td3.random_low) == (2000, (-0.6, -1.0))
 
 
