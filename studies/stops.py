@@ -1,0 +1,94 @@
+"""Where each AC stopped for good: one row per (report, episode, AC) of `cosim test` reports.
+
+A diagnostic for the turning slots (issue 27, target 2): a goal rate of 0 says that a slot
+fails, not how. From each report's per-step records (``records.parquet``) this prints, per
+AC-episode: whether it reached its goal, the last step it was still moving, how far it got
+(DISTANCE, the test's metric) and how much of its route was left at the end, its steps off the road and
+on a wrong lane, its contact steps, and its return; then one summary line per policy and slot.
+
+    cosim test --algos dqn --envs env_2 --scenario 2 --episodes 6 --steps 600 --seed 10000 \\
+        --runs grid27/runs --references none --out s2/dqn
+    python studies/stops.py s2/dqn/* s2/td3/* --out episodes.csv
+
+A report of a reference driver (``cosim test --policy autopilot``) is labelled with the
+driver's name (its provenance.json), a report of trained checkpoints with the algorithm.
+Results: docs/results/2026-11-26-turning-alone.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+MOVING = 0.1
+"""m/s: a step at this speed or more counts as moving."""
+
+
+def policy_label(report: Path, algorithm: str) -> str:
+    """The reference driver's name for a reference report, else the algorithm."""
+    prov = report / "provenance.json"
+    policy = json.loads(prov.read_text()).get("policy", "trained") if prov.exists() else "trained"
+    return algorithm if policy == "trained" else policy
+
+
+def episode_rows(report: Path) -> pd.DataFrame:
+    """One row per (episode, AC) of one `cosim test` report folder."""
+    path = Path(report) / "records.parquet"
+    if not path.exists():
+        raise SystemExit(f"stops: {report} has no records.parquet; give a `cosim test` report folder")
+    records = pd.read_parquet(path)
+    rows = []
+    for (_episode, agent), g in records.groupby(["episode", "agent"], sort=True):
+        g = g.sort_values("step")
+        moving = g.loc[g.speed >= MOVING, "step"]
+        end = g.iloc[-1]
+        start = g.iloc[0]
+        to_goal_start = np.hypot(start.goal_x - start.spawn_x, start.goal_y - start.spawn_y)
+        to_goal_end = np.hypot(end.goal_x - end.x, end.goal_y - end.y)
+        rows.append({
+            "policy": policy_label(Path(report), str(g.algorithm.iloc[0])),
+            "env": str(g.env.iloc[0]), "scenario": int(g.scenario.iloc[0]), "agent": agent,
+            "episode seed": int(g.seed.iloc[0]), "goal": bool(g.goal_reached.any()),
+            "steps": len(g), "last step moving": int(moving.max()) if len(moving) else 0,
+            "driven m": round(float(to_goal_start - to_goal_end), 1),
+            "route m left": round(float(end.distance_to_goal), 1),
+            "steps off road": int(g.off_road.sum()), "steps wrong lane": int(g.wrong_lane.sum()),
+            "object contacts": int(g.collision_object.sum()),
+            "vehicle contacts": int(g.collision_vehicle.sum()),
+            "return": round(float(g.reward.sum()), 1)})
+    return pd.DataFrame(rows)
+
+
+def summary(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per (policy, environment, scenario, slot): episodes, goal rate, mean return, mean
+    distance driven, median last moving step, mean route left at the end, and the
+    episodes that stood still for their last 100 steps or more without a goal."""
+    stood = (rows["steps"] - rows["last step moving"] >= 100) & ~rows["goal"]
+    keys = ["policy", "env", "scenario", "agent"]
+    out = rows.assign(stood=stood).groupby(keys, sort=False).agg(
+        episodes=("goal", "size"), goal_rate=("goal", "mean"), mean_return=("return", "mean"),
+        driven_m=("driven m", "mean"), last_moving_median=("last step moving", "median"),
+        route_left_m=("route m left", "mean"), stood_still=("stood", "sum"))
+    return out.round(2).reset_index()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("reports", nargs="+", type=Path, help="`cosim test` report folders")
+    p.add_argument("--out", type=Path, default=None, help="also write the episode rows as CSV")
+    args = p.parse_args(argv)
+    rows = pd.concat([episode_rows(r) for r in args.reports], ignore_index=True)
+    if args.out:
+        rows.to_csv(args.out, index=False)
+    print(rows.to_string(index=False))
+    print()
+    print(summary(rows).to_string(index=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""studies/stops.py (where each AC stopped for good) on fabricated `cosim test` records."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "studies" / "stops.py"
+
+
+@pytest.fixture(scope="module")
+def stops():
+    spec = importlib.util.spec_from_file_location("stops", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["stops"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _episode(episode: int, agent: str, speeds: list[float], goal_at: int | None) -> pd.DataFrame:
+    """An AC driving north from (0, 0) at ``speeds`` (m/s, dt 0.1 s) towards a goal at (0, 100)."""
+    y, rows = 0.0, []
+    for k, v in enumerate(speeds, start=1):
+        y += v * 0.1
+        rows.append({"episode": episode, "seed": 10_000 + episode, "step": k, "agent": agent,
+                     "algorithm": "dqn", "env": "env_2", "scenario": 2, "x": 0.0, "y": y,
+                     "spawn_x": 0.0, "spawn_y": 0.0, "goal_x": 0.0, "goal_y": 100.0,
+                     "distance_to_goal": 100.0 - y, "speed": v,
+                     "goal_reached": goal_at is not None and k == goal_at,
+                     "off_road": k > 40, "wrong_lane": False, "collision_object": k == 30,
+                     "collision_vehicle": False, "reward": -1.0})
+    return pd.DataFrame(rows)
+
+
+def _report(folder: Path, frames: list[pd.DataFrame], policy: str = "trained") -> Path:
+    folder.mkdir(parents=True)
+    pd.concat(frames, ignore_index=True).to_parquet(folder / "records.parquet")
+    (folder / "provenance.json").write_text(json.dumps({"policy": policy}))
+    return folder
+
+
+def test_a_car_that_stands_still_is_found_with_its_last_moving_step(stops, tmp_path):
+    stood = _episode(0, "ac_0", [10.0] * 30 + [0.0] * 170, goal_at=None)  # 30 m, then stands
+    reached = _episode(1, "ac_0", [10.0] * 99 + [5.0], goal_at=100)
+    rows = stops.episode_rows(_report(tmp_path / "r", [stood, reached]))
+    first, second = rows.iloc[0], rows.iloc[1]
+    assert first["last step moving"] == 30 and not first["goal"]
+    assert first["driven m"] == pytest.approx(30.0) and first["route m left"] == pytest.approx(70.0)
+    assert first["steps off road"] == 160 and first["object contacts"] == 1
+    assert first["return"] == -200.0 and first["episode seed"] == 10_000
+    assert second["last step moving"] == 100 and second["goal"]
+    table = stops.summary(rows)
+    assert len(table) == 1
+    line = table.iloc[0]
+    assert line["episodes"] == 2 and line["goal_rate"] == 0.5
+    assert line["stood_still"] == 1  # the goal episode never stood; the other stood 170 steps
+    assert line["policy"] == "dqn"
+
+
+def test_a_reference_report_is_labelled_with_its_driver(stops, tmp_path):
+    folder = _report(tmp_path / "a", [_episode(0, "ac_0", [5.0] * 20, None)], policy="autopilot")
+    assert stops.episode_rows(folder)["policy"].tolist() == ["autopilot"]
+
+
+def test_a_folder_without_records_is_refused_naming_it(stops, tmp_path):
+    with pytest.raises(SystemExit, match=r"no records.parquet; give a `cosim test` report folder"):
+        stops.main([str(tmp_path)])
+
+
+def test_the_command_writes_the_rows_it_prints(stops, tmp_path, capsys):
+    folder = _report(tmp_path / "r", [_episode(0, "ac_0", [10.0] * 30 + [0.0] * 170, None)])
+    assert stops.main([str(folder), "--out", str(tmp_path / "rows.csv")]) == 0
+    written = pd.read_csv(tmp_path / "rows.csv")
+    assert written["last step moving"].tolist() == [30]
+    assert "stood_still" in capsys.readouterr().out
