@@ -4,7 +4,6 @@ that cosim train can warm-start from, its test and summary, a rerun that redoes 
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -17,12 +16,8 @@ SCRIPT = ROOT / "studies" / "bc_warmstart.py"
 
 
 @pytest.fixture(scope="module")
-def bc():
-    sys.path.insert(0, str(ROOT / "studies"))
-    spec = importlib.util.spec_from_file_location("bc_warmstart", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def bc(load_study):
+    return load_study("bc_warmstart")
 
 
 def test_discounted_returns(bc):

@@ -3,7 +3,6 @@ runs and records, and its smoke version end to end (old and new arms), rerun."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -24,12 +23,8 @@ SCRIPT = ROOT / "studies" / "pilot_task.py"
 
 
 @pytest.fixture(scope="module")
-def pilot():
-    spec = importlib.util.spec_from_file_location("pilot_task", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["pilot_task"] = module  # its dataclass looks its module up
-    spec.loader.exec_module(module)
-    return module
+def pilot(load_study):
+    return load_study("pilot_task")
 
 
 def _args(pilot, out: Path, *extra: str):

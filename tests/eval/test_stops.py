@@ -2,25 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "studies" / "stops.py"
-
 
 @pytest.fixture(scope="module")
-def stops():
-    spec = importlib.util.spec_from_file_location("stops", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["stops"] = module
-    spec.loader.exec_module(module)
-    return module
+def stops(load_study):
+    return load_study("stops")
 
 
 def _episode(episode: int, agent: str, speeds: list[float], goal_at: int | None) -> pd.DataFrame:
