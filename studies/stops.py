@@ -21,8 +21,9 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
+
+from eval.testing.metrics import distance_driven
 
 MOVING = 0.1
 """m/s: a step at this speed or more counts as moving."""
@@ -46,15 +47,12 @@ def episode_rows(report: Path) -> pd.DataFrame:
         g = g.sort_values("step")
         moving = g.loc[g.speed >= MOVING, "step"]
         end = g.iloc[-1]
-        start = g.iloc[0]
-        to_goal_start = np.hypot(start.goal_x - start.spawn_x, start.goal_y - start.spawn_y)
-        to_goal_end = np.hypot(end.goal_x - end.x, end.goal_y - end.y)
         rows.append({
             "policy": policy_label(Path(report), str(g.algorithm.iloc[0])),
             "env": str(g.env.iloc[0]), "scenario": int(g.scenario.iloc[0]), "agent": agent,
             "episode seed": int(g.seed.iloc[0]), "goal": bool(g.goal_reached.any()),
             "steps": len(g), "last step moving": int(moving.max()) if len(moving) else 0,
-            "driven m": round(float(to_goal_start - to_goal_end), 1),
+            "driven m": round(distance_driven(g), 1),
             "route m left": round(float(end.distance_to_goal), 1),
             "steps off road": int(g.off_road.sum()), "steps wrong lane": int(g.wrong_lane.sum()),
             "object contacts": int(g.collision_object.sum()),

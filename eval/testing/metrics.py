@@ -52,6 +52,14 @@ def scenario_dt(env: str) -> float:
     return float(load_scenario(env).dt)
 
 
+def distance_driven(episode: pd.DataFrame) -> float:
+    """DISTANCE of one AC-episode's records (sorted by step): how much nearer its goal it
+    ended than it started, metres, straight-line."""
+    last = episode.iloc[-1]
+    spawn_to_goal = float(np.hypot(last.goal_x - last.spawn_x, last.goal_y - last.spawn_y))
+    return spawn_to_goal - float(np.hypot(last.goal_x - last.x, last.goal_y - last.y))
+
+
 def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
     """One row per (episode, agent) with the SPEC §4 metrics, return and length; ``dt``: the
     seconds per step of the environment the records are from (:func:`scenario_dt`)."""
@@ -64,9 +72,6 @@ def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
         others = bool((g["n_vehicles"] > 0).any())
         peds = bool((g["n_pedestrians"] > 0).any())
         hits = np.flatnonzero(g["collision"].to_numpy())
-        last = g.iloc[-1]
-        spawn_to_goal = float(np.hypot(last.goal_x - last.spawn_x, last.goal_y - last.spawn_y))
-        final_to_goal = float(np.hypot(last.goal_x - last.x, last.goal_y - last.y))
         rows.append({
             "episode": episode,
             "agent": agent,
@@ -78,7 +83,7 @@ def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
             "RL": g["red_light"].mean() if "red_light" in g else 0.0,
             "TTFC": (hits[0] + 1) * dt if len(hits) else np.nan,
             "SPEED": g["speed"].mean() * 3.6,
-            "DISTANCE": spawn_to_goal - final_to_goal,
+            "DISTANCE": distance_driven(g),
             "return": g["reward"].sum(),
             "steps": n,
             "goal": bool(g["goal_reached"].any()),
