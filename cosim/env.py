@@ -37,7 +37,8 @@ Arguments
     pedestrians, terminate_on_collision, horizon, renderer ("tiny", "egl",
     "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci"),
     reward_scale (> 0, default 1.0: multiplies the returned rewards; reward_terms
-    and ``cosim_episode`` stay unscaled).
+    and ``cosim_episode`` stay unscaled), stall_truncate (a training option: truncate
+    every AC's episode once all have stood still that many steps; Termination.stall_steps).
 Pickling
     ``pickle`` and ``copy.deepcopy`` rebuild the environment from its constructor
     arguments (SUMO and PyBullet state cannot be copied): the copy starts un-reset.
@@ -93,6 +94,7 @@ class CosimParallelEnv(ParallelEnv):
         render_mode: str | None = None,
         backend: str = "auto",
         reward_scale: float = 1.0,
+        stall_truncate: int | None = None,
     ):
         # everything pickle / deepcopy need to rebuild this env (see __getstate__)
         self._init_kwargs = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
@@ -105,6 +107,10 @@ class CosimParallelEnv(ParallelEnv):
             )
         if horizon is not None:
             sc = sc.with_overrides(horizon=int(horizon))
+        if stall_truncate is not None:  # a training option (Termination.stall_steps)
+            sc = sc.with_overrides(
+                termination=dataclasses.replace(sc.termination, stall_steps=stall_truncate)
+            )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         if not 8 <= int(image_size) <= 512:

@@ -38,6 +38,10 @@ from cosim.sumo_bridge import GATE_AHEAD, Snapshot, SumoBridge
 log = logging.getLogger(__name__)
 
 SPAWN_CLEARANCE = 12.0  # metres around each spawn point cleared of background cars
+STALL_SPEED = 0.1
+"""m/s: an AC slower than this stands (Termination.stall_steps)."""
+STALL_SIGNAL_M = 30.0
+"""Metres: an AC standing this near a red or yellow signal ahead waits for it, not stalls."""
 AC_COLORS = (
     (230, 40, 40, 255), (250, 140, 20, 255), (200, 40, 200, 255),
     (40, 200, 60, 255), (240, 220, 30, 255), (30, 200, 220, 255),
@@ -139,6 +143,7 @@ class World:
             )
         self.active = list(self.ac_ids)
         self.step_count = 0
+        self._still = np.zeros(self.num_acs, dtype=int)  # consecutive standing steps (_stalled)
         self.times = StepTimes()
         # one SUMO step so the ACs are inserted and every actor has a pose
         for i, ac in enumerate(self.ac_ids):
@@ -199,7 +204,7 @@ class World:
         t3 = time.perf_counter()
         # 6-8. events, reward, termination
         self.step_count += 1
-        results = self._results(idx)
+        results = self._results(idx, stalled=self._stalled(idx, nv))
         for k, i in enumerate(idx):
             if results[self.ac_ids[i]].events.collision_object:
                 # static objects are solid: the car stops where it was before it hit
@@ -216,6 +221,22 @@ class World:
         tm.events += t4 - t3
         tm.steps += 1
         return results
+
+    def _stalled(self, idx: np.ndarray, speed: np.ndarray) -> bool:
+        """Termination.stall_steps: count each active AC's consecutive steps standing (below
+        STALL_SPEED, not waiting at a red or yellow signal within STALL_SIGNAL_M ahead); True once
+        every active AC has stood that many. Always False when the option is off (0)."""
+        need = self.scenario.termination.stall_steps
+        if not need:
+            return False
+        for k, i in enumerate(idx):
+            standing = speed[k] < STALL_SPEED and not self._waits_at_signal(self.ac_ids[i])
+            self._still[i] = self._still[i] + 1 if standing else 0
+        return bool(np.all(self._still[idx] >= need))
+
+    def _waits_at_signal(self, ac: str) -> bool:
+        tls = self.bridge.next_tls(ac)
+        return tls is not None and tls[0] in "rRyYu" and tls[1] <= STALL_SIGNAL_M
 
     def _make_snapshot(self) -> Snapshot:
         ids, xy, hd, sp, ln, wd, pids, pxy, phd, psp = self.bridge.background_actors()
@@ -238,7 +259,7 @@ class World:
             signals=self.bridge.signal_states(self.signal_ids) if self.signal_ids else {},
         )
 
-    def _results(self, idx: np.ndarray, initial: bool = False) -> dict[str, ACResult]:
+    def _results(self, idx: np.ndarray, initial: bool = False, stalled: bool = False) -> dict[str, ACResult]:
         sc = self.scenario
         events = detect_all(
             [self.ac_ids[i] for i in idx], self._state[idx], self.vehicle.length,
@@ -258,7 +279,7 @@ class World:
                 or (term.on_offroad and ev.off_road)
                 or (term.out_of_region and ev.out_of_region)
             )
-            truncated = not terminated and self.step_count >= sc.horizon
+            truncated = not terminated and (self.step_count >= sc.horizon or stalled)
             x, y, h, _ = self._state[i]
             out[self.ac_ids[i]] = ACResult(
                 ev, terms, float(sum(terms.values())), terminated, truncated,

@@ -204,6 +204,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the run's ACs act with ONE network that learns from all their transitions "
                         "(parameter sharing; default: one network per AC, the paper's; ppo dqn ddpg "
                         "td3; docs/agents.md)")
+    t.add_argument("--stall-truncate", type=_int_in(0), default=0, metavar="N",
+                   help="truncate a training episode once every AC has stood still N steps away from "
+                        "a red light: more attempts per env step, the test's rewards (default 0: off; "
+                        "docs/task.md, Training rule)")
     t.add_argument("--init-from", type=Path, default=None, metavar="RUN_OR_CKPT",
                    help="warm start: each AC's policy weights from this run folder (its ac_k/best.pt) "
                         "or checkpoint, same algorithm and --obs; optimizers and exploration start "

@@ -36,7 +36,7 @@ def cmd_train(args) -> int:
                         validation_episodes=args.validation_episodes,
                         validation_steps=args.validation_steps,
                         share_params=args.share_params and (args.algo != "all" or a not in ASYNC_ALGOS),
-                        init_from=args.init_from)
+                        init_from=args.init_from, stall_truncate=args.stall_truncate)
             for a in algos
         ]
     except TrainError as exc:
@@ -165,6 +165,8 @@ def _train_command(args) -> list[str]:
         base += ["--set", item]
     if args.share_params:  # _train_all drops it for a3c and impala (they cannot share)
         base += ["--share-params"]
+    if args.stall_truncate:
+        base += ["--stall-truncate", str(args.stall_truncate)]
     return base
 
 
@@ -189,7 +191,7 @@ def _train_pbt(args) -> int:
                               frame_stack=args.frame_stack, obs=args.obs, collisions=args.collisions,
                               validation_episodes=args.validation_episodes,
                               validation_steps=args.validation_steps, share_params=args.share_params,
-                              init_from=args.init_from)
+                              init_from=args.init_from, stall_truncate=args.stall_truncate)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:

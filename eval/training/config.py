@@ -116,6 +116,11 @@ class TrainConfig:
     (a run folder: the source's checkpoints/ac_k/best.pt, ac_0's where it has no ac_k) before
     training, optimizers and schedules fresh (agents.checkpoint.warm_start; docs/agents.md,
     "Warm start"). Stored as an absolute path."""
+    stall_truncate: int = 0
+    """0 (the default, the test's rule): an episode runs to its goals or the horizon. N > 0
+    (``--stall-truncate N``): a training episode is truncated once every AC has stood still for
+    N steps away from a red light (cosim.scenario.Termination.stall_steps), so the ACs get
+    more attempts per env step; the rewards are the test's (docs/task.md, Training rule)."""
     policy_dtype: str = "float32"
     """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
     bytes, rounded; the smoke preset's): the preset's policy_dtype (eval/training/presets.py)."""
@@ -151,7 +156,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 torch_threads: int = 0, frame_stack: int | None = None, obs: str = "image",
                 learner_threads: int = 0, collisions: str = "continue",
                 validation_episodes: int | None = None, validation_steps: int | None = None,
-                share_params: bool = False, init_from: str | Path | None = None) -> TrainConfig:
+                share_params: bool = False, init_from: str | Path | None = None,
+                stall_truncate: int = 0) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
@@ -164,7 +170,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
     ``obs``: "image" (the default) or "nav" (TrainConfig.obs). ``share_params``: one network for
     all the run's ACs (TrainConfig.share_params). ``init_from``: a run folder or checkpoint to
-    warm-start from (TrainConfig.init_from).
+    warm-start from (TrainConfig.init_from). ``stall_truncate``: TrainConfig.stall_truncate.
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -217,6 +223,8 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
+    if int(stall_truncate) < 0:
+        raise TrainError(f"--stall-truncate must be >= 0 steps (0: off), got {stall_truncate}")
     if share_params and algo in ASYNC_ALGOS:
         raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
                          f"{algo} builds its own learners: drop --share-params for it")
@@ -235,7 +243,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         learner_threads=int(learner_threads),
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
         validation_steps=validation_steps, policy_dtype=p.policy_dtype, share_params=bool(share_params),
-        init_from=_init_source(init_from),
+        init_from=_init_source(init_from), stall_truncate=int(stall_truncate),
     )
 
 

@@ -348,7 +348,8 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
     with ``frame_stack`` K > 1 each AC observes its last K frames (cosim.wrappers.FrameStack),
     with ``obs`` "nav" beside its measurements (cosim.wrappers.NavObservation), with the
     agents' ``action_repeat`` R > 1 each action held for R steps (cosim.wrappers.ActionRepeat);
-    collisions end an AC's episode unless ``collisions_end_episode`` is off."""
+    collisions end an AC's episode unless ``collisions_end_episode`` is off; with
+    ``stall_truncate`` N an episode is truncated once every AC has stood still N steps."""
     from cosim.env import CosimParallelEnv
     from cosim.wrappers import observation_wrappers
 
@@ -357,6 +358,7 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
         cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
         horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
+        stall_truncate=cfg.stall_truncate or None,
     )
     return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs,
                                 action_repeat=cfg.agent_config.action_repeat)
