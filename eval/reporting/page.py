@@ -114,7 +114,8 @@ def budget_rows(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str]) 
     return rows
 
 
-def _md_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
+def md_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
+    """A Markdown table (a ``|`` inside a cell is written ``/``)."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c).replace("|", "/") for c in r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
@@ -176,7 +177,7 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
         acts.setdefault(r[6], []).append(r[0])
     rows.append(["observation / action", f"{obs}; " + "; ".join(f"{k}: {', '.join(v)}" for k, v in acts.items())])
     rows.append(["date, commit", f"{prov.get('date', '-')}, {_commit(prov)}"])
-    md.append(_md_table(["setting", "value"], rows))
+    md.append(md_table(["setting", "value"], rows))
     return md
 
 
@@ -184,7 +185,7 @@ def legend(terms: Sequence[str]) -> str:
     """Every metric and abbreviation on the page, spelled out."""
     rows = [[t, DEFINITIONS[t]] for t in terms if t in DEFINITIONS]
     rows += [[t, d] for t, d in PAGE_TERMS.items()]
-    return _md_table(["term", "meaning"], [["goal rate" if t == "goal" else t, d] for t, d in rows])
+    return md_table(["term", "meaning"], [["goal rate" if t == "goal" else t, d] for t, d in rows])
 
 
 def interval_note(long: pd.DataFrame | None) -> str:
@@ -239,12 +240,12 @@ def provenance_markdown(prov: Mapping) -> list[str]:
             ["policy", prov.get("policy", "trained")], ["Python", prov.get("python", "-")],
             ["platform", prov.get("platform", "-")]]
     rows += [[f"{pkg} version", v or "not installed"] for pkg, v in (prov.get("versions") or {}).items()]
-    md.append(_md_table(["what", "value"], rows))
+    md.append(md_table(["what", "value"], rows))
     if prov.get("benchmark"):
         md.append("### Benchmark plan\n")
-        md.append(_md_table(["setting", "value"], [[k, _value(v)] for k, v in prov["benchmark"].items()]))
+        md.append(md_table(["setting", "value"], [[k, _value(v)] for k, v in prov["benchmark"].items()]))
     md.append("### Test plan\n")
-    md.append(_md_table(["setting", "value"], [[k, _value(v)] for k, v in prov.get("plan", {}).items()]
+    md.append(md_table(["setting", "value"], [[k, _value(v)] for k, v in prov.get("plan", {}).items()]
                         + [["confidence intervals", prov.get("ci", "")],
                            ["AC chosen per run by", prov.get("ac_rule", "")]]))
     task = prov.get("task", {})
@@ -252,7 +253,7 @@ def provenance_markdown(prov: Mapping) -> list[str]:
         md.append("### Task version\n")
         md.append("The scenario files of each environment (YAML, network, demand, additional files), "
                   "hashed together: the same hash, the same task.\n")
-        md.append(_md_table(["environment", "title", "scenario files SHA-256 (first 12)", "seconds per step",
+        md.append(md_table(["environment", "title", "scenario files SHA-256 (first 12)", "seconds per step",
                              "scenario horizon (steps)"],
                             [[e, t.get("title", e), t.get("sha256", "?"), t.get("dt", "?"), t.get("horizon", "?")]
                              for e, t in task.items()]))
@@ -273,7 +274,7 @@ def provenance_markdown(prov: Mapping) -> list[str]:
             rows.append([tested_in, "-" if c.get("seed") is None else c["seed"], c.get("label", c["algorithm"]),
                          trained, f"`{c['checkpoint']}`", c.get("sha256", "-"), c.get("ac") or "-",
                          c.get("chosen_by") or "-", _scores(c.get("scores"))])
-        md.append(_md_table(["tested in", "seed", "column", "trained in", "checkpoint", "SHA-256", "AC",
+        md.append(md_table(["tested in", "seed", "column", "trained in", "checkpoint", "SHA-256", "AC",
                              "chosen by", "scores per AC"], rows))
     return md
 

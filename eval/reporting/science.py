@@ -39,6 +39,7 @@ import numpy as np
 import pandas as pd
 
 from eval.labels import ENVS, env_colour  # noqa: F401 - ENVS re-exported (studies/science.py)
+from eval.reporting.page import md_table
 from eval.reporting.report import algo_order, env_title
 from eval.reporting.stats import BOOTSTRAP, CI_SEED, bootstrap_ci, iqm, stratified_bootstrap
 from eval.testing.validity import DEGENERATE, POLICIES
@@ -227,7 +228,7 @@ def targets_markdown(t: pd.DataFrame) -> str:
     rows = [[r["title"], names(r["discrete"]), names(r["continuous"]),
              names(r["turning"]) if r["has_turns"] else "(no turning slot)",
              "met" if r["met"] else "not met"] for _, r in t.iterrows()]
-    return _md(["environment", "discrete algorithms that pass", "continuous algorithms that pass",
+    return md_table(["environment", "discrete algorithms that pass", "continuous algorithms that pass",
                 "algorithms whose turning slots reach goals", "target"], rows)
 
 
@@ -366,7 +367,7 @@ def budget_markdown(check: pd.DataFrame) -> str:
             cells.append(f"**{text}**" if rising else text)
         budget = int(check.loc[check["algorithm"] == algo, "budget"].max())
         rows.append([algo, f"{budget:,}", *cells])
-    return _md(["algorithm", "budget (env steps)", *[env_title(e) for e in envs]], rows)
+    return md_table(["algorithm", "budget (env steps)", *[env_title(e) for e in envs]], rows)
 
 
 def convergence_bands(curves: pd.DataFrame) -> pd.DataFrame:
@@ -422,12 +423,6 @@ def convergence_figure(curves: pd.DataFrame, out: Path, stem: str = "convergence
 
 
 # -- Markdown -------------------------------------------------------------------------------
-def _md(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
-
-
 def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCENARIO,
                   references: pd.DataFrame | None = None,
                   reference_names: Sequence[str] = ("autopilot", "random")) -> str:
@@ -449,7 +444,7 @@ def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCEN
             best.append(f"{means[name]:.{DIGITS.get(metric, 3)}f} ({name})" if name else "")
         if any(best):
             rows.append(["*best degenerate*", *best])
-    return _md(["algorithm", *[env_title(e) for e in envs]], rows)
+    return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
 
 
 def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: int) -> str:
@@ -468,7 +463,7 @@ def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: in
             label = name if kind == "algorithm" else f"*{name}*"
             rows.append([env_title(env), label, int(n.get((env, kind, name, "return"), 0))]
                         + [cells.get((env, kind, name, m), "") for m in METRICS])
-    return _md(["environment", "policy", "n", *[NAMES.get(m, m) for m in METRICS]], rows)
+    return md_table(["environment", "policy", "n", *[NAMES.get(m, m) for m in METRICS]], rows)
 
 
 def verdict_markdown(v: pd.DataFrame) -> str:
@@ -481,7 +476,7 @@ def verdict_markdown(v: pd.DataFrame) -> str:
                      f"{r['goal_best_reference']} {r['goal_reference']:.2f}",
                      "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"]
                                                  else "FAIL"), r["why"]])
-    return _md(["algorithm", "environment", "seeds", "return [95% CI]", "best degenerate return",
+    return md_table(["algorithm", "environment", "seeds", "return [95% CI]", "best degenerate return",
                 "goal rate [95% CI]", "best degenerate goal rate", "verdict", "why"], rows)
 
 
@@ -491,7 +486,7 @@ def iqm_markdown(t: pd.DataFrame) -> str:
         ci = f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]" if np.isfinite(r["ci_low"]) else "-"
         label = r["name"] if r["kind"] == "algorithm" else f"*{r['name']}*"
         rows.append([label, f"{r['iqm']:.2f}", ci, r["envs"], r["runs"]])
-    return _md(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
+    return md_table(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
 
 
 __all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",
