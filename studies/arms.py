@@ -9,7 +9,7 @@ For each arm and slot this writes, from the run's ``episodes.csv`` (training), t
 the AC had, its goals, the share of them in the last 20% of the budget, its mean episode
 length and the nearest it ended to its goal; and from a test of the run's own ACs together,
 each in its own slot with its own selected checkpoint (studies/pilot_task.py ``test_run``:
-the test's rules, ``--episodes`` held-out seeds from 10,000, 600 steps), each slot's mean
+the test's rules, ``--episodes`` held-out seeds from 10,000, the scenario's horizon in steps), each slot's mean
 return and goal rate. Files under ``--out``: ``training.csv``, ``test.csv``,
 ``records/<arm>.parquet`` (a rerun reuses these: delete one to test that arm again) and
 ``slots.md``, the table. Results: docs/results/ (the page that ran it names it).
@@ -54,13 +54,15 @@ def test_rows(label: str, run: Path, episodes: int, out: Path) -> pd.DataFrame:
     """Per slot: mean test return and goal rate of the run's own ACs together."""
     from pilot_task import per_slot, test_run
 
+    from cosim.scenario import load_scenario
     from eval.training.runfolder import load_run_config
 
     cached = out / "records" / f"{label}.parquet"
     if cached.exists():
         records = pd.read_parquet(cached)
     else:
-        records = test_run(run, load_run_config(run).algo, episodes, 600)
+        cfg = load_run_config(run)
+        records = test_run(run, cfg.algo, episodes, load_scenario(cfg.env).horizon)
         cached.parent.mkdir(parents=True, exist_ok=True)
         records.to_parquet(cached)
     t = per_slot(records).groupby("slot").agg(**{"test return": ("return", "mean"),

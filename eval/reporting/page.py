@@ -246,17 +246,17 @@ def provenance_markdown(prov: Mapping) -> list[str]:
         md.append(md_table(["setting", "value"], [[k, _value(v)] for k, v in prov["benchmark"].items()]))
     md.append("### Test plan\n")
     md.append(md_table(["setting", "value"], [[k, _value(v)] for k, v in prov.get("plan", {}).items()]
-                        + [["confidence intervals", prov.get("ci", "")],
-                           ["AC chosen per run by", prov.get("ac_rule", "")]]))
+                       + [["confidence intervals", prov.get("ci", "")],
+                          ["AC chosen per run by", prov.get("ac_rule", "")]]))
     task = prov.get("task", {})
     if task:
         md.append("### Task version\n")
         md.append("The scenario files of each environment (YAML, network, demand, additional files), "
                   "hashed together: the same hash, the same task.\n")
         md.append(md_table(["environment", "title", "scenario files SHA-256 (first 12)", "seconds per step",
-                             "scenario horizon (steps)"],
-                            [[e, t.get("title", e), t.get("sha256", "?"), t.get("dt", "?"), t.get("horizon", "?")]
-                             for e, t in task.items()]))
+                            "scenario horizon (steps)"],
+                           [[e, t.get("title", e), t.get("sha256", "?"), t.get("dt", "?"), t.get("horizon", "?")]
+                            for e, t in task.items()]))
     md.append("### Checkpoints\n")
     ckpts = prov.get("checkpoints", [])
     if not ckpts:
@@ -275,7 +275,7 @@ def provenance_markdown(prov: Mapping) -> list[str]:
                          trained, f"`{c['checkpoint']}`", c.get("sha256", "-"), c.get("ac") or "-",
                          c.get("chosen_by") or "-", _scores(c.get("scores"))])
         md.append(md_table(["tested in", "seed", "column", "trained in", "checkpoint", "SHA-256", "AC",
-                             "chosen by", "scores per AC"], rows))
+                            "chosen by", "scores per AC"], rows))
     return md
 
 

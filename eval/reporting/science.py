@@ -229,7 +229,7 @@ def targets_markdown(t: pd.DataFrame) -> str:
              names(r["turning"]) if r["has_turns"] else "(no turning slot)",
              "met" if r["met"] else "not met"] for _, r in t.iterrows()]
     return md_table(["environment", "discrete algorithms that pass", "continuous algorithms that pass",
-                "algorithms whose turning slots reach goals", "target"], rows)
+                     "algorithms whose turning slots reach goals", "target"], rows)
 
 
 def normalise(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
@@ -477,7 +477,7 @@ def verdict_markdown(v: pd.DataFrame) -> str:
                      "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"]
                                                  else "FAIL"), r["why"]])
     return md_table(["algorithm", "environment", "seeds", "return [95% CI]", "best degenerate return",
-                "goal rate [95% CI]", "best degenerate goal rate", "verdict", "why"], rows)
+                     "goal rate [95% CI]", "best degenerate goal rate", "verdict", "why"], rows)
 
 
 def iqm_markdown(t: pd.DataFrame) -> str:

@@ -34,11 +34,17 @@ def _brake_until_done(world: World, seed: int = 0):
 
 def test_braking_cars_are_truncated_n_steps_after_all_stand():
     with _world(stall_steps=20) as w:
-        steps, last = _brake_until_done(w)
-        standing_from = steps - 20  # every AC stood the last 20 steps, not 21
+        w.reset(seed=0)
+        steps, all_stand_at, last = 0, None, {}
+        while w.active:
+            last = w.step({a: BRAKE for a in w.active})
+            steps += 1
+            if all_stand_at is None and all(w.ac_state(a)[3] < 0.1 for a in w.ac_ids):
+                all_stand_at = steps
     assert steps < 120, "the episode ended before the horizon"
     assert all(r.truncated and not r.terminated for r in last.values())
-    assert standing_from > 0, "the cars had speed at the start (depart speed 7 m/s)"
+    assert all_stand_at > 1, "the cars had speed at the start (depart speed 7 m/s)"
+    assert steps == all_stand_at + 19, "truncated on the 20th step on which every AC stood"
 
 
 def test_off_the_same_cars_stand_to_the_horizon():
