@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from agents import observations
+from agents.buffers import ReplayBuffer
 from agents.configs import AgentConfig, check_range
 from agents.errors import AgentError
 from agents.networks import obs_to_tensor
@@ -272,6 +273,23 @@ class Agent(abc.ABC):
         for j in range(len(columns)):
             self.observe(observations.take(obs, j), actions[j], float(rewards[j]), observations.take(next_obs, j),
                          bool(terminated[j]), bool(truncated[j]))
+
+    def observe_demonstration(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool,
+                              column: int = 0) -> None:
+        """Store one demonstrated transition of environment ``column`` (a scripted driver's; the
+        reward as the env gave it) in the replay, marked as a demonstration (DQfD, Hester et
+        al. 2018). Unlike :meth:`observe` it does not count in the agent's steps, so the
+        exploration schedule and the learning start stay the run's. Replay learners only.
+
+        Raises:
+            ValueError: the agent has no replay buffer (an on-policy learner).
+        """
+        buffer = getattr(self, "buffer", None)
+        if not isinstance(buffer, ReplayBuffer):
+            raise ValueError(f"{self.algo} learns on-policy and keeps no replay for demonstrations; "
+                             f"use dqn, ddpg or td3")
+        buffer.add(obs, action, float(reward) * self.config.reward_scale, next_obs, bool(terminated),
+                   bool(truncated), column=column, demo=True)
 
     def _extra_state(self) -> dict[str, Any]:
         """Plain values (ints, floats, tensors) besides weights needed to resume."""

@@ -170,6 +170,8 @@ class ReplaySample:
     rewards: torch.Tensor
     next_obs: torch.Tensor
     terminateds: torch.Tensor
+    demos: torch.Tensor | None = None
+    """True where the transition is a demonstration (:meth:`ReplayBuffer.add` with ``demo``)."""
 
 
 FRAME_CHANNELS = 3
@@ -259,6 +261,7 @@ class ReplayBuffer:
         self.terminateds = np.zeros(capacity, np.float32)
         self.truncateds = np.zeros(capacity, bool)
         self.starts = np.zeros(capacity, bool)  # the slot's observation starts an episode
+        self.demos = np.zeros(capacity, bool)  # the slot's transition was demonstrated
         self.heads: dict[int, np.ndarray] = {}  # start slot -> its whole stack, when not k copies
         self.final_obs: dict[int, Any] = {}  # truncated slot -> its real next_obs
         self.positions = np.zeros(columns, np.int64)  # next slot of each ring, relative to its start
@@ -284,8 +287,10 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool, column: int = 0) -> None:
-        """Store one transition of environment ``column``.
+    def add(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool, column: int = 0,
+            demo: bool = False) -> None:
+        """Store one transition of environment ``column``; ``demo`` marks a demonstrated one
+        (a scripted driver's, Agent.observe_demonstration), which samples flag in ``demos``.
 
         Raises:
             ValueError: with ``k`` > 1 frames, ``next_obs`` is not ``obs`` shifted by one frame.
@@ -304,6 +309,7 @@ class ReplayBuffer:
         self.rewards[i] = reward
         self.terminateds[i] = float(terminated)
         self.truncateds[i] = truncated and not terminated
+        self.demos[i] = demo
         self.final_obs.pop(i, None)
         if self.truncateds[i]:
             self.final_obs[i] = self._stored_copy(next_obs)
@@ -405,4 +411,5 @@ class ReplayBuffer:
             rewards=torch.as_tensor(self.rewards[idx], device=device),
             next_obs=obs_to_tensor(next_obs, device),
             terminateds=torch.as_tensor(self.terminateds[idx], device=device),
+            demos=torch.as_tensor(self.demos[idx], device=device),
         )

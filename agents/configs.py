@@ -212,6 +212,11 @@ class DQNConfig(AgentConfig):
     """pick next actions with the online network (Double DQN; off in the paper preset)."""
     hidden: tuple[int, ...] = (256, 256)
     """MLP hidden sizes for vector observations (images use the Nature CNN)."""
+    demo_margin: float = 0.0
+    """Large-margin loss on demonstrated transitions (DQfD, Hester et al. 2018): each one adds
+    ``max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``, averaged over the minibatch's
+    demonstrations, so the demonstrator's action a_E outranks the others by ``margin``; 0: off
+    (demonstrations, if any, are TD-learned like any transition). DQfD used 0.8."""
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
@@ -237,6 +242,7 @@ class DQNConfig(AgentConfig):
         check_range("exploration_steps", self.exploration_steps, 1)
         check_range("max_grad_norm", self.max_grad_norm, 0, None, low_inclusive=False)
         check_range("huber_delta", self.huber_delta, 0, None, low_inclusive=False)
+        check_range("demo_margin", self.demo_margin, 0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -3,7 +3,8 @@
 As SPEC section 5 asks: dueling, one atom, no noisy nets, 1-step targets, a
 hard-updated target network, epsilon-greedy exploration annealed linearly,
 Huber loss and gradient clipping. Double DQN (van Hasselt et al. 2016) is an
-option, off in the paper preset. Reads top to bottom: config, schedule, agent.
+option, off in the paper preset. Demonstrations (Agent.observe_demonstration) can add
+DQfD's large-margin loss (``demo_margin``) and a pre-training phase (:meth:`DQN.pretrain`). Reads top to bottom: config, schedule, agent.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from agents.buffers import ReplayBuffer
 from agents.configs import DQNConfig
 from agents.networks import DuelingQNetwork, obs_to_tensor
 
-__all__ = ["DQN", "DQNConfig", "linear_schedule"]
+__all__ = ["DQN", "DQNConfig", "linear_schedule", "margin_loss"]
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +34,14 @@ def linear_schedule(start: float, end: float, duration: int, step: int) -> float
     """Linear interpolation from ``start`` to ``end`` over ``duration`` steps, then ``end``."""
     fraction = min(max(step, 0) / duration, 1.0)
     return start + fraction * (end - start)
+
+
+def margin_loss(q_values: torch.Tensor, actions: torch.Tensor, margin: float) -> torch.Tensor:
+    """DQfD's supervised loss (Hester et al. 2018, eq. 2) on demonstrated transitions:
+    mean of ``max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``, 0 once the demonstrated
+    action ``a_E`` (``actions``, shape (N, 1)) leads every other by ``margin``."""
+    margins = torch.full_like(q_values, margin).scatter_(1, actions, 0.0)
+    return ((q_values + margins).max(-1).values - q_values.gather(1, actions).squeeze(1)).mean()
 
 
 class DQN(Agent):
@@ -136,15 +145,35 @@ class DQN(Agent):
             else:
                 next_value = next_q.max(-1).values
             td_target = data.rewards + cfg.gamma * (1.0 - data.terminateds) * next_value
-        q_values = self.q_network(data.obs).gather(1, data.actions.long().unsqueeze(1)).squeeze(1)
+        q_all = self.q_network(data.obs)
+        actions = data.actions.long().unsqueeze(1)
+        q_values = q_all.gather(1, actions).squeeze(1)
         # Huber: quadratic near 0, linear (bounded gradients) for large TD errors.
         loss = F.huber_loss(q_values, td_target, delta=cfg.huber_delta)
+        if cfg.demo_margin > 0 and data.demos is not None and bool(data.demos.any()):
+            loss = loss + margin_loss(q_all[data.demos], actions[data.demos], cfg.demo_margin)
         self.optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.q_network.parameters(), cfg.max_grad_norm)
         self.optimizer.step()
         self.gradient_updates += 1
         return loss.item(), q_values.mean().item()
+
+    def pretrain(self, updates: int) -> dict[str, float]:
+        """``updates`` gradient steps on what the replay holds (its demonstrations, before any
+        env step: DQfD's pre-training phase), then a target copy; the agent's steps, and so its
+        exploration schedule, stay where they were.
+
+        Raises:
+            ValueError: the replay is empty.
+        """
+        if not len(self.buffer):
+            raise ValueError("DQN pretrain: the replay is empty; observe demonstrations first")
+        loss = q_mean = float("nan")
+        for _ in range(int(updates)):
+            loss, q_mean = self._gradient_step()
+        self.target_network.load_state_dict(self.q_network.state_dict())
+        return {"losses/td_loss": loss, "losses/q_values": q_mean}
 
     def _extra_state(self) -> dict[str, Any]:
         return {"steps": self.steps, "gradient_updates": self.gradient_updates}

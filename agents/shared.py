@@ -111,6 +111,11 @@ class SharedSlot(Agent):
         self.core.observe_batch(obs, actions, rewards, next_obs, terminated, truncated,
                                 self._columns(columns))
 
+    def observe_demonstration(self, obs, action, reward, next_obs, terminated, truncated, column: int = 0) -> None:
+        """A demonstrated transition of this AC in environment ``column``, as its own column of the core."""
+        self.core.observe_demonstration(obs, action, reward, next_obs, terminated, truncated,
+                                        column=int(self._columns([column])[0]))
+
     def update(self) -> dict[str, float]:
         with self.lock:
             return self.core.update()

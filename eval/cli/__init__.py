@@ -208,6 +208,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="truncate a training episode once every AC has stood still N steps away from "
                         "a red light: more attempts per env step, the test's rewards (default 0: off; "
                         "docs/task.md, Training rule)")
+    t.add_argument("--demo-steps", type=_int_in(0), default=0, metavar="N",
+                   help="dqn ddpg td3: first drive N env steps (whole episodes) with the scripted "
+                        "autopilot and put every AC's transitions in its replay as demonstrations; "
+                        "not counted in --steps (default 0: none; docs/agents.md, Demonstrations)")
+    t.add_argument("--demo-updates", type=_int_in(0), default=0, metavar="N",
+                   help="dqn with --demo-steps: N gradient steps on the demonstrations before the first "
+                        "env step (DQfD's pre-training; default 0); the margin loss is --set demo_margin=0.8")
     t.add_argument("--init-from", type=Path, default=None, metavar="RUN_OR_CKPT",
                    help="warm start: each AC's policy weights from this run folder (its ac_k/best.pt) "
                         "or checkpoint, same algorithm and --obs; optimizers and exploration start "

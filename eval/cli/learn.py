@@ -25,6 +25,8 @@ def cmd_train(args) -> int:
             return 0
         if args.init_from is not None and args.algo == "all":
             raise TrainError("--init-from warm-starts one algorithm from its own run; choose it with --algo")
+        if (args.demo_steps or args.demo_updates) and args.algo == "all":
+            raise TrainError("--demo-steps fills one replay learner's buffer; choose it with --algo dqn, ddpg or td3")
         algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
         hyper = parse_set(args.hyper)
         configs = [
@@ -36,7 +38,8 @@ def cmd_train(args) -> int:
                         validation_episodes=args.validation_episodes,
                         validation_steps=args.validation_steps,
                         share_params=args.share_params and (args.algo != "all" or a not in ASYNC_ALGOS),
-                        init_from=args.init_from, stall_truncate=args.stall_truncate)
+                        init_from=args.init_from, stall_truncate=args.stall_truncate,
+                        demo_steps=args.demo_steps, demo_updates=args.demo_updates)
             for a in algos
         ]
     except TrainError as exc:
@@ -191,7 +194,8 @@ def _train_pbt(args) -> int:
                               frame_stack=args.frame_stack, obs=args.obs, collisions=args.collisions,
                               validation_episodes=args.validation_episodes,
                               validation_steps=args.validation_steps, share_params=args.share_params,
-                              init_from=args.init_from, stall_truncate=args.stall_truncate)
+                              init_from=args.init_from, stall_truncate=args.stall_truncate,
+                        demo_steps=args.demo_steps, demo_updates=args.demo_updates)
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:

@@ -338,7 +338,8 @@ def _checkpoint_entry(path: Path, sel) -> dict:
 
 
 TRAINING_KEYS = ("algo", "env", "preset", "steps", "agents", "seed", "horizon", "obs", "image_size",
-                 "frame_stack", "collisions_end_episode", "share_params", "stall_truncate")
+                 "frame_stack", "collisions_end_episode", "share_params", "stall_truncate",
+                 "demo_steps")
 """What the report says of a checkpoint's training run (keys of its config.yaml; and its
 agents' ``action_repeat``, docs/task.md "Action repeat")."""
 

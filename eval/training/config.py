@@ -26,7 +26,7 @@ from cosim.errors import CosimError
 from cosim.wrappers import OBS_VARIANTS
 from eval.training.presets import load_presets
 
-__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DISCRETE_ALGOS",
+__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DEMO_ALGOS", "DISCRETE_ALGOS",
            "OBS_VARIANTS", "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
 
 ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
@@ -37,6 +37,10 @@ COLLISION_RULES = ("continue", "end")
 """``--collisions``: the episode goes on after a collision as in the test (the default) or a
 collision ends the AC's training episode (the paper's rule); TrainConfig.collisions_end_episode
 and docs/task.md, "Training rule"."""
+
+
+DEMO_ALGOS = ("dqn", "ddpg", "td3")
+"""The replay learners, which ``--demo-steps`` can fill with autopilot demonstrations."""
 
 
 VALIDATION_EPISODES = 2
@@ -121,6 +125,17 @@ class TrainConfig:
     (``--stall-truncate N``): a training episode is truncated once every AC has stood still for
     N steps away from a red light (cosim.scenario.Termination.stall_steps), so the ACs get
     more attempts per env step; the rewards are the test's (docs/task.md, Training rule)."""
+    demo_steps: int = 0
+    """0 (the default): no demonstrations. N > 0 (``--demo-steps N``, DQN, DDPG and TD3): before
+    its first env step the run drives at least N env steps (whole episodes, seeds apart from
+    training's) with the scripted autopilot, its discrete form for DQN, and stores every AC's
+    transitions in that AC's replay as demonstrations (Agent.observe_demonstration; DQfD,
+    Hester et al. 2018). They are not counted in ``steps`` nor in the agents' exploration
+    schedule; a resumed run drives them again (the replay is not checkpointed)
+    (eval/training/demos.py; docs/agents.md, "Demonstrations")."""
+    demo_updates: int = 0
+    """DQN with ``demo_steps``: gradient steps on the demonstrations alone before the first env
+    step (DQfD's pre-training; ``--demo-updates``); 0: none. Not repeated on resume."""
     policy_dtype: str = "float32"
     """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
     bytes, rounded; the smoke preset's): the preset's policy_dtype (eval/training/presets.py)."""
@@ -157,7 +172,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 learner_threads: int = 0, collisions: str = "continue",
                 validation_episodes: int | None = None, validation_steps: int | None = None,
                 share_params: bool = False, init_from: str | Path | None = None,
-                stall_truncate: int = 0) -> TrainConfig:
+                stall_truncate: int = 0, demo_steps: int = 0, demo_updates: int = 0) -> TrainConfig:
     """Resolve a training request into a TrainConfig, refusing what cannot work.
 
     ``hyper`` changes agent hyperparameters last, field name -> value as text
@@ -171,6 +186,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     ``obs``: "image" (the default) or "nav" (TrainConfig.obs). ``share_params``: one network for
     all the run's ACs (TrainConfig.share_params). ``init_from``: a run folder or checkpoint to
     warm-start from (TrainConfig.init_from). ``stall_truncate``: TrainConfig.stall_truncate.
+    ``demo_steps``, ``demo_updates``: autopilot demonstrations in the replay (TrainConfig.demo_steps).
 
     Raises:
         TrainError: unknown algorithm or preset (listing the valid ones), an action
@@ -225,6 +241,13 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
     if int(stall_truncate) < 0:
         raise TrainError(f"--stall-truncate must be >= 0 steps (0: off), got {stall_truncate}")
+    if int(demo_steps) < 0 or int(demo_updates) < 0:
+        raise TrainError(f"--demo-steps and --demo-updates must be >= 0 (0: off), got {demo_steps} and {demo_updates}")
+    if demo_steps and algo not in DEMO_ALGOS:
+        raise TrainError(f"--demo-steps fills a replay buffer: {', '.join(DEMO_ALGOS)} only, not {algo}")
+    if demo_updates and (algo != "dqn" or not demo_steps):
+        raise TrainError("--demo-updates pre-trains DQN on its demonstrations: use it with --algo dqn "
+                         "and --demo-steps N")
     if share_params and algo in ASYNC_ALGOS:
         raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
                          f"{algo} builds its own learners: drop --share-params for it")
@@ -244,6 +267,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
         validation_steps=validation_steps, policy_dtype=p.policy_dtype, share_params=bool(share_params),
         init_from=_init_source(init_from), stall_truncate=int(stall_truncate),
+        demo_steps=int(demo_steps), demo_updates=int(demo_updates),
     )
 
 

@@ -224,6 +224,9 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     except ValueError as exc:
         raise TrainError(str(exc)) from None
     start_step = runlog.env_steps
+    # --demo-steps: the agents are built and fed in the demonstration env, closed before the
+    # vector env opens its own (libsumo runs one simulation per process)
+    agent_map = _demonstrate(cfg, runlog.run, resumed, device) if cfg.demo_steps else None
     # env i of N: seed + i (env 0 is the one-env run's env)
     fns = [functools.partial(make_env, cfg, cfg.seed + i) for i in range(n)]
     repeat = cfg.agent_config.action_repeat  # the loop counts decisions, the budget env steps
@@ -233,8 +236,9 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     bar = _bar(cfg, runlog, quiet, progress)
     last_log = [time.monotonic(), start_step]
     try:
-        agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
-                                   env.action_space("ac_0"), device)
+        if agent_map is None:
+            agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
+                                       env.action_space("ac_0"), device)
 
         def callback(step: int, stats, metrics) -> bool:
             now = start_step + step * repeat
@@ -254,6 +258,27 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     finally:
         bar.close()
         env.close()
+
+
+def _demonstrate(cfg: TrainConfig, run: Path, resumed: bool, device: str) -> dict:
+    """``--demo-steps``: the run's agents, built (or resumed) in the demonstration env with the
+    autopilot's transitions in every AC's replay (as environment 0's), then on a fresh run
+    ``--demo-updates`` pre-training steps; logged to run/demos.json (eval/training/demos.py)."""
+    from eval.training import demos
+
+    def build(obs_space, act_space) -> dict:
+        agent_map = _load_or_build(cfg, run, resumed, obs_space, act_space, device)
+        for agent in agent_map.values():  # the replay's rings, before anything is stored
+            agent.prepare_envs(cfg.envs)
+        return agent_map
+
+    agent_map, summary = demos.demonstrate(cfg, build, make_env)
+    if not resumed and cfg.demo_updates:
+        start = time.monotonic()
+        summary["pretrain"] = {"updates": cfg.demo_updates, "metrics": demos.pretrain(agent_map, cfg.demo_updates),
+                               "seconds": round(time.monotonic() - start, 1)}
+    demos.record(run, summary)
+    return agent_map
 
 
 def _cpus() -> int:

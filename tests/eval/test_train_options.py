@@ -227,3 +227,63 @@ def test_init_from_warm_starts_each_ac_from_a_run_and_is_recorded(tmp_path, caps
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and match in err, err
         assert [p.name for p in out.iterdir()] == [run.name], "a refused run leaves no folder"
+
+
+def test_demo_steps_fill_the_replays_before_training_and_again_on_resume(tmp_path):
+    """`--demo-steps 60 --demo-updates 5`: the autopilot drives whole episodes first, every AC's
+    transitions go to its replay uncounted (the agents' steps are the budget's alone), DQN
+    pre-trains once; a resumed run drives them again (the replay is not saved) without
+    pre-training; demos.json records each phase."""
+    import json
+
+    import agents
+    from eval.training.train import train
+
+    cfg = make_config("dqn", "env_1", "smoke", agents=2, steps=40, validation_episodes=0, demo_steps=60,
+                      demo_updates=5, hyper={"demo_margin": "0.8"})
+    assert (cfg.demo_steps, cfg.demo_updates, cfg.agent_config.demo_margin) == (60, 5, 0.8)
+    run = train(cfg, tmp_path, quiet=True, progress=False)
+    phases = json.loads((run / "demos.json").read_text())
+    assert len(phases) == 1 and phases[0]["env_steps"] >= 60 and phases[0]["episodes"] >= 1
+    assert set(phases[0]["agents"]) == {"ac_0", "ac_1"}
+    assert all(v["transitions"] > 40 for v in phases[0]["agents"].values())
+    assert phases[0]["pretrain"]["updates"] == 5 and set(phases[0]["pretrain"]["metrics"]) == {"ac_0", "ac_1"}
+    latest = agents.load(run / "checkpoints" / "ac_0" / "latest.pt")
+    assert latest.steps <= 40 < phases[0]["agents"]["ac_0"]["transitions"] + latest.steps
+    assert latest.gradient_updates >= 5
+    train(cfg, resume=run, steps=60, quiet=True, progress=False)
+    phases = json.loads((run / "demos.json").read_text())
+    assert len(phases) == 2 and "pretrain" not in phases[1]
+    assert agents.load(run / "checkpoints" / "ac_0" / "latest.pt").steps <= 60
+
+
+def test_td3_takes_the_continuous_autopilots_demonstrations(tmp_path):
+    import json
+
+    from eval.training.train import train
+
+    cfg = make_config("td3", "env_1", "smoke", agents=1, steps=20, validation_episodes=0, demo_steps=30)
+    run = train(cfg, tmp_path, quiet=True, progress=False)
+    (phase,) = json.loads((run / "demos.json").read_text())
+    assert phase["agents"]["ac_0"]["transitions"] >= 30 and "pretrain" not in phase
+
+
+@pytest.mark.parametrize(("algo", "kwargs", "match"), [
+    ("ppo", {"demo_steps": 100}, "--demo-steps fills a replay buffer: dqn, ddpg, td3 only, not ppo"),
+    ("dqn", {"demo_steps": -1}, "--demo-steps and --demo-updates must be >= 0"),
+    ("dqn", {"demo_updates": 10}, "--demo-updates pre-trains DQN"),
+    ("td3", {"demo_steps": 100, "demo_updates": 10}, "use it with --algo dqn"),
+])
+def test_bad_demonstration_options_are_refused(algo, kwargs, match):
+    with pytest.raises(TrainError, match=match):
+        make_config(algo, "env_1", "smoke", **kwargs)
+
+
+def test_cosim_train_refuses_demonstrations_for_all_algorithms(tmp_path, capsys):
+    from eval.cli import main
+
+    assert main(["train", "--algo", "all", "--preset", "smoke", "--demo-steps", "60", "--out",
+                 str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "choose it with --algo dqn, ddpg or td3" in err
+    assert not any(tmp_path.iterdir())
