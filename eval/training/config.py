@@ -239,18 +239,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
     if device not in ("auto", "cpu", "cuda"):
         raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
-    if int(stall_truncate) < 0:
-        raise TrainError(f"--stall-truncate must be >= 0 steps (0: off), got {stall_truncate}")
-    if int(demo_steps) < 0 or int(demo_updates) < 0:
-        raise TrainError(f"--demo-steps and --demo-updates must be >= 0 (0: off), got {demo_steps} and {demo_updates}")
-    if demo_steps and algo not in DEMO_ALGOS:
-        raise TrainError(f"--demo-steps fills a replay buffer: {', '.join(DEMO_ALGOS)} only, not {algo}")
-    if demo_updates and (algo != "dqn" or not demo_steps):
-        raise TrainError("--demo-updates pre-trains DQN on its demonstrations: use it with --algo dqn "
-                         "and --demo-steps N")
-    if share_params and algo in ASYNC_ALGOS:
-        raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
-                         f"{algo} builds its own learners: drop --share-params for it")
+    _check_variants(algo, share_params, int(stall_truncate), int(demo_steps), int(demo_updates))
     config_cls = registry.get_config_class(algo)  # PPOConfig, ... (agents/configs.py, no torch)
     chosen = agent_preset or p.agent_preset
     try:  # the preset's typed config (with its YAML's changes), then the --set changes
@@ -269,6 +258,22 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         init_from=_init_source(init_from), stall_truncate=int(stall_truncate),
         demo_steps=int(demo_steps), demo_updates=int(demo_updates),
     )
+
+
+def _check_variants(algo: str, share_params: bool, stall_truncate: int, demo_steps: int, demo_updates: int) -> None:
+    """Refuse a training variant the algorithm cannot run (make_config), naming the option."""
+    if stall_truncate < 0:
+        raise TrainError(f"--stall-truncate must be >= 0 steps (0: off), got {stall_truncate}")
+    if demo_steps < 0 or demo_updates < 0:
+        raise TrainError(f"--demo-steps and --demo-updates must be >= 0 (0: off), got {demo_steps} and {demo_updates}")
+    if demo_steps and algo not in DEMO_ALGOS:
+        raise TrainError(f"--demo-steps fills a replay buffer: {', '.join(DEMO_ALGOS)} only, not {algo}")
+    if demo_updates and (algo != "dqn" or not demo_steps):
+        raise TrainError("--demo-updates pre-trains DQN on its demonstrations: use it with --algo dqn "
+                         "and --demo-steps N")
+    if share_params and algo in ASYNC_ALGOS:
+        raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
+                         f"{algo} builds its own learners: drop --share-params for it")
 
 
 def _init_source(init_from: str | Path | None) -> str | None:
