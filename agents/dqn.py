@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import logging
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import gymnasium
@@ -159,10 +160,11 @@ class DQN(Agent):
         self.gradient_updates += 1
         return loss.item(), q_values.mean().item()
 
-    def pretrain(self, updates: int) -> dict[str, float]:
+    def pretrain(self, updates: int, on_update: Callable[[], None] | None = None) -> dict[str, float]:
         """``updates`` gradient steps on what the replay holds (its demonstrations, before any
-        env step: DQfD's pre-training phase), then a target copy; the agent's steps, and so its
-        exploration schedule, stay where they were.
+        env step: DQfD's pre-training phase), ``on_update()`` after each (a progress bar), then
+        a target copy (the target stays the initial network until then); the agent's steps, and
+        so its exploration schedule, stay where they were.
 
         Raises:
             ValueError: the replay is empty.
@@ -172,6 +174,8 @@ class DQN(Agent):
         loss = q_mean = float("nan")
         for _ in range(int(updates)):
             loss, q_mean = self._gradient_step()
+            if on_update is not None:
+                on_update()
         self.target_network.load_state_dict(self.q_network.state_dict())
         return {"losses/td_loss": loss, "losses/q_values": q_mean}
 

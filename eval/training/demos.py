@@ -20,6 +20,8 @@ import logging
 import time
 from pathlib import Path
 
+from tqdm import tqdm
+
 from cosim.controller import Autopilot
 from eval.training.config import TrainConfig
 
@@ -31,10 +33,11 @@ episodes' (seed + 100,003 k), the validation's and the test's, so no demonstrati
 held-out episode."""
 
 
-def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0) -> tuple[dict, dict]:
+def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0,
+                progress: bool = False) -> tuple[dict, dict]:
     """Drive the autopilot in ``make_env(cfg, seed)`` for at least ``cfg.demo_steps`` env steps;
     each AC's transitions go to its agent's ``observe_demonstration`` as environment
-    ``env_index``'s. The agents come from ``build_agents(observation_space, action_space)``
+    ``env_index``'s (a progress bar over the env steps with ``progress``). The agents come from ``build_agents(observation_space, action_space)``
     (called once the env is open, so no second simulation is needed for its spaces: libsumo
     runs one per process) and must be prepared for the run's environments.
 
@@ -47,6 +50,8 @@ def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0)
     steps = episodes = 0
     start = time.monotonic()
     env = make_env(cfg, cfg.seed + DEMO_SEED)
+    bar = tqdm(total=cfg.demo_steps, unit="step", desc=f"{cfg.env} {cfg.algo} demonstrations",
+               dynamic_ncols=True, disable=not progress)
     try:
         agents = build_agents(env.observation_space("ac_0"), env.action_space("ac_0"))
         per_ac = {ac: {"transitions": 0, "goals": 0} for ac in agents}
@@ -65,8 +70,10 @@ def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0)
                         per_ac[ac]["goals"] += bool(infos[ac].get("goal_reached"))
                 obs = next_obs
                 steps += repeat
+                bar.update(min(repeat, max(cfg.demo_steps - bar.n, 0)))
             episodes += 1
     finally:
+        bar.close()
         env.close()
     log.info("demonstrations: %d env steps in %d episodes (%.0f s), goals %s", steps, episodes,
              time.monotonic() - start, {ac: v["goals"] for ac, v in per_ac.items()})
@@ -74,14 +81,17 @@ def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0)
                     "agents": per_ac}
 
 
-def pretrain(agents: dict, updates: int) -> dict[str, dict[str, float]]:
+def pretrain(agents: dict, updates: int, progress: bool = False) -> dict[str, dict[str, float]]:
     """DQN's pre-training on the demonstrations (``--demo-updates``): ``updates`` gradient steps
-    per network (one for a run with shared parameters)."""
+    per network (one for a run with shared parameters), under a progress bar with ``progress``
+    (2,000 per AC took 12 minutes for 6 ACs on 2 busy cores: docs/results/2026-11-26-demo-pilot)."""
     from agents.shared import shared_core
 
     core = shared_core(agents)
     learners = {"shared": core} if core is not None else agents
-    return {name: agent.pretrain(updates) for name, agent in learners.items()}
+    with tqdm(total=updates * len(learners), unit="update", desc="pre-training", dynamic_ncols=True,
+              disable=not progress) as bar:
+        return {name: agent.pretrain(updates, on_update=bar.update) for name, agent in learners.items()}
 
 
 def record(run: Path, summary: dict) -> None:

@@ -226,7 +226,7 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     start_step = runlog.env_steps
     # --demo-steps: the agents are built and fed in the demonstration env, closed before the
     # vector env opens its own (libsumo runs one simulation per process)
-    agent_map = _demonstrate(cfg, runlog.run, resumed, device) if cfg.demo_steps else None
+    agent_map = _demonstrate(cfg, runlog.run, resumed, device, quiet, progress) if cfg.demo_steps else None
     # env i of N: seed + i (env 0 is the one-env run's env)
     fns = [functools.partial(make_env, cfg, cfg.seed + i) for i in range(n)]
     repeat = cfg.agent_config.action_repeat  # the loop counts decisions, the budget env steps
@@ -260,10 +260,12 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
         env.close()
 
 
-def _demonstrate(cfg: TrainConfig, run: Path, resumed: bool, device: str) -> dict:
+def _demonstrate(cfg: TrainConfig, run: Path, resumed: bool, device: str, quiet: bool = True,
+                 progress: bool = False) -> dict:
     """``--demo-steps``: the run's agents, built (or resumed) in the demonstration env with the
     autopilot's transitions in every AC's replay (as environment 0's), then on a fresh run
-    ``--demo-updates`` pre-training steps; logged to run/demos.json (eval/training/demos.py)."""
+    ``--demo-updates`` pre-training steps, each under a progress bar (a line when each ends
+    with ``quiet``); logged to run/demos.json (eval/training/demos.py)."""
     from eval.training import demos
 
     def build(obs_space, act_space) -> dict:
@@ -272,11 +274,23 @@ def _demonstrate(cfg: TrainConfig, run: Path, resumed: bool, device: str) -> dic
             agent.prepare_envs(cfg.envs)
         return agent_map
 
-    agent_map, summary = demos.demonstrate(cfg, build, make_env)
+    bars = progress and not quiet
+    agent_map, summary = demos.demonstrate(cfg, build, make_env, progress=bars)
+    def say(text: str) -> None:  # --quiet: a line on stdout (what `--algo all` relays); else the log
+        if quiet:
+            print(text, flush=True)
+        else:
+            log.info(text)
+
+    say(f"[{cfg.algo} {cfg.env}] demonstrations: {summary['env_steps']} env steps in {summary['episodes']} "
+        f"autopilot episodes ({summary['seconds']:.0f} s)")
     if not resumed and cfg.demo_updates:
         start = time.monotonic()
-        summary["pretrain"] = {"updates": cfg.demo_updates, "metrics": demos.pretrain(agent_map, cfg.demo_updates),
+        metrics = demos.pretrain(agent_map, cfg.demo_updates, progress=bars)
+        summary["pretrain"] = {"updates": cfg.demo_updates, "metrics": metrics,
                                "seconds": round(time.monotonic() - start, 1)}
+        say(f"[{cfg.algo} {cfg.env}] pre-training: {cfg.demo_updates} updates per network "
+            f"({summary['pretrain']['seconds']:.0f} s)")
     demos.record(run, summary)
     return agent_map
 

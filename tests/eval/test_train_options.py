@@ -229,7 +229,7 @@ def test_init_from_warm_starts_each_ac_from_a_run_and_is_recorded(tmp_path, caps
         assert [p.name for p in out.iterdir()] == [run.name], "a refused run leaves no folder"
 
 
-def test_demo_steps_fill_the_replays_before_training_and_again_on_resume(tmp_path):
+def test_demo_steps_fill_the_replays_before_training_and_again_on_resume(tmp_path, capsys):
     """`--demo-steps 60 --demo-updates 5`: the autopilot drives whole episodes first, every AC's
     transitions go to its replay uncounted (the agents' steps are the budget's alone), DQN
     pre-trains once; a resumed run drives them again (the replay is not saved) without
@@ -243,6 +243,8 @@ def test_demo_steps_fill_the_replays_before_training_and_again_on_resume(tmp_pat
                       demo_updates=5, hyper={"demo_margin": "0.8"})
     assert (cfg.demo_steps, cfg.demo_updates, cfg.agent_config.demo_margin) == (60, 5, 0.8)
     run = train(cfg, tmp_path, quiet=True, progress=False)
+    out = capsys.readouterr().out  # a --quiet run says what each phase did
+    assert "[dqn env_1] demonstrations: " in out and "[dqn env_1] pre-training: 5 updates per network" in out
     phases = json.loads((run / "demos.json").read_text())
     assert len(phases) == 1 and phases[0]["env_steps"] >= 60 and phases[0]["episodes"] >= 1
     assert set(phases[0]["agents"]) == {"ac_0", "ac_1"}
