@@ -297,6 +297,11 @@ class TD3Config(AgentConfig):
     pre_tanh_penalty: float = 0.0
     """weight of the actor's mean squared pre-tanh output in its loss: keeps the tanh
     out of saturation, where its gradient vanishes and the actor sticks at a bound."""
+    demo_bc: float = 0.0
+    """weight of a behaviour-cloning term on demonstrated transitions (TD3+BC's, Fujimoto and
+    Gu 2021, on the demonstrations only): the actor's loss adds ``demo_bc`` times the mean
+    squared distance between its action and the demonstrated one, over the minibatch's
+    demonstrations; 0: off (demonstrations, if any, are learned like any transition)."""
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
@@ -325,6 +330,7 @@ class TD3Config(AgentConfig):
         check_range("policy_delay", self.policy_delay, 1)
         check_range("n_critics", self.n_critics, 1)
         check_range("pre_tanh_penalty", self.pre_tanh_penalty, 0)
+        check_range("demo_bc", self.demo_bc, 0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import logging
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import gymnasium
@@ -182,6 +183,9 @@ class TD3(Agent):
             actor_loss = -self.critic.q_from_features(features, self.actor.squash(pre), head=0).mean()
             if cfg.pre_tanh_penalty > 0:
                 actor_loss = actor_loss + cfg.pre_tanh_penalty * pre.pow(2).mean()
+            if cfg.demo_bc > 0 and data.demos is not None and bool(data.demos.any()):
+                demo_actions = self.actor.squash(pre[data.demos])
+                actor_loss = actor_loss + cfg.demo_bc * F.mse_loss(demo_actions, data.actions[data.demos])
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
             self.actor_optimizer.step()
@@ -189,6 +193,23 @@ class TD3(Agent):
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), cfg.tau)
             metrics["losses/actor_loss"] = actor_loss.item()
             metrics["losses/actor_saturated"] = (pre.detach().abs() > SATURATED).float().mean().item()
+        return metrics
+
+    def pretrain(self, updates: int, on_update: Callable[[], None] | None = None) -> dict[str, float]:
+        """``updates`` gradient steps on what the replay holds (its demonstrations, before any env
+        step; with ``demo_bc`` the actor is also cloned on them), ``on_update()`` after each; the
+        agent's steps, and so its random warm-up and exploration, stay where they were.
+
+        Raises:
+            ValueError: the replay is empty.
+        """
+        if not len(self.buffer):
+            raise ValueError(f"{self.algo.upper()} pretrain: the replay is empty; observe demonstrations first")
+        metrics: dict[str, float] = {}
+        for _ in range(int(updates)):
+            metrics.update(self._gradient_step())
+            if on_update is not None:
+                on_update()
         return metrics
 
     # ---- checkpoint extras ------------------------------------------------------------

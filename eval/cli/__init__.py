@@ -213,8 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "autopilot and put every AC's transitions in its replay as demonstrations; "
                         "not counted in --steps (default 0: none; docs/agents.md, Demonstrations)")
     t.add_argument("--demo-updates", type=_int_in(0), default=0, metavar="N",
-                   help="dqn with --demo-steps: N gradient steps on the demonstrations before the first "
-                        "env step (DQfD's pre-training; default 0); the margin loss is --set demo_margin=0.8")
+                   help="with --demo-steps: N gradient steps on the demonstrations before the first "
+                        "env step (DQfD's pre-training; default 0); their losses: dqn --set "
+                        "demo_margin=0.8, ddpg td3 --set demo_bc=W")
     t.add_argument("--init-from", type=Path, default=None, metavar="RUN_OR_CKPT",
                    help="warm start: each AC's policy weights from this run folder (its ac_k/best.pt) "
                         "or checkpoint, same algorithm and --obs; optimizers and exploration start "

@@ -134,7 +134,7 @@ class TrainConfig:
     schedule; a resumed run drives them again (the replay is not checkpointed)
     (eval/training/demos.py; docs/agents.md, "Demonstrations")."""
     demo_updates: int = 0
-    """DQN with ``demo_steps``: gradient steps on the demonstrations alone before the first env
+    """With ``demo_steps``: gradient steps on the demonstrations alone before the first env
     step (DQfD's pre-training; ``--demo-updates``); 0: none. Not repeated on resume."""
     policy_dtype: str = "float32"
     """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
@@ -268,9 +268,8 @@ def _check_variants(algo: str, share_params: bool, stall_truncate: int, demo_ste
         raise TrainError(f"--demo-steps and --demo-updates must be >= 0 (0: off), got {demo_steps} and {demo_updates}")
     if demo_steps and algo not in DEMO_ALGOS:
         raise TrainError(f"--demo-steps fills a replay buffer: {', '.join(DEMO_ALGOS)} only, not {algo}")
-    if demo_updates and (algo != "dqn" or not demo_steps):
-        raise TrainError("--demo-updates pre-trains DQN on its demonstrations: use it with --algo dqn "
-                         "and --demo-steps N")
+    if demo_updates and not demo_steps:
+        raise TrainError("--demo-updates pre-trains on the demonstrations: give them with --demo-steps N")
     if share_params and algo in ASYNC_ALGOS:
         raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
                          f"{algo} builds its own learners: drop --share-params for it")

@@ -8,9 +8,10 @@ every AC's transitions to that AC's agent as demonstrations (Agent.observe_demon
 stored in its replay, not counted in its steps). The point is the turning slots: no
 learner's own exploration had reached a turning goal on task version 3, so no goal reward
 ever entered their replays (docs/results/2026-11-26-stall-pilot); the autopilot reaches
-almost all of them. With ``--demo-updates K`` DQN then takes K gradient steps on them alone
-(DQfD's pre-training, Hester et al. 2018), with ``--set demo_margin=M`` its large-margin
-loss. What was driven is written to the run folder's ``demos.json``.
+almost all of them. With ``--demo-updates K`` the learner then takes K gradient steps on
+them alone (DQfD's pre-training, Hester et al. 2018); DQN's ``--set demo_margin=M`` adds
+DQfD's large-margin loss, DDPG's and TD3's ``--set demo_bc=W`` a behaviour-cloning term on
+them. What was driven is written to the run folder's ``demos.json``.
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0,
 
 
 def pretrain(agents: dict, updates: int, progress: bool = False) -> dict[str, dict[str, float]]:
-    """DQN's pre-training on the demonstrations (``--demo-updates``): ``updates`` gradient steps
+    """Pre-training on the demonstrations (``--demo-updates``): ``updates`` gradient steps
     per network (one for a run with shared parameters), under a progress bar with ``progress``
     (2,000 per AC took 12 minutes for 6 ACs on 2 busy cores: docs/results/2026-11-26-demo-pilot)."""
     from agents.shared import shared_core

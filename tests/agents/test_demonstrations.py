@@ -98,3 +98,27 @@ def test_pretraining_an_empty_replay_is_refused():
     dqn = agents.DQN(SPACE, ACTIONS, agents.DQNConfig(hidden=(8,)), seed=0)
     with pytest.raises(ValueError, match="replay is empty"):
         dqn.pretrain(1)
+
+
+def test_td3_pretrained_with_demo_bc_acts_like_its_demonstrator():
+    """TD3's behaviour-cloning term on demonstrations (``demo_bc``): after pre-training the actor's
+    action is near the demonstrated one; without it the same updates leave the actor where the
+    critic of all-zero rewards puts it, nowhere near."""
+    box = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    rng = np.random.default_rng(0)
+    states = rng.uniform(-1, 1, (256, 4)).astype(np.float32)
+    expert = np.clip(states[:, :2] * 0.8, -1, 1).astype(np.float32)  # a linear demonstrator
+
+    def trained(weight):
+        cfg = agents.TD3Config(hidden=(32,), demo_bc=weight, batch_size=64, actor_learning_rate=3e-3,
+                               policy_delay=1)
+        td3 = agents.TD3(SPACE, box, cfg, seed=0)
+        for s, a in zip(states, expert, strict=True):
+            td3.observe_demonstration(s, a, 0.0, s, True, False)
+        td3.pretrain(300)
+        assert td3.steps == 0
+        with torch.no_grad():
+            return td3.actor(td3.critic.encode(torch.as_tensor(states))).numpy()
+
+    assert np.abs(trained(2.5) - expert).mean() < 0.1
+    assert np.abs(trained(0.0) - expert).mean() > 0.2

@@ -264,17 +264,18 @@ def test_td3_takes_the_continuous_autopilots_demonstrations(tmp_path):
 
     from eval.training.train import train
 
-    cfg = make_config("td3", "env_1", "smoke", agents=1, steps=20, validation_episodes=0, demo_steps=30)
+    cfg = make_config("td3", "env_1", "smoke", agents=1, steps=20, validation_episodes=0, demo_steps=30,
+                      demo_updates=4, hyper={"demo_bc": "2.5"})
     run = train(cfg, tmp_path, quiet=True, progress=False)
     (phase,) = json.loads((run / "demos.json").read_text())
-    assert phase["agents"]["ac_0"]["transitions"] >= 30 and "pretrain" not in phase
+    assert phase["agents"]["ac_0"]["transitions"] >= 30 and phase["pretrain"]["updates"] == 4
+    assert "losses/actor_loss" in phase["pretrain"]["metrics"]["ac_0"]  # policy_delay 2: the actor learned
 
 
 @pytest.mark.parametrize(("algo", "kwargs", "match"), [
     ("ppo", {"demo_steps": 100}, "--demo-steps fills a replay buffer: dqn, ddpg, td3 only, not ppo"),
     ("dqn", {"demo_steps": -1}, "--demo-steps and --demo-updates must be >= 0"),
-    ("dqn", {"demo_updates": 10}, "--demo-updates pre-trains DQN"),
-    ("td3", {"demo_steps": 100, "demo_updates": 10}, "use it with --algo dqn"),
+    ("dqn", {"demo_updates": 10}, "--demo-updates pre-trains on the demonstrations: give them with --demo-steps"),
 ])
 def test_bad_demonstration_options_are_refused(algo, kwargs, match):
     with pytest.raises(TrainError, match=match):
