@@ -172,6 +172,9 @@ class ReplaySample:
     terminateds: torch.Tensor
     demos: torch.Tensor | None = None
     """True where the transition is a demonstration (:meth:`ReplayBuffer.add` with ``demo``)."""
+    discounts: torch.Tensor | None = None
+    """With ``n_step`` > 1: each row's discount of its bootstrap, gamma ** (steps it spans);
+    None for 1-step samples (the discount is the learner's gamma)."""
 
 
 FRAME_CHANNELS = 3
@@ -374,8 +377,15 @@ class ReplayBuffer:
                 out[row, ..., :(k - d) * c] = head[..., (d - 1) * c:(k - 1) * c]
         return out
 
-    def sample(self, batch_size: int, device="cpu") -> ReplaySample:
+    def sample(self, batch_size: int, device="cpu", n_step: int = 1, gamma: float = 1.0) -> ReplaySample:
         """Sample ``batch_size`` transitions uniformly (with replacement).
+
+        With ``n_step`` > 1 each row spans up to ``n_step`` transitions of its episode from the
+        sampled one (Sutton 1988; Rainbow's multi-step targets): its reward is their
+        ``gamma``-discounted sum, its ``next_obs`` and ``terminateds`` the last one's, and
+        ``discounts`` gamma ** (transitions spanned). A row stops early at its episode's end
+        and at the newest transition stored; the first transition's action and ``demos`` flag
+        are the row's.
 
         Raises:
             ValueError: If the buffer is empty.
@@ -397,19 +407,43 @@ class ReplayBuffer:
             offset = u - (ends - valid)[column]
         offset = np.where(full[column], (offset + skip + self.positions[column]) % self.ring, offset)
         idx = column * self.ring + offset
+        rewards = self.rewards[idx]
+        last, discounts = idx, None
+        if n_step > 1:
+            rewards, last, discounts = self._n_step(column, offset, n_step, gamma)
+            offset = last - column * self.ring
         after = column * self.ring + (offset + 1) % self.ring
         obs = self._stacks(idx, column)
         next_obs = self._stacks(after, column)
         if self.nav:  # the measurements of the same slots as the images
             obs = {"image": obs, "measurements": self.measurements[idx]}
             next_obs = {"image": next_obs, "measurements": self.measurements[after]}
-        for row in np.flatnonzero(self.truncateds[idx]):
-            observations.put(next_obs, row, self.final_obs[int(idx[row])])
+        for row in np.flatnonzero(self.truncateds[last]):
+            observations.put(next_obs, row, self.final_obs[int(last[row])])
         return ReplaySample(
             obs=obs_to_tensor(obs, device),
             actions=torch.as_tensor(self.actions[idx], device=device),
-            rewards=torch.as_tensor(self.rewards[idx], device=device),
+            rewards=torch.as_tensor(rewards, device=device),
             next_obs=obs_to_tensor(next_obs, device),
-            terminateds=torch.as_tensor(self.terminateds[idx], device=device),
+            terminateds=torch.as_tensor(self.terminateds[last], device=device),
             demos=torch.as_tensor(self.demos[idx], device=device),
+            discounts=None if discounts is None else torch.as_tensor(discounts, device=device),
         )
+
+    def _n_step(self, column: np.ndarray, offset: np.ndarray, n_step: int, gamma: float):
+        """The n-step rewards, last transitions (absolute slots) and bootstrap discounts of
+        sampled transitions (:meth:`sample`)."""
+        base = column * self.ring
+        ahead = (self.positions[column] - 1 - offset) % self.ring  # newer transitions stored
+        last = base + offset
+        rewards = self.rewards[last].astype(np.float64)
+        spans = np.ones(len(last), np.int64)
+        going = ~(self.terminateds[last].astype(bool) | self.truncateds[last])
+        for m in range(1, n_step):
+            nxt = base + (offset + m) % self.ring
+            going &= (ahead >= m) & ~self.starts[nxt]
+            rewards = np.where(going, rewards + gamma ** m * self.rewards[nxt], rewards)
+            last = np.where(going, nxt, last)
+            spans += going
+            going &= ~(self.terminateds[nxt].astype(bool) | self.truncateds[nxt])
+        return rewards.astype(np.float32), last, (gamma ** spans).astype(np.float32)

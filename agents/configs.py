@@ -212,6 +212,10 @@ class DQNConfig(AgentConfig):
     """pick next actions with the online network (Double DQN; off in the paper preset)."""
     hidden: tuple[int, ...] = (256, 256)
     """MLP hidden sizes for vector observations (images use the Nature CNN)."""
+    n_step: int = 1
+    """transitions each target spans (multi-step returns, as in Rainbow): the discounted sum of
+    up to ``n_step`` rewards of the episode, then ``gamma ** n`` times the bootstrap (shorter at
+    an episode's end); 1: the 1-step target of SPEC section 5."""
     demo_margin: float = 0.0
     """Large-margin loss on demonstrated transitions (DQfD, Hester et al. 2018): each one adds
     ``max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``, averaged over the minibatch's
@@ -242,6 +246,7 @@ class DQNConfig(AgentConfig):
         check_range("exploration_steps", self.exploration_steps, 1)
         check_range("max_grad_norm", self.max_grad_norm, 0, None, low_inclusive=False)
         check_range("huber_delta", self.huber_delta, 0, None, low_inclusive=False)
+        check_range("n_step", self.n_step, 1)
         check_range("demo_margin", self.demo_margin, 0)
 
 

@@ -1,10 +1,11 @@
 """Deep Q-learning (Mnih et al. 2015) with a dueling head (Wang et al. 2016).
 
-As SPEC section 5 asks: dueling, one atom, no noisy nets, 1-step targets, a
-hard-updated target network, epsilon-greedy exploration annealed linearly,
-Huber loss and gradient clipping. Double DQN (van Hasselt et al. 2016) is an
-option, off in the paper preset. Demonstrations (Agent.observe_demonstration) can add
-DQfD's large-margin loss (``demo_margin``) and a pre-training phase (:meth:`DQN.pretrain`). Reads top to bottom: config, schedule, agent.
+As SPEC section 5 asks: dueling, one atom, no noisy nets, 1-step targets (``n_step`` > 1:
+multi-step targets, an option), a hard-updated target network, epsilon-greedy exploration
+annealed linearly, Huber loss and gradient clipping. Double DQN (van Hasselt et al. 2016) is
+an option, off in the paper preset. Demonstrations (Agent.observe_demonstration) can add
+DQfD's large-margin loss (``demo_margin``) and a pre-training phase (:meth:`DQN.pretrain`).
+Reads top to bottom: config, schedule, agent.
 """
 
 from __future__ import annotations
@@ -137,7 +138,8 @@ class DQN(Agent):
 
     def _gradient_step(self) -> tuple[float, float]:
         cfg = self.config
-        data = self.buffer.sample(cfg.batch_size, self.device)
+        data = self.buffer.sample(cfg.batch_size, self.device, n_step=cfg.n_step, gamma=cfg.gamma)
+        discount = cfg.gamma if data.discounts is None else data.discounts
         with torch.no_grad():
             next_q = self.target_network(data.next_obs)
             if cfg.double_q:
@@ -145,7 +147,7 @@ class DQN(Agent):
                 next_value = next_q.gather(1, next_actions).squeeze(1)
             else:
                 next_value = next_q.max(-1).values
-            td_target = data.rewards + cfg.gamma * (1.0 - data.terminateds) * next_value
+            td_target = data.rewards + discount * (1.0 - data.terminateds) * next_value
         q_all = self.q_network(data.obs)
         actions = data.actions.long().unsqueeze(1)
         q_values = q_all.gather(1, actions).squeeze(1)

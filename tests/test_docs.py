@@ -64,3 +64,19 @@ def test_slug_matches_githubs_anchors():
     assert slug("The pilot runs: `python studies/pilot_task.py`") == "the-pilot-runs-python-studiespilot_taskpy"
     assert slug("Scale-out: a cluster of several machines") == "scale-out-a-cluster-of-several-machines"
     assert slug("Testing trained cars (the protocol)") == "testing-trained-cars-the-protocol"
+
+
+def test_every_row_of_the_studies_tables_has_its_headers_cells():
+    """docs/studies.md's tables (scripts, studies): a row pasted into another row (it happened
+    twice, when an insert matched a link inside a cell) leaves one row with too many cells."""
+    def cells(line: str) -> int:
+        return len(re.sub(r"`[^`]*`", "code", line).strip().strip("|").split("|"))
+
+    width = None
+    for number, line in enumerate((ROOT / "docs" / "studies.md").read_text().splitlines(), 1):
+        if not line.startswith("|"):
+            width = None
+        elif width is None:
+            width = cells(line)  # the header
+        else:
+            assert cells(line) == width, f"docs/studies.md:{number} has {cells(line)} cells, its header {width}"
