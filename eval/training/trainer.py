@@ -274,14 +274,14 @@ def _demonstrate(cfg: TrainConfig, run: Path, resumed: bool, device: str, quiet:
             agent.prepare_envs(cfg.envs)
         return agent_map
 
-    bars = progress and not quiet
-    agent_map, summary = demos.demonstrate(cfg, build, make_env, progress=bars)
     def say(text: str) -> None:  # --quiet: a line on stdout (what `--algo all` relays); else the log
         if quiet:
             print(text, flush=True)
         else:
             log.info(text)
 
+    bars = progress and not quiet
+    agent_map, summary = demos.demonstrate(cfg, build, make_env, progress=bars)
     say(f"[{cfg.algo} {cfg.env}] demonstrations: {summary['env_steps']} env steps in {summary['episodes']} "
         f"autopilot episodes ({summary['seconds']:.0f} s)")
     if not resumed and cfg.demo_updates:
