@@ -304,9 +304,11 @@ class TD3Config(AgentConfig):
     out of saturation, where its gradient vanishes and the actor sticks at a bound."""
     demo_bc: float = 0.0
     """weight of a behaviour-cloning term on demonstrated transitions (TD3+BC's, Fujimoto and
-    Gu 2021, on the demonstrations only): the actor's loss adds ``demo_bc`` times the mean
-    squared distance between its action and the demonstrated one, over the minibatch's
-    demonstrations; 0: off (demonstrations, if any, are learned like any transition)."""
+    Gu 2021, on the demonstrations only): the actor's loss adds ``demo_bc`` times the
+    minibatch's mean |Q| (at least 1) times the mean squared distance between its action and
+    the demonstrated one, over the minibatch's demonstrations, so ``demo_bc`` is TD3+BC's
+    1/alpha whatever the returns' scale (alpha 2.5: 0.4); 0: off (demonstrations, if any, are
+    learned like any transition)."""
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},

@@ -180,12 +180,17 @@ class TD3(Agent):
             with torch.no_grad():
                 features = self.critic.encode(data.obs)
             pre = self.actor.preactivation(features)
-            actor_loss = -self.critic.q_from_features(features, self.actor.squash(pre), head=0).mean()
+            q = self.critic.q_from_features(features, self.actor.squash(pre), head=0)
+            actor_loss = -q.mean()
             if cfg.pre_tanh_penalty > 0:
                 actor_loss = actor_loss + cfg.pre_tanh_penalty * pre.pow(2).mean()
             if cfg.demo_bc > 0 and data.demos is not None and bool(data.demos.any()):
                 demo_actions = self.actor.squash(pre[data.demos])
-                actor_loss = actor_loss + cfg.demo_bc * F.mse_loss(demo_actions, data.actions[data.demos])
+                # Weighed against the critic's scale (TD3+BC's lambda = alpha / mean|Q|): the
+                # returns here run to thousands, beside which a bare squared distance is nothing.
+                q_scale = q.detach().abs().mean().clamp(min=1.0)
+                bc = F.mse_loss(demo_actions, data.actions[data.demos])
+                actor_loss = actor_loss + cfg.demo_bc * q_scale * bc
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
             self.actor_optimizer.step()

@@ -109,16 +109,20 @@ def test_td3_pretrained_with_demo_bc_acts_like_its_demonstrator():
     states = rng.uniform(-1, 1, (256, 4)).astype(np.float32)
     expert = np.clip(states[:, :2] * 0.8, -1, 1).astype(np.float32)  # a linear demonstrator
 
-    def trained(weight):
+    def trained(weight, reward=0.0, updates=300):
         cfg = agents.TD3Config(hidden=(32,), demo_bc=weight, batch_size=64, actor_learning_rate=3e-3,
                                policy_delay=1)
         td3 = agents.TD3(SPACE, box, cfg, seed=0)
         for s, a in zip(states, expert, strict=True):
-            td3.observe_demonstration(s, a, 0.0, s, True, False)
-        td3.pretrain(300)
+            td3.observe_demonstration(s, a, reward, s, False, False)
+        td3.pretrain(updates)
         assert td3.steps == 0
         with torch.no_grad():
             return td3.actor(td3.critic.encode(torch.as_tensor(states))).numpy()
 
     assert np.abs(trained(2.5) - expert).mean() < 0.1
     assert np.abs(trained(0.0) - expert).mean() > 0.2
+    # Rewards of 50 a step lift the critic's values to ~60 in 1,000 updates: the term is weighed
+    # by mean|Q|, so the same weight still clones (a bare squared distance, unweighed, leaves
+    # the actor 0.7 away: the critic's gradient drowns it).
+    assert np.abs(trained(2.5, reward=50.0, updates=1000) - expert).mean() < 0.1
