@@ -31,7 +31,7 @@ from __future__ import annotations
 import abc
 import contextlib
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 import gymnasium
@@ -370,3 +370,49 @@ class Agent(abc.ABC):
             f"{type(self).__name__}(obs={self.observation_space}, act={self.action_space}, "
             f"seed={self.seed}, device={self.device})"
         )
+
+
+class ReplayAgent(Agent):
+    """An off-policy learner on a :class:`~agents.buffers.ReplayBuffer` (DQN, DDPG, TD3).
+
+    Subclasses keep ``self.buffer``, count ``self.steps`` and ``self.gradient_updates``, and
+    implement ``_gradient_step`` (one minibatch update, returning its metrics); pre-training on
+    demonstrations and the counters' checkpointing are shared here.
+    """
+
+    steps: int
+    gradient_updates: int
+    _updated_to: int
+
+    @abc.abstractmethod
+    def _gradient_step(self) -> dict[str, float]:
+        """One gradient step on a minibatch of the replay; returns its metrics."""
+
+    def _after_pretrain(self) -> None:  # noqa: B027 - optional hook
+        """Called once after :meth:`pretrain`'s updates (DQN copies its target network)."""
+
+    def pretrain(self, updates: int, on_update: Callable[[], None] | None = None) -> dict[str, float]:
+        """``updates`` gradient steps on what the replay holds (its demonstrations, before any
+        env step: DQfD's pre-training phase), ``on_update()`` after each (a progress bar), then
+        :meth:`_after_pretrain`; the agent's steps, and so its exploration schedule, learning
+        start and random warm-up, stay where they were.
+
+        Raises:
+            ValueError: the replay is empty.
+        """
+        if not len(self.buffer):
+            raise ValueError(f"{self.algo.upper()} pretrain: the replay is empty; observe demonstrations first")
+        metrics: dict[str, float] = {}
+        for _ in range(int(updates)):
+            metrics.update(self._gradient_step())
+            if on_update is not None:
+                on_update()
+        self._after_pretrain()
+        return metrics
+
+    def _extra_state(self) -> dict[str, Any]:
+        return {"steps": self.steps, "gradient_updates": self.gradient_updates}
+
+    def _load_extra_state(self, state: Mapping[str, Any]) -> None:
+        self.steps = self._updated_to = int(state.get("steps", 0))
+        self.gradient_updates = int(state.get("gradient_updates", 0))

@@ -4,7 +4,7 @@ As SPEC section 5 asks: dueling, one atom, no noisy nets, 1-step targets (``n_st
 multi-step targets, an option), a hard-updated target network, epsilon-greedy exploration
 annealed linearly, Huber loss and gradient clipping. Double DQN (van Hasselt et al. 2016) is
 an option, off in the paper preset. Demonstrations (Agent.observe_demonstration) can add
-DQfD's large-margin loss (``demo_margin``) and a pre-training phase (:meth:`DQN.pretrain`).
+DQfD's large-margin loss (``demo_margin``) and a pre-training phase (:meth:`~agents.base.ReplayAgent.pretrain`).
 Reads top to bottom: config, schedule, agent.
 """
 
@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import copy
 import logging
-from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import gymnasium
 import numpy as np
@@ -22,7 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from agents import observations
-from agents.base import Agent, check_observation_space, due
+from agents.base import ReplayAgent, check_observation_space, due
 from agents.buffers import ReplayBuffer
 from agents.configs import DQNConfig
 from agents.networks import DuelingQNetwork, obs_to_tensor
@@ -46,7 +45,7 @@ def margin_loss(q_values: torch.Tensor, actions: torch.Tensor, margin: float) ->
     return ((q_values + margins).max(-1).values - q_values.gather(1, actions).squeeze(1)).mean()
 
 
-class DQN(Agent):
+class DQN(ReplayAgent):
     """Dueling DQN with a replay buffer and a hard-updated target network.
 
     Huber threshold: with delta 1 (RLlib, SB3) and Q-values in the tens, almost
@@ -132,11 +131,12 @@ class DQN(Agent):
         phases = due(before, self.steps, cfg.train_freq, start=cfg.learning_starts)
         if not phases:
             return {}
+        metrics: dict[str, float] = {}
         for _ in range(cfg.gradient_steps * phases):
-            loss, q_mean = self._gradient_step()
-        return {"losses/td_loss": loss, "losses/q_values": q_mean, "charts/epsilon": self.epsilon}
+            metrics = self._gradient_step()
+        return {**metrics, "charts/epsilon": self.epsilon}
 
-    def _gradient_step(self) -> tuple[float, float]:
+    def _gradient_step(self) -> dict[str, float]:
         cfg = self.config
         data = self.buffer.sample(cfg.batch_size, self.device, n_step=cfg.n_step, gamma=cfg.gamma)
         discount = cfg.gamma if data.discounts is None else data.discounts
@@ -160,30 +160,8 @@ class DQN(Agent):
         nn.utils.clip_grad_norm_(self.q_network.parameters(), cfg.max_grad_norm)
         self.optimizer.step()
         self.gradient_updates += 1
-        return loss.item(), q_values.mean().item()
+        return {"losses/td_loss": loss.item(), "losses/q_values": q_values.mean().item()}
 
-    def pretrain(self, updates: int, on_update: Callable[[], None] | None = None) -> dict[str, float]:
-        """``updates`` gradient steps on what the replay holds (its demonstrations, before any
-        env step: DQfD's pre-training phase), ``on_update()`` after each (a progress bar), then
-        a target copy (the target stays the initial network until then); the agent's steps, and
-        so its exploration schedule, stay where they were.
-
-        Raises:
-            ValueError: the replay is empty.
-        """
-        if not len(self.buffer):
-            raise ValueError("DQN pretrain: the replay is empty; observe demonstrations first")
-        loss = q_mean = float("nan")
-        for _ in range(int(updates)):
-            loss, q_mean = self._gradient_step()
-            if on_update is not None:
-                on_update()
+    def _after_pretrain(self) -> None:
+        """The target stays the initial network until the pre-training's end: copy it now."""
         self.target_network.load_state_dict(self.q_network.state_dict())
-        return {"losses/td_loss": loss, "losses/q_values": q_mean}
-
-    def _extra_state(self) -> dict[str, Any]:
-        return {"steps": self.steps, "gradient_updates": self.gradient_updates}
-
-    def _load_extra_state(self, state) -> None:
-        self.steps = self._updated_to = int(state.get("steps", 0))
-        self.gradient_updates = int(state.get("gradient_updates", 0))

@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import copy
 import logging
-from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import gymnasium
 import numpy as np
@@ -21,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from agents import observations
-from agents.base import Agent, check_observation_space, due
+from agents.base import ReplayAgent, check_observation_space, due
 from agents.buffers import ReplayBuffer
 from agents.configs import AgentConfig, TD3Config
 from agents.networks import (
@@ -40,7 +39,7 @@ SATURATED = float(np.arctanh(0.99))
 """|pre-tanh| above which an action component counts as pinned at a bound (|tanh| > 0.99)."""
 
 
-class TD3(Agent):
+class TD3(ReplayAgent):
     """TD3 on a deterministic tanh actor and an ensemble of Q critics.
 
     The actor reads the critic's observation features, detached: for images
@@ -199,28 +198,3 @@ class TD3(Agent):
             metrics["losses/actor_loss"] = actor_loss.item()
             metrics["losses/actor_saturated"] = (pre.detach().abs() > SATURATED).float().mean().item()
         return metrics
-
-    def pretrain(self, updates: int, on_update: Callable[[], None] | None = None) -> dict[str, float]:
-        """``updates`` gradient steps on what the replay holds (its demonstrations, before any env
-        step; with ``demo_bc`` the actor is also cloned on them), ``on_update()`` after each; the
-        agent's steps, and so its random warm-up and exploration, stay where they were.
-
-        Raises:
-            ValueError: the replay is empty.
-        """
-        if not len(self.buffer):
-            raise ValueError(f"{self.algo.upper()} pretrain: the replay is empty; observe demonstrations first")
-        metrics: dict[str, float] = {}
-        for _ in range(int(updates)):
-            metrics.update(self._gradient_step())
-            if on_update is not None:
-                on_update()
-        return metrics
-
-    # ---- checkpoint extras ------------------------------------------------------------
-    def _extra_state(self) -> dict[str, Any]:
-        return {"steps": self.steps, "gradient_updates": self.gradient_updates}
-
-    def _load_extra_state(self, state) -> None:
-        self.steps = self._updated_to = int(state.get("steps", 0))
-        self.gradient_updates = int(state.get("gradient_updates", 0))
