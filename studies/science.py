@@ -33,6 +33,12 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
 separate processes, say one per core) are gathered into ``--out`` and stage 4 runs over
 all of them; each environment keeps its own number of training seeds, and the verdict
 asks for 3 (eval.reporting.science.MIN_SEEDS) whatever the intervals say.
+
+``--export DEST`` copies a finished study's portable part (``science.json``, the held-out
+records, the references, each run's ``config.yaml`` and ``episodes.csv``, and the tested
+checkpoints' provenance as ``checkpoints.json``: a few MB, no checkpoint) to ``DEST``, say
+a docs/results page; ``--combine`` takes such a copy as a study. A study whose machine is
+gone (run folders are not kept in git) still joins the final table that way.
 """
 
 from __future__ import annotations
@@ -119,6 +125,9 @@ def parse(argv=None) -> argparse.Namespace:
                    help="instead of running a study: gather finished studies of different "
                         "environments (same algorithms, preset and test) into --out and write "
                         "the results over all of them")
+    p.add_argument("--export", type=Path, default=None, metavar="DEST",
+                   help="instead of running a study: copy the finished study at --out, without "
+                        "its checkpoints, to DEST (a folder --combine takes)")
     p.add_argument("--runs", nargs="+", type=Path, default=None, metavar="BENCH",
                    help="instead of training: link this study's finished runs from these "
                         "`cosim benchmark --train-only` folders (checked against the plan)")
@@ -131,6 +140,10 @@ def parse(argv=None) -> argparse.Namespace:
     if args.combine and (study_options or args.smoke):
         p.error("--combine takes the studies' own settings; drop --"
                 + ", --".join(sorted(k.replace("_", "-") for k in study_options) or ["smoke"]))
+    if args.export and (study_options or args.smoke or args.combine):
+        p.error("--export copies the finished study at --out as it is; drop --"
+                + ", --".join(sorted(k.replace("_", "-") for k in study_options)
+                              or (["combine"] if args.combine else ["smoke"])))
     if args.smoke:
         for k, v in SMOKE.items():
             if k not in given:
@@ -282,6 +295,69 @@ def checkpoints(plan: BenchmarkPlan, bench: Path, env: str, seed: int) -> dict[s
     return found
 
 
+EXPORTED = "checkpoints.json"
+"""An exported study's provenance of every checkpoint it tested (the files stayed behind)."""
+
+
+def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, int]) -> list[dict]:
+    """One ``{"env", "seed", "algorithm", "path"}`` per tested checkpoint from the run folders
+    under ``out/bench``; where a run is an exported copy (no checkpoint), the provenance entry
+    its export recorded (``checkpoints.json``, with its SHA-256), as it was."""
+    saved = out / EXPORTED
+    exported = {(c["env"], c["seed"], c["algorithm"]): c
+                for c in (json.loads(saved.read_text()) if saved.is_file() else [])}
+    every = []
+    for e in plan.envs:
+        for s in range(seeds_of[e]):
+            if all((e, s, a) in exported for a in plan.algos):
+                every += [exported[(e, s, a)] for a in plan.algos]
+            else:
+                every += [{"env": e, "seed": s, "algorithm": a, "path": p}
+                          for a, p in checkpoints(plan, out / "bench", e, s).items()]
+    return every
+
+
+def export(out: Path, dest: Path, say) -> None:
+    """Copy the finished study at ``out`` to ``dest`` without its checkpoints: science.json,
+    test/ and references/, each run's config.yaml and episodes.csv (what stage 4 reads of
+    a run) and the tested checkpoints' provenance (:data:`EXPORTED`)."""
+    import shutil
+
+    from eval.reporting.report import checkpoint_provenance
+
+    saved = out / "science.json"
+    study = json.loads(saved.read_text()) if saved.is_file() else {}
+    if "checkpoints" not in study:
+        raise ScienceError(f"--export: {out} holds no finished study (no results yet); run "
+                           "its own command to the end first")
+    if "combined" in study:
+        raise ScienceError(f"--export: {out} is a combination; export each of its studies")
+    if dest.resolve() == out:
+        raise ScienceError(f"--export {dest}: that is the study itself; give another folder")
+    if dest.exists() and any(dest.iterdir()) and not (dest / "science.json").is_file():
+        raise ScienceError(f"--export {dest}: that folder holds something else; give an empty "
+                           "or new one")
+    b = study["benchmark"]
+    plan = BenchmarkPlan(preset=b["preset"], envs=tuple(b["envs"]), algos=tuple(b["algos"]),
+                         seeds=int(b["seeds"]))
+    seeds_of = {e: plan.seeds for e in plan.envs}
+    entries = checkpoint_provenance("trained", tested_checkpoints(plan, out, seeds_of))
+    files = [saved] + [out / "references" / f"{e}.csv" for e in plan.envs] + [
+        out / "test" / f"{e}__seed{k}.parquet" for e in plan.envs for k in range(plan.seeds)]
+    for e in plan.envs:
+        for a in plan.algos:
+            for k in range(plan.seeds):
+                run = out / "bench" / "runs" / f"{e}__{a}__{k}__bench"
+                files += [run / "config.yaml", run / "episodes.csv"]
+    for f in files:
+        target = dest / f.relative_to(out)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(f, target)  # through a run's link, to the file itself
+    (dest / EXPORTED).write_text(json.dumps(entries, indent=2, default=str))
+    size = sum(f.stat().st_size for f in dest.rglob("*") if f.is_file())
+    say(f"exported {out} to {dest}: {len(files) + 1} files, {size / 1e6:.1f} MB")
+
+
 def _write(df: pd.DataFrame, path: Path) -> None:
     """Write next to ``path`` and rename into place: a cached file exists only complete."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -345,7 +421,6 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
     Returns the combined plan (seeds: the most any environment has), the study record and
     the training seeds per environment. Lets environments train in separate processes (both
     cores of a small machine, or several machines) and still give one table and one IQM."""
-    import shutil
 
     studies = []
     for src in sources:
@@ -384,30 +459,42 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
                            "combination")
     for src, st in studies:
         for env in st["benchmark"]["envs"]:
-            files = [src / "references" / f"{env}.csv"] + [
-                src / "test" / f"{env}__seed{k}.parquet" for k in range(seeds_of[env])]
-            missing = [f for f in files if not f.is_file()]
-            if missing:
-                raise ScienceError(f"--combine: {missing[0]} is missing; finish that study first "
-                                   "(rerun its own command)")
-            for f in files:
-                (out / f.parent.name).mkdir(parents=True, exist_ok=True)
-                shutil.copy2(f, out / f.parent.name / f.name)
-            for algo in plan.algos:
-                for k in range(seeds_of[env]):
-                    name = f"{env}__{algo}__{k}__bench"
-                    link = out / "bench" / "runs" / name
-                    link.parent.mkdir(parents=True, exist_ok=True)
-                    if link.is_symlink():
-                        link.unlink()
-                    if not link.exists():
-                        link.symlink_to(src / "bench" / "runs" / name, target_is_directory=True)
+            _gather(src, env, seeds_of[env], plan.algos, out)
+    exported = [c for src, _ in studies if (src / EXPORTED).is_file()
+                for c in json.loads((src / EXPORTED).read_text())]
+    if exported:
+        (out / EXPORTED).write_text(json.dumps(exported, indent=2))
     study = {"benchmark": {**plan.to_dict(), "seeds": seeds_of}, "test": first["test"],
              "combined": [str(src) for src, _ in studies]}
     saved.write_text(json.dumps(study, indent=2))
     say(f"combined {len(studies)} studies: " + ", ".join(f"{e} ({k} seed(s))"
                                                        for e, k in seeds_of.items()))
     return plan, study, seeds_of
+
+
+def _gather(src: Path, env: str, seeds: int, algos, out: Path) -> None:
+    """Copy one environment's references and held-out records of the study ``src`` into
+    ``out``, and link its run folders."""
+    import shutil
+
+    files = [src / "references" / f"{env}.csv"] + [
+        src / "test" / f"{env}__seed{k}.parquet" for k in range(seeds)]
+    missing = [f for f in files if not f.is_file()]
+    if missing:
+        raise ScienceError(f"--combine: {missing[0]} is missing; finish that study first "
+                           "(rerun its own command)")
+    for f in files:
+        (out / f.parent.name).mkdir(parents=True, exist_ok=True)
+        shutil.copy2(f, out / f.parent.name / f.name)
+    for algo in algos:
+        for k in range(seeds):
+            name = f"{env}__{algo}__{k}__bench"
+            link = out / "bench" / "runs" / name
+            link.parent.mkdir(parents=True, exist_ok=True)
+            if link.is_symlink():
+                link.unlink()
+            if not link.exists():
+                link.symlink_to(src / "bench" / "runs" / name, target_is_directory=True)
 
 
 # -- 4. results -------------------------------------------------------------------------------
@@ -503,18 +590,19 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     whole = ProtocolPlan(envs=tuple(plan.envs), scenarios=tuple(t["scenarios"]),
                          episodes=t["episodes"], steps=t["steps"], seed=HELD_OUT_SEED,
                          agents=len(plan.algos))
-    first = checkpoints(plan, bench, plan.envs[0], 0)
-    every = [{"env": e, "seed": s, "algorithm": a, "path": p} for e in plan.envs
-             for s in range(seeds_of[e]) for a, p in checkpoints(plan, bench, e, s).items()]
+    every = tested_checkpoints(plan, out, seeds_of)
+    first = {c["algorithm"]: c["path"] for c in every
+             if c["env"] == plan.envs[0] and c["seed"] == 0 and "path" in c}
     prov = provenance(policy="trained", plan=whole, algos=list(plan.algos), checkpoints=first,
                       command=command.split()[1:], env_checkpoints=every, benchmark=plan.to_dict())
     write_paper_report(pooled, out / "report", prov=prov, extra_md=(
         f"\n## Science study\n\nTraining seeds pooled ({per_env}): episode = seed x "
         f"{t['episodes']} + test episode. Provenance lists every checkpoint (environment, "
         "seed, algorithm); science.json too.\n"))
-    study["checkpoints"] = {f"{e}__seed{s}": {a: str(p.relative_to(out)) for a, p in
-                                              checkpoints(plan, bench, e, s).items()}
-                            for e in plan.envs for s in range(seeds_of[e])}
+    study["checkpoints"] = {}
+    for c in every:
+        where = str(c["path"].relative_to(out)) if "path" in c else c["checkpoint"]
+        study["checkpoints"].setdefault(f"{c['env']}__seed{c['seed']}", {})[c["algorithm"]] = where
     (out / "science.json").write_text(json.dumps(study, indent=2))
     return text
 
@@ -525,6 +613,9 @@ def main(argv=None) -> int:
     start = time.monotonic()
     try:
         out = args.out.resolve()
+        if args.export:
+            export(out, args.export, say)
+            return 0
         if args.combine:
             plan, study, seeds_of = combine(args.combine, out, say)
         else:

@@ -299,9 +299,7 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
             entry.update(_checkpoint_entry(Path(checkpoints[algo]), selections.get(algo)))
         tested.append(entry)
     if env_checkpoints is not None:
-        where = [{"env": c["env"], "seed": c.get("seed"), "algorithm": c["algorithm"],
-                  "label": slot_label(policy, c["algorithm"]),
-                  **_checkpoint_entry(Path(c["path"]), c.get("selection"))} for c in env_checkpoints]
+        where = checkpoint_provenance(policy, env_checkpoints)
     else:  # one checkpoint per algorithm, driven in every environment tested
         where = [{"env": list(plan.envs), "seed": None, "algorithm": t["algorithm"], "label": t["label"],
                   **{k: v for k, v in t.items() if k not in ("algorithm", "label")}}
@@ -322,6 +320,17 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
         "task": task_version(plan.envs),
         "ci": f"95% percentile bootstrap of the mean over episodes, {BOOTSTRAP} resamples, seed {CI_SEED}",
     }
+
+
+def checkpoint_provenance(policy: str, env_checkpoints: Sequence[Mapping]) -> list[dict]:
+    """Provenance of each ``{"env", "seed", "algorithm", "path"}`` checkpoint (its SHA-256, run,
+    AC and training, :func:`_checkpoint_entry`); an entry that already holds a ``sha256`` (an
+    exported study's, whose checkpoint files stayed behind: studies/science.py --export) is
+    kept as it was recorded."""
+    return [dict(c) if "sha256" in c else
+            {"env": c["env"], "seed": c.get("seed"), "algorithm": c["algorithm"],
+             "label": slot_label(policy, c["algorithm"]),
+             **_checkpoint_entry(Path(c["path"]), c.get("selection"))} for c in env_checkpoints]
 
 
 def _checkpoint_entry(path: Path, sel) -> dict:

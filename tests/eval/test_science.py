@@ -350,6 +350,42 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
 
 
+def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
+    """--export copies a finished study without checkpoints (run folders are not kept in git);
+    --combine takes the copy as the study: the same table, curves and checkpoint provenance."""
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    exp = tmp_path / "page" / "study"
+    run = subprocess.run([sys.executable, str(SCRIPT), "--out", str(study), "--export", str(exp)],
+                         capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert run.returncode == 0, run.stderr[-2000:]
+    copied = [p for p in exp.rglob("*") if p.is_file()]
+    assert not [p for p in copied if p.suffix == ".pt"] and not [p for p in exp.rglob("*") if p.is_symlink()]
+    assert {p.name for p in (exp / "bench" / "runs" / "env_1__dqn__1__bench").iterdir()} == {
+        "config.yaml", "episodes.csv"}
+    original = json.loads((study / "report" / "provenance.json").read_text())["checkpoints"]
+    recorded = json.loads((exp / "checkpoints.json").read_text())
+    assert [(c["env"], c["seed"], c["algorithm"], c["sha256"]) for c in recorded] == [
+        (c["env"], c["seed"], c["algorithm"], c["sha256"]) for c in original]
+
+    both = tmp_path / "both"
+    comb = subprocess.run([sys.executable, str(SCRIPT), "--out", str(both), "--combine", str(exp)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert comb.returncode == 0, comb.stderr[-2000:]
+    key = ["kind", "name", "env", "metric", "scenario"]
+    for name in ("results.csv", "convergence.csv", "budget.csv"):
+        a, b = (pd.read_csv(d / name) for d in (study, both))
+        cols = [c for c in key if c in a.columns] or list(a.columns)
+        pd.testing.assert_frame_equal(a.sort_values(cols).reset_index(drop=True),
+                                      b.sort_values(cols).reset_index(drop=True))
+    again = json.loads((both / "report" / "provenance.json").read_text())["checkpoints"]
+    assert [c["sha256"] for c in again] == [c["sha256"] for c in original]
+
+    refused = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "none"),
+                              "--export", str(tmp_path / "x")], capture_output=True, text=True, cwd=ROOT)
+    assert refused.returncode == 2 and "no finished study" in refused.stderr, refused.stderr
+
+
 def test_a_finished_study_grows_by_seeds(smoke, tmp_path):
     """A 1-seed study rerun with --seeds 2 and --runs: seed 0's test records are kept, only
     seed 1 is tested, and the results hold both seeds (as the 2-seed study's)."""
