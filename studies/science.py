@@ -112,6 +112,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--share-params", action="store_true", default=None,
                    help="one network per run for all its ACs in ppo dqn ddpg td3 (as `cosim "
                         "train --share-params`; default: one per AC, the paper's)")
+    p.add_argument("--demo-steps", type=int, default=None, metavar="N",
+                   help="the demonstration variant (as `cosim benchmark --demo-steps`): dqn ddpg "
+                        "td3 learn from N env steps of the autopilot too; default 0: off")
     p.add_argument("--episodes", type=int, default=None,
                    help="test episodes per environment and seed (default: the preset's test)")
     p.add_argument("--test-steps", type=int, default=None, help="steps per test episode")
@@ -135,7 +138,7 @@ def parse(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     given = {k for k, v in vars(args).items() if v is not None}
     study_options = given & {"preset", "envs", "algos", "seeds", "steps", "agents", "collisions", "episodes",
-                             "obs", "share_params",
+                             "obs", "share_params", "demo_steps",
                              "test_steps", "scenarios", "concurrent", "ray_address", "runs"}
     if args.combine and (study_options or args.smoke):
         p.error("--combine takes the studies' own settings; drop --"
@@ -221,6 +224,8 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
         cmd += ["--obs", plan.obs]
     if plan.share_params:
         cmd.append("--share-params")
+    if plan.demo_steps:
+        cmd += ["--demo-steps", str(plan.demo_steps)]
     if saved.exists():
         cmd.append("--resume")
     if args.no_ray:
@@ -411,7 +416,7 @@ def references(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame
 
 
 # -- combining finished studies ---------------------------------------------------------------
-COMBINED_KEYS = ("preset", "algos", "steps", "agents", "collisions", "obs", "share_params")
+COMBINED_KEYS = ("preset", "algos", "steps", "agents", "collisions", "obs", "share_params", "demo_steps")
 """What the studies combined must share (with their whole test plan)."""
 
 
@@ -452,7 +457,8 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
     plan = BenchmarkPlan(preset=b0["preset"], envs=tuple(envs), algos=tuple(b0["algos"]),
                          seeds=max(seeds_of.values()), steps=b0["steps"], agents=b0.get("agents"),
                          collisions=b0.get("collisions"), obs=b0.get("obs", "image"),
-                         share_params=bool(b0.get("share_params", False)))
+                         share_params=bool(b0.get("share_params", False)),
+                         demo_steps=int(b0.get("demo_steps", 0)))
     saved = out / "science.json"
     if saved.exists() and "combined" not in json.loads(saved.read_text()):
         raise ScienceError(f"{out} holds a study of its own; choose another --out for the "
@@ -535,6 +541,8 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     budget += ", ACs observe camera frames and the nav measurements (`--obs nav`)" if plan.obs == "nav" else ""
     budget += (", one network per run for all its ACs in PPO, DQN, DDPG and TD3 (`--share-params`)"
                if plan.share_params else "")
+    budget += (f", DQN, DDPG and TD3 learn from {plan.demo_steps} env steps of the autopilot's "
+               "driving too (`--demo-steps`, the demonstration variant)" if plan.demo_steps else "")
     counts = sorted(set(seeds_of.values()))
     per_env = (f"{counts[0]} seed(s)" if len(counts) == 1 else "seeds per environment: " + ", ".join(
         f"{env_title(e)} {seeds_of[e]}" for e in plan.envs))
@@ -622,7 +630,8 @@ def main(argv=None) -> int:
             plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs),
                                  algos=tuple(args.algos), seeds=args.seeds, steps=args.steps,
                                  agents=args.agents, collisions=args.collisions or "continue",
-                                 obs=args.obs or "image", share_params=bool(args.share_params))
+                                 obs=args.obs or "image", share_params=bool(args.share_params),
+                                 demo_steps=args.demo_steps or 0)
             plan.cells()  # an unknown preset or environment fails here, before any work
             study = study_plan(args, plan)
             check_plan(out, study)

@@ -376,6 +376,10 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
     b.add_argument("--share-params", action="store_true",
                    help="one network per trial for all its ACs in ppo dqn ddpg td3 (as `cosim train "
                         "--share-params`; a3c and impala stay one per AC; default: one per AC)")
+    b.add_argument("--demo-steps", type=_int_in(0), default=0, metavar="N",
+                   help="the demonstration variant: dqn ddpg td3 trials put N env steps of the "
+                        "autopilot's driving in their replays, pre-train on them and learn with "
+                        "the variant's losses (docs/agents.md, Demonstrations); default 0: off")
     b.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
     b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",

@@ -43,7 +43,14 @@ import numpy as np
 from cosim.errors import CosimError
 from eval.labels import ENVS
 from eval.testing.validity import POLICIES
-from eval.training.config import ASYNC_ALGOS, COLLISION_RULES, OBS_VARIANTS
+from eval.training.config import (
+    ASYNC_ALGOS,
+    COLLISION_RULES,
+    DEMO_ALGOS,
+    DEMO_HYPER,
+    DEMO_UPDATES,
+    OBS_VARIANTS,
+)
 from eval.training.train import ALGORITHMS, TrainConfig, make_config, train
 
 log = logging.getLogger(__name__)
@@ -102,6 +109,12 @@ class BenchmarkPlan:
     """One network per trial for all its ACs (``cosim train --share-params``) in the algorithms
     that can share (PPO, DQN, DDPG, TD3); A3C and IMPALA trials stay one network per AC."""
 
+    demo_steps: int = 0
+    """The demonstration variant (``--demo-steps N``): DQN, DDPG and TD3 trials put N env steps of
+    the autopilot's driving in their replays, pre-train :data:`~eval.training.config.DEMO_UPDATES`
+    steps on them and learn with :data:`~eval.training.config.DEMO_HYPER`; the other
+    algorithms' trials are the plain grid's. 0: off (the paper's)."""
+
     def __post_init__(self):
         unknown = sorted(set(self.algos) - set(ALGORITHMS))
         if unknown or not self.algos:
@@ -118,24 +131,34 @@ class BenchmarkPlan:
             raise BenchmarkError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {self.collisions!r}")
         if self.obs not in OBS_VARIANTS:
             raise BenchmarkError(f"--obs must be {' or '.join(OBS_VARIANTS)}, got {self.obs!r}")
+        if self.demo_steps < 0:
+            raise BenchmarkError(f"--demo-steps must be >= 0 (0: off), got {self.demo_steps}")
 
     def cells(self) -> list[TrainConfig]:
         """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
         return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, agents=self.agents,
                             torch_threads=1, collisions=self.collisions, obs=self.obs,
-                            share_params=self.share_params and algo not in ASYNC_ALGOS)
+                            share_params=self.share_params and algo not in ASYNC_ALGOS,
+                            **self._demos(algo))
                 for env in self.envs for algo in self.algos for seed in range(self.seeds)]
+
+    def _demos(self, algo: str) -> dict[str, Any]:
+        if not self.demo_steps or algo not in DEMO_ALGOS:
+            return {}
+        return {"demo_steps": self.demo_steps, "demo_updates": DEMO_UPDATES, "hyper": DEMO_HYPER[algo]}
 
     def to_dict(self) -> dict[str, Any]:
         plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
                 "seeds": self.seeds, "steps": self.steps, "collisions": self.collisions}
-        # only when set: a plan saved before --agents, --obs or --share-params existed still
+        # only when set: a plan saved before --agents, --obs, --share-params or --demo-steps existed still
         # reads back as equal
         extra = {"agents": self.agents} if self.agents is not None else {}
         if self.obs != "image":
             extra["obs"] = self.obs
         if self.share_params:
             extra["share_params"] = True
+        if self.demo_steps:
+            extra["demo_steps"] = self.demo_steps
         return {**plan, **extra}
 
 

@@ -26,7 +26,7 @@ from cosim.errors import CosimError
 from cosim.wrappers import OBS_VARIANTS
 from eval.training.presets import load_presets
 
-__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DEMO_ALGOS", "DISCRETE_ALGOS",
+__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DEMO_ALGOS", "DEMO_HYPER", "DEMO_UPDATES", "DISCRETE_ALGOS",
            "OBS_VARIANTS", "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
 
 ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
@@ -41,6 +41,20 @@ and docs/task.md, "Training rule"."""
 
 DEMO_ALGOS = ("dqn", "ddpg", "td3")
 """The replay learners, which ``--demo-steps`` can fill with autopilot demonstrations."""
+
+DEMO_UPDATES = 2000
+"""Pre-training gradient steps per AC of the demonstration variant (`cosim benchmark
+--demo-steps`), as the demonstration pilot's (docs/results/2026-11-26-demo-pilot)."""
+
+DEMO_HYPER: dict[str, dict[str, str]] = {
+    "dqn": {"demo_margin": "0.8", "exploration_initial_eps": "0.1"},
+    "ddpg": {"demo_bc": "1.0"},
+    "td3": {"demo_bc": "1.0"},
+}
+"""The demonstration variant's losses and exploration per replay learner (`cosim benchmark
+--demo-steps`; docs/agents.md, "Demonstrations"): DQN with DQfD's margin 0.8 and epsilon from
+0.1 (its pre-trained policy already drives), DDPG and TD3 with the behaviour-cloning term at
+TD3+BC's scale, weight 1 (alpha 1)."""
 
 
 VALIDATION_EPISODES = 2

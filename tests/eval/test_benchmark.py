@@ -731,6 +731,28 @@ def test_the_plan_records_the_obs_and_sharing_variants_and_shares_where_it_can()
         BenchmarkPlan(preset="smoke", obs="lidar")
 
 
+def test_the_demonstration_variant_reaches_only_the_replay_learners():
+    """--demo-steps: DQN, DDPG and TD3 trials get the demonstrations, the pre-training and the
+    variant's losses; PPO and A3C trials are the plain grid's; the plan records it only when set."""
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan
+    from eval.training.config import DEMO_UPDATES
+
+    algos = ("ppo", "a3c", "dqn", "td3")
+    plain = {c.algo: c for c in BenchmarkPlan(preset="smoke", envs=("env_2",), algos=algos).cells()}
+    cells = {c.algo: c for c in BenchmarkPlan(preset="smoke", envs=("env_2",), algos=algos,
+                                              demo_steps=300).cells()}
+    assert {a: (c.demo_steps, c.demo_updates) for a, c in cells.items()} == {
+        "ppo": (0, 0), "a3c": (0, 0), "dqn": (300, DEMO_UPDATES), "td3": (300, DEMO_UPDATES)}
+    assert cells["ppo"] == plain["ppo"] and cells["a3c"] == plain["a3c"]
+    assert cells["dqn"].agent_config.demo_margin == 0.8 and plain["dqn"].agent_config.demo_margin == 0
+    assert cells["dqn"].agent_config.exploration_initial_eps == 0.1
+    assert cells["td3"].agent_config.demo_bc == 1.0 and plain["td3"].agent_config.demo_bc == 0
+    assert BenchmarkPlan(preset="smoke", demo_steps=300).to_dict()["demo_steps"] == 300
+    assert "demo_steps" not in BenchmarkPlan(preset="smoke").to_dict()  # old plans still read as equal
+    with pytest.raises(BenchmarkError, match="--demo-steps must be >= 0"):
+        BenchmarkPlan(preset="smoke", demo_steps=-1)
+
+
 def test_a_new_grid_continues_only_runs_of_the_same_config(tmp_path):
     import dataclasses
 
