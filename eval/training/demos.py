@@ -38,9 +38,10 @@ def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0,
                 progress: bool = False) -> tuple[dict, dict]:
     """Drive the autopilot in ``make_env(cfg, seed)`` for at least ``cfg.demo_steps`` env steps;
     each AC's transitions go to its agent's ``observe_demonstration`` as environment
-    ``env_index``'s (a progress bar over the env steps with ``progress``). The agents come from ``build_agents(observation_space, action_space)``
-    (called once the env is open, so no second simulation is needed for its spaces: libsumo
-    runs one per process) and must be prepared for the run's environments.
+    ``env_index``'s (a progress bar over the env steps with ``progress``). The agents come from
+    ``build_agents(observation_space, action_space)`` (called once the env is open, so no second
+    simulation is needed for its spaces: libsumo runs one per process) and must be prepared
+    for the run's environments.
 
     Returns:
         The agents, and a summary: ``env_steps`` driven, ``episodes``, ``seconds``, and per
