@@ -5,8 +5,16 @@ subpackages). A refactor that keeps behaviour keeps these numbers.
 
 Discrete quantities (agents, episodes, steps, event counts, flags, weight digests) are
 compared exactly; floats (returns, positions, speeds, weight sums) to ``rtol=1e-9``: two
-runs of the same code on this machine gave bit-identical records and checkpoints
-(torch on CPU with one thread), so any difference is a change of behaviour, not noise.
+runs of the same code on one machine give bit-identical records and checkpoints (torch on
+CPU with one thread), so any difference is a change of behaviour, not noise.
+
+Across machines torch's kernels are not bit-identical: they follow the CPU's instruction set
+(AVX2, AVX-512), and one changed gradient step changes DQN's next greedy actions. On
+2026-11-27 a new machine (AVX-512) gave the old fixture's DQN returns -549 and 192 for -46
+and 5 in its second episode, the same code; capped at AVX2, -348 and 91. So the records are
+made in a child process pinned to the instruction set every x86-64 CPU has (:data:`PINNED`:
+torch's own kernels, MKL and oneDNN), and the fixture was rewritten then under that pin by the
+code that had matched the old one (commit 5f73b5f).
 Regenerate, only on purpose: ``COSIM_WRITE_SAME_RESULTS=1 pytest tests/eval/test_same_results.py``.
 """
 
@@ -15,6 +23,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +36,12 @@ import agents
 torch = pytest.importorskip("torch")
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "same_results"
+ROOT = Path(__file__).resolve().parents[2]
+NAMES = ("train_episodes", "train_weights", "test_records")
+PINNED = {"ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE", "ONEDNN_MAX_CPU_ISA": "SSE41",
+          "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+"""The child process's settings: no vector instructions beyond x86-64's baseline in torch's
+kernels, MKL and oneDNN, one thread (read when torch loads, so only a new process takes them)."""
 ALGOS = ("ppo", "dqn")
 TRAIN_STEPS = 130  # two 60-step smoke episodes and a checkpoint every 40 steps: updates happen
 TEST_STEPS = 20
@@ -98,15 +114,30 @@ def _compare(name: str, got: pd.DataFrame, want: pd.DataFrame) -> None:
             assert g.astype(str).tolist() == w.astype(str).tolist(), f"{name}.{column}"
 
 
+def _write_records(out: Path) -> None:
+    """The records as CSV files in ``out`` (what the child process does)."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, frame in _records(out).items():
+        frame.to_csv(out / f"{name}.csv", index=False, float_format="%.17g")
+
+
 def test_a_training_run_and_a_test_run_give_the_recorded_results(tmp_path):
-    records = _records(tmp_path)
+    out = tmp_path / "records"
+    # this checkout's packages first (not an installed copy's), then this file as a script
+    run = "import runpy, sys; sys.path.insert(0, sys.argv[1]); runpy.run_path(sys.argv[2], run_name='__main__')"
+    child = subprocess.run([sys.executable, "-c", run, str(ROOT), __file__, str(out)],
+                           env={**os.environ, **PINNED}, cwd=ROOT, capture_output=True, text=True,
+                           timeout=900)
+    assert child.returncode == 0, child.stderr[-3000:]
+    records = {name: pd.read_csv(out / f"{name}.csv") for name in NAMES}  # both sides through CSV
     assert (records["train_weights"]["abs_sum"] > 0).all()
     if os.environ.get("COSIM_WRITE_SAME_RESULTS"):
         DATA.mkdir(parents=True, exist_ok=True)
-        for name, frame in records.items():
-            frame.to_csv(DATA / f"{name}.csv", index=False, float_format="%.17g")
+        for name in NAMES:
+            (DATA / f"{name}.csv").write_bytes((out / f"{name}.csv").read_bytes())
     for name, frame in records.items():
-        # through CSV both ways, so both sides have the same dtypes
-        path = tmp_path / f"{name}.csv"
-        frame.to_csv(path, index=False, float_format="%.17g")
-        _compare(name, pd.read_csv(path), pd.read_csv(DATA / f"{name}.csv"))
+        _compare(name, frame, pd.read_csv(DATA / f"{name}.csv"))
+
+
+if __name__ == "__main__":
+    _write_records(Path(sys.argv[-1]))
