@@ -67,6 +67,7 @@ from eval.scale.benchmark import (  # noqa: E402
     adds_seeds,
     cell_name,
     finished_runs,
+    load_plan,
     saved_plan,
 )
 from eval.testing.protocol import ProtocolPlan, rules  # noqa: E402
@@ -305,15 +306,16 @@ EXPORTED = "checkpoints.json"
 
 
 def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, int]) -> list[dict]:
-    """One ``{"env", "seed", "algorithm", "path"}`` per tested checkpoint from the run folders
-    under ``out/bench``; where a run is an exported copy (no checkpoint), the provenance entry
-    its export recorded (``checkpoints.json``, with its SHA-256), as it was."""
+    """One ``{"env", "seed", "algorithm", "path"}`` per tested checkpoint (environments in
+    ``seeds_of``'s order) from the run folders under ``out/bench``; where a run is an exported
+    copy (no checkpoint), the provenance entry its export recorded (``checkpoints.json``, with
+    its SHA-256), as it was."""
     saved = out / EXPORTED
     exported = {(c["env"], c["seed"], c["algorithm"]): c
                 for c in (json.loads(saved.read_text()) if saved.is_file() else [])}
     every = []
-    for e in plan.envs:
-        for s in range(seeds_of[e]):
+    for e, seeds in seeds_of.items():
+        for s in range(seeds):
             if all((e, s, a) in exported for a in plan.algos):
                 every += [exported[(e, s, a)] for a in plan.algos]
             else:
@@ -342,18 +344,14 @@ def export(out: Path, dest: Path, say) -> None:
     if dest.exists() and any(dest.iterdir()) and not (dest / "science.json").is_file():
         raise ScienceError(f"--export {dest}: that folder holds something else; give an empty "
                            "or new one")
-    b = study["benchmark"]
-    plan = BenchmarkPlan(preset=b["preset"], envs=tuple(b["envs"]), algos=tuple(b["algos"]),
-                         seeds=int(b["seeds"]))
+    plan = load_plan(out / "bench")
     seeds_of = {e: plan.seeds for e in plan.envs}
     entries = checkpoint_provenance("trained", tested_checkpoints(plan, out, seeds_of))
     files = [saved] + [out / "references" / f"{e}.csv" for e in plan.envs] + [
         out / "test" / f"{e}__seed{k}.parquet" for e in plan.envs for k in range(plan.seeds)]
-    for e in plan.envs:
-        for a in plan.algos:
-            for k in range(plan.seeds):
-                run = out / "bench" / "runs" / f"{e}__{a}__{k}__bench"
-                files += [run / "config.yaml", run / "episodes.csv"]
+    for cfg in plan.cells():
+        run = out / "bench" / "runs" / cell_name(cfg)
+        files += [run / "config.yaml", run / "episodes.csv"]
     for f in files:
         target = dest / f.relative_to(out)
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -426,7 +424,6 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
     Returns the combined plan (seeds: the most any environment has), the study record and
     the training seeds per environment. Lets environments train in separate processes (both
     cores of a small machine, or several machines) and still give one table and one IQM."""
-
     studies = []
     for src in sources:
         src = src.resolve()

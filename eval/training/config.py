@@ -26,8 +26,8 @@ from cosim.errors import CosimError
 from cosim.wrappers import OBS_VARIANTS
 from eval.training.presets import load_presets
 
-__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DEMO_ALGOS", "DEMO_HYPER", "DEMO_UPDATES", "DISCRETE_ALGOS",
-           "OBS_VARIANTS", "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
+__all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DEMO_ALGOS", "DEMO_HYPER",
+           "DEMO_UPDATES", "DISCRETE_ALGOS", "OBS_VARIANTS", "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
 
 ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
 DISCRETE_ALGOS = registry.DISCRETE
