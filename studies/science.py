@@ -293,7 +293,7 @@ def checkpoints(plan: BenchmarkPlan, bench: Path, env: str, seed: int) -> dict[s
 
     found = {}
     for algo in plan.algos:
-        run = bench / "runs" / f"{env}__{algo}__{seed}__bench"
+        run = bench / "runs" / cell_name({"env": env, "algo": algo, "seed": seed})
         chosen = selection.choose(run)
         if chosen is None:
             raise ScienceError(f"{run}: no checkpoint; rerun the same command to train it")
@@ -491,7 +491,7 @@ def _gather(src: Path, env: str, seeds: int, algos, out: Path) -> None:
         shutil.copy2(f, out / f.parent.name / f.name)
     for algo in algos:
         for k in range(seeds):
-            name = f"{env}__{algo}__{k}__bench"
+            name = cell_name({"env": env, "algo": algo, "seed": k})
             link = out / "bench" / "runs" / name
             link.parent.mkdir(parents=True, exist_ok=True)
             if link.is_symlink():
@@ -516,7 +516,7 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     verdict = science.verdict(table, ref_table)
     iqm = science.iqm_table(seeds, ref_table)
     bench = out / "bench"
-    runs = {(a, e, s): bench / "runs" / f"{e}__{a}__{s}__bench"
+    runs = {(a, e, s): bench / "runs" / cell_name({"env": e, "algo": a, "seed": s})
             for e in plan.envs for a in plan.algos for s in range(seeds_of[e])}
     curves = science.convergence_curves(runs)
     budgets = science.budget_check(runs)

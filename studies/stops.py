@@ -5,10 +5,14 @@ fails, not how. From each report's per-step records (``records.parquet``) this p
 AC-episode: whether it reached its goal, the last step it was still moving, how far it got
 (DISTANCE, the test's metric) and how much of its route was left at the end, its steps off the road and
 on a wrong lane, its contact steps, and its return; then one summary line per policy and slot.
+Contact steps are split by what held them: ``AC contacts`` are vehicle contacts with another AC's
+centre within :data:`AC_CONTACT_M` (two learning cars touching), ``standing contacts`` are contact
+steps of any kind below :data:`MOVING` (a car that stays in contact instead of driving out of it).
 
     cosim test --algos dqn --envs env_2 --scenario 2 --episodes 6 --steps 600 --seed 10000 \\
         --runs grid27/runs --references none --out s2/dqn
     python studies/stops.py s2/dqn/* s2/td3/* --out episodes.csv
+    python studies/stops.py arms/records/demo.parquet   # `studies/arms.py`'s records work too
 
 A report of a reference driver (``cosim test --policy autopilot``) is labelled with the
 driver's name (its provenance.json), a report of trained checkpoints with the algorithm.
@@ -21,12 +25,17 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from eval.testing.metrics import distance_driven
 
 MOVING = 0.1
 """m/s: a step at this speed or more counts as moving."""
+
+AC_CONTACT_M = 5.0
+"""m between two ACs' centres within which a vehicle contact is counted as one with an AC: two
+4.5 m x 1.8 m footprints (cosim/dynamics.py) can touch only closer than their diagonal, 4.85 m."""
 
 
 def policy_label(report: Path, algorithm: str) -> str:
@@ -36,19 +45,48 @@ def policy_label(report: Path, algorithm: str) -> str:
     return algorithm if policy == "trained" else policy
 
 
-def episode_rows(report: Path) -> pd.DataFrame:
-    """One row per (episode, AC) of one `cosim test` report folder."""
-    path = Path(report) / "records.parquet"
+def nearest_ac(records: pd.DataFrame) -> pd.Series:
+    """Per record row: metres from this AC's centre to the nearest other AC's at the same
+    (episode, step); infinite for an AC alone."""
+    out = pd.Series(np.inf, index=records.index)
+    for _episode, g in records.groupby("episode", sort=False):
+        x = g.pivot_table(index="step", columns="agent", values="x")
+        y = g.pivot_table(index="step", columns="agent", values="y")
+        if x.shape[1] < 2:
+            continue
+        d = np.hypot(x.values[:, :, None] - x.values[:, None, :], y.values[:, :, None] - y.values[:, None, :])
+        idx = np.arange(d.shape[1])
+        d[:, idx, idx] = np.inf
+        near = pd.DataFrame(np.nanmin(np.where(np.isnan(d), np.inf, d), axis=2), index=x.index, columns=x.columns)
+        pairs = near.stack().rename("near")
+        keyed = g[["step", "agent"]].join(pairs, on=["step", "agent"])
+        out.loc[g.index] = keyed["near"].fillna(np.inf).values
+    return out
+
+
+def load_records(report: Path) -> pd.DataFrame:
+    """A `cosim test` report folder's records.parquet, or a records parquet file itself."""
+    report = Path(report)
+    path = report if report.suffix == ".parquet" else report / "records.parquet"
     if not path.exists():
-        raise SystemExit(f"stops: {report} has no records.parquet; give a `cosim test` report folder")
-    records = pd.read_parquet(path)
+        raise SystemExit(f"stops: {report} has no records.parquet; give a `cosim test` report folder "
+                         "or a records .parquet file")
+    return pd.read_parquet(path)
+
+
+def episode_rows(report: Path) -> pd.DataFrame:
+    """One row per (episode, AC) of one `cosim test` report folder (or records file)."""
+    records = load_records(report)
+    records = records.assign(near_ac=nearest_ac(records))
+    folder = Path(report) if Path(report).suffix != ".parquet" else Path(report).parent
     rows = []
     for (_episode, agent), g in records.groupby(["episode", "agent"], sort=True):
         g = g.sort_values("step")
         moving = g.loc[g.speed >= MOVING, "step"]
         end = g.iloc[-1]
+        contact = g.collision_vehicle | g.collision_object | g.get("collision_pedestrian", False)
         rows.append({
-            "policy": policy_label(Path(report), str(g.algorithm.iloc[0])),
+            "policy": policy_label(folder, str(g.algorithm.iloc[0])),
             "env": str(g.env.iloc[0]), "scenario": int(g.scenario.iloc[0]), "agent": agent,
             "episode seed": int(g.seed.iloc[0]), "goal": bool(g.goal_reached.any()),
             "steps": len(g), "last step moving": int(moving.max()) if len(moving) else 0,
@@ -57,26 +95,35 @@ def episode_rows(report: Path) -> pd.DataFrame:
             "steps off road": int(g.off_road.sum()), "steps wrong lane": int(g.wrong_lane.sum()),
             "object contacts": int(g.collision_object.sum()),
             "vehicle contacts": int(g.collision_vehicle.sum()),
+            "AC contacts": int((g.collision_vehicle & (g.near_ac <= AC_CONTACT_M)).sum()),
+            "contact steps": int(contact.sum()),
+            "standing contacts": int((contact & (g.speed < MOVING)).sum()),
             "return": round(float(g.reward.sum()), 1)})
     return pd.DataFrame(rows)
 
 
 def summary(rows: pd.DataFrame) -> pd.DataFrame:
     """Per (policy, environment, scenario, slot): episodes, goal rate, mean return, mean
-    distance driven, median last moving step, mean route left at the end, and the
-    episodes that stood still for their last 100 steps or more without a goal."""
+    distance driven, median last moving step, mean route left at the end, the
+    episodes that stood still for their last 100 steps or more without a goal, mean contact
+    steps, and the shares of those with another AC and standing."""
     stood = (rows["steps"] - rows["last step moving"] >= 100) & ~rows["goal"]
     keys = ["policy", "env", "scenario", "agent"]
     out = rows.assign(stood=stood).groupby(keys, sort=False).agg(
         episodes=("goal", "size"), goal_rate=("goal", "mean"), mean_return=("return", "mean"),
         driven_m=("driven m", "mean"), last_moving_median=("last step moving", "median"),
-        route_left_m=("route m left", "mean"), stood_still=("stood", "sum"))
+        route_left_m=("route m left", "mean"), stood_still=("stood", "sum"),
+        contact_steps=("contact steps", "mean"), ac=("AC contacts", "sum"),
+        standing=("standing contacts", "sum"), all_contacts=("contact steps", "sum"))
+    total = out.pop("all_contacts").where(lambda c: c > 0)
+    out["AC_share"] = out.pop("ac") / total
+    out["standing_share"] = out.pop("standing") / total
     return out.round(2).reset_index()
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("reports", nargs="+", type=Path, help="`cosim test` report folders")
+    p.add_argument("reports", nargs="+", type=Path, help="`cosim test` report folders or records .parquet files")
     p.add_argument("--out", type=Path, default=None, help="also write the episode rows as CSV")
     args = p.parse_args(argv)
     rows = pd.concat([episode_rows(r) for r in args.reports], ignore_index=True)

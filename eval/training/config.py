@@ -39,9 +39,6 @@ collision ends the AC's training episode (the paper's rule); TrainConfig.collisi
 and docs/task.md, "Training rule"."""
 
 
-DEMO_ALGOS = ("dqn", "ddpg", "td3")
-"""The replay learners, which ``--demo-steps`` can fill with autopilot demonstrations."""
-
 DEMO_UPDATES = 2000
 """Pre-training gradient steps per AC of the demonstration variant (`cosim benchmark
 --demo-steps`), as the demonstration pilot's (docs/results/2026-11-26-demo-pilot)."""
@@ -55,6 +52,9 @@ DEMO_HYPER: dict[str, dict[str, str]] = {
 --demo-steps`; docs/agents.md, "Demonstrations"): DQN with DQfD's margin 0.8 and epsilon from
 0.1 (its pre-trained policy already drives), DDPG and TD3 with the behaviour-cloning term at
 TD3+BC's scale, weight 1 (alpha 1)."""
+
+DEMO_ALGOS = tuple(DEMO_HYPER)
+"""The replay learners, which ``--demo-steps`` can fill with autopilot demonstrations."""
 
 
 VALIDATION_EPISODES = 2

@@ -70,3 +70,31 @@ def test_the_command_writes_the_rows_it_prints(stops, tmp_path, capsys):
     written = pd.read_csv(tmp_path / "rows.csv")
     assert written["last step moving"].tolist() == [30]
     assert "stood_still" in capsys.readouterr().out
+
+
+def test_contacts_are_split_into_those_with_another_ac_and_those_standing(stops, tmp_path):
+    driver = _episode(0, "ac_0", [10.0] * 30 + [0.0] * 70, None)  # reaches y = 30 at step 30, stands
+    parked = _episode(0, "ac_1", [0.0] * 100, None).assign(y=33.0)  # stands 3 m ahead of it all along
+    passer = _episode(0, "ac_2", [5.0] * 100, None).assign(x=100.0)  # far from both, always moving
+    for frame in (driver, parked, passer):
+        frame["collision_object"] = False
+    touching = driver["step"] > 30
+    driver["collision_vehicle"] = touching
+    parked["collision_vehicle"] = touching.values
+    passer["collision_vehicle"] = passer["step"] <= 10  # a background car, not an AC
+    rows = stops.episode_rows(_report(tmp_path / "r", [driver, parked, passer])).set_index("agent")
+    assert rows.loc["ac_0", "AC contacts"] == 70 and rows.loc["ac_0", "standing contacts"] == 70
+    assert rows.loc["ac_1", "AC contacts"] == 70 and rows.loc["ac_1", "contact steps"] == 70
+    assert rows.loc["ac_2", "vehicle contacts"] == 10
+    assert rows.loc["ac_2", "AC contacts"] == 0 and rows.loc["ac_2", "standing contacts"] == 0
+    # while ac_0 drove (steps 1-29) it was more than 5 m behind ac_1: no AC contact counted early
+    early = driver.assign(collision_vehicle=driver["step"] <= 20)
+    rows = stops.episode_rows(_report(tmp_path / "s", [early, parked])).set_index("agent")
+    assert rows.loc["ac_0", "AC contacts"] == 0 and rows.loc["ac_0", "vehicle contacts"] == 20
+    line = stops.summary(stops.episode_rows(tmp_path / "r")).set_index("agent")
+    assert line.loc["ac_0", "AC_share"] == 1.0 and line.loc["ac_2", "AC_share"] == 0.0
+
+
+def test_a_records_file_is_read_as_its_report(stops, tmp_path):
+    folder = _report(tmp_path / "r", [_episode(0, "ac_0", [10.0] * 30 + [0.0] * 170, None)])
+    assert stops.episode_rows(folder / "records.parquet")["last step moving"].tolist() == [30]
