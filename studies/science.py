@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -121,6 +122,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--test-steps", type=int, default=None, help="steps per test episode")
     p.add_argument("--scenarios", nargs="+", type=int, choices=[1, 2], default=None,
                    help="test scenarios (default 1 2; the verdict and IQM use Scenario 1)")
+    p.add_argument("--test-workers", type=int, default=os.cpu_count() or 1, metavar="N",
+                   help="processes that run the held-out test (default: one per core; the records "
+                        "are the same with any number)")
     p.add_argument("--no-ray", action="store_true", help="train one trial after another, no Ray")
     p.add_argument("--concurrent", type=int, default=None, help="Ray trials at once")
     p.add_argument("--ray-address", default=None, help="an existing Ray cluster")
@@ -137,6 +141,8 @@ def parse(argv=None) -> argparse.Namespace:
                         "`cosim benchmark --train-only` folders (checked against the plan)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    if args.test_workers < 1:
+        p.error(f"--test-workers {args.test_workers}: give 1 or more processes")
     given = {k for k, v in vars(args).items() if v is not None}
     study_options = given & {"preset", "envs", "algos", "seeds", "steps", "agents", "collisions", "episodes",
                              "obs", "share_params", "demo_steps",
@@ -372,9 +378,10 @@ def _write(df: pd.DataFrame, path: Path) -> None:
     tmp.replace(path)
 
 
-def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, int]) -> pd.DataFrame:
+def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, int],
+         workers: int = 1) -> pd.DataFrame:
     """Held-out records of every (env, training seed < seeds_of[env]), from the cache where
-    present."""
+    present; ``workers`` processes run each seed's episodes (the same records as one)."""
     from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
 
     t = study["test"]
@@ -388,7 +395,7 @@ def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, i
                                   episodes=t["episodes"], steps=t["steps"], seed=HELD_OUT_SEED,
                                   agents=len(plan.algos))
                 records = run_protocol(pp, policy_factory("trained", checkpoints(
-                    plan, out / "bench", env, seed)), list(plan.algos))
+                    plan, out / "bench", env, seed)), list(plan.algos), workers=workers)
                 _write(records.assign(train_seed=seed), path)
                 say(f"tested {env} seed {seed} ({time.monotonic() - start:.0f} s)")
             frames.append(pd.read_parquet(path))
@@ -636,7 +643,7 @@ def main(argv=None) -> int:
                 adopt(plan, out / "bench", args.runs, say)
             train(args, plan, out / "bench", say)
             seeds_of = {e: plan.seeds for e in plan.envs}
-        records = test(plan, study, out, say, seeds_of)
+        records = test(plan, study, out, say, seeds_of, args.test_workers)
         refs = references(plan, study, out, say)
         command = "python studies/science.py " + " ".join(sys.argv[1:] if argv is None else argv)
         text = results(plan, study, records, refs, out, command, seeds_of)

@@ -261,6 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--fixed-slots", action="store_true",
                    help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
                         "turns at the spawn slots, one step per episode)")
+    e.add_argument("--workers", type=_int_in(1), default=1, metavar="N",
+                   help="processes that run the test's episodes, one torch thread each (the "
+                        "records are the same with any number; default 1)")
     e.add_argument("--greedy", action="store_true",
                    help=f"{', '.join(STOCHASTIC)} take their policy's mode (default: they sample "
                         f"it; {', '.join(DETERMINISTIC)} always act greedily)")

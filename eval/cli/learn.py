@@ -265,7 +265,8 @@ def cmd_test(args) -> int:
         prov["slots"] = slots.to_dict("records")
     phases = _Phases(args.quiet)
     units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
-    records = run_protocol(plan, factory, algos, progress=phases.bar("test", units, "run"))
+    records = run_protocol(plan, factory, algos, progress=phases.bar("test", units, "run"),
+                           workers=args.workers)
     refs = None
     if refs_wanted:
         refs = reference_rows(plan, refs_wanted, progress=phases.bar("references", len(plan.envs), "env"))

@@ -338,6 +338,53 @@ def slots_markdown(table: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
+class TrainedPolicies:
+    """:func:`policy_factory` ("trained"), as an object a test worker process can receive:
+    pickled without the loaded networks, it loads each checkpoint again where it runs."""
+
+    def __init__(self, checkpoints: dict[str, Path] | None = None, fixed: Collection[str] = (),
+                 greedy: bool = False, loaded: dict | None = None):
+        self.checkpoints = dict(checkpoints or {})
+        self.fixed, self.greedy = tuple(fixed), greedy
+        self.loaded = {} if loaded is None else loaded
+        for a, p in self.checkpoints.items():  # the given ones load now: a bad file fails before any episode runs
+            if p not in self.loaded:
+                self.loaded[p] = load_for_slot(p, a)
+
+    def __call__(self, env, agent: str, algo: str):
+        path = (self.checkpoints[algo] if algo in self.fixed
+                else slot_checkpoint(self.checkpoints[algo], agent))
+        if path not in self.loaded:
+            self.loaded[path] = load_for_slot(path, algo)
+        seed = int(agent.rsplit("_", 1)[1]) if algo in SAMPLED and not self.greedy else None
+        return drive(self.loaded[path], seed, env, agent)  # one frame history (and draw stream) per AC
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "loaded": {}}
+
+
+class EnvPolicies:
+    """:func:`env_policy_factory`'s factory: each environment's own :class:`TrainedPolicies`."""
+
+    def __init__(self, by_name: dict[str, TrainedPolicies]):
+        self.by_name = by_name
+
+    def __call__(self, env, agent: str, algo: str):
+        return self.by_name[env.scenario.name](env, agent, algo)
+
+
+class ReferencePolicies:
+    """``--policy autopilot`` or ``random`` for every AC (random seeded by the AC's slot)."""
+
+    def __init__(self, kind: str):
+        self.kind = kind
+
+    def __call__(self, env, agent: str, algo: str):
+        if self.kind == "autopilot":
+            return AutopilotPolicy(env, agent)
+        return RandomPolicy(env.action_space(agent), seed=int(agent.rsplit("_", 1)[1]))
+
+
 def env_policy_factory(per_env: Mapping[str, Mapping[str, Path]], fixed: Collection[str] = (),
                        greedy: bool = False) -> PolicyFactory:
     """:func:`policy_factory` ("trained") with each environment's own checkpoints
@@ -346,13 +393,8 @@ def env_policy_factory(per_env: Mapping[str, Mapping[str, Path]], fixed: Collect
     from cosim.scenario import load_scenario
 
     loaded: dict[Path, object] = {}
-    by_name = {load_scenario(env).name: policy_factory("trained", dict(ckpts), fixed, greedy, loaded)
-               for env, ckpts in per_env.items()}
-
-    def make(env, agent, algo):
-        return by_name[env.scenario.name](env, agent, algo)
-
-    return make
+    return EnvPolicies({load_scenario(env).name: TrainedPolicies(dict(ckpts), fixed, greedy, loaded)
+                        for env, ckpts in per_env.items()})
 
 
 def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
@@ -365,66 +407,111 @@ def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
     ``fixed`` (given with ``--checkpoint``), whose checkpoint drives every slot. The
     :data:`SAMPLED` algorithms draw their actions from their policy (seeded per slot
     and episode) unless ``greedy``; the others act greedily. ``loaded``: a cache of loaded
-    checkpoints (path -> agent) to share with other factories."""
+    checkpoints (path -> agent) to share with other factories. Every factory returned can be
+    pickled, so :func:`run_protocol` can hand it to worker processes."""
     if kind == "trained":
-        checkpoints = dict(checkpoints or {})
-        loaded = {} if loaded is None else loaded
-        for a, p in checkpoints.items():  # the given ones load now: a bad file fails before any episode runs
-            if p not in loaded:
-                loaded[p] = load_for_slot(p, a)
-
-        def make(env, agent, algo):
-            path = checkpoints[algo] if algo in fixed else slot_checkpoint(checkpoints[algo], agent)
-            if path not in loaded:
-                loaded[path] = load_for_slot(path, algo)
-            seed = int(agent.rsplit("_", 1)[1]) if algo in SAMPLED and not greedy else None
-            return drive(loaded[path], seed, env, agent)  # one frame history (and draw stream) per AC
-
-        return make
-    if kind == "autopilot":
-        return lambda env, agent, algo: AutopilotPolicy(env, agent)
-    if kind == "random":
-        return lambda env, agent, algo: RandomPolicy(env.action_space(agent), seed=hash(agent) % 1000)
+        return TrainedPolicies(checkpoints, fixed, greedy, loaded)
+    if kind in ("autopilot", "random"):
+        return ReferencePolicies(kind)
     raise ProtocolError(f"unknown policy kind {kind!r}; valid: trained, autopilot, random")
 
 
-def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence[str] = ALGO_ORDER,
-                 progress: Callable[[str], None] | None = None) -> pd.DataFrame:
-    """Run Scenario 1 and/or 2 in every environment of the plan; return all records."""
-    algos = list(algos)[: plan.agents] if 1 in plan.scenarios else list(algos)
-    frames = []
-    seeds = [plan.seed + e for e in range(plan.episodes)]
+@dataclass(frozen=True)
+class ProtocolJob:
+    """One environment of the test: a Scenario 1 slot order with the episodes that use it,
+    or one algorithm's AC alone (Scenario 2) for every episode."""
+
+    env: str
+    scenario: int
+    order: tuple[str, ...]  # the algorithm of ac_0, ac_1, ...
+    episodes: tuple[int, ...]
+
+
+def protocol_jobs(plan: ProtocolPlan, algos: Sequence[str]) -> list[ProtocolJob]:
+    """The plan's environments to run, in the order their records are returned."""
+    jobs = []
     for env_name in plan.envs:
         if 1 in plan.scenarios:
             # one environment per slot order (the action types follow the algorithms)
             by_order: dict[tuple[str, ...], list[int]] = {}
             for e in range(plan.episodes):
                 by_order.setdefault(tuple(slot_order(algos, e, plan.rotate)), []).append(e)
-            for order, episodes in by_order.items():
-                env = TestConditions.of(1, plan.steps).env(env_name, action_kinds(order))
-                try:
-                    agent_algo = dict(zip(env.possible_agents, order, strict=True))
-                    policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
-                    rec = run_episodes(env, policies, [seeds[e] for e in episodes],
-                                       algorithms=agent_algo)
-                finally:
-                    env.close()
-                rec["episode"] = rec["episode"].map(dict(enumerate(episodes)))
-                frames.append(rec.assign(env=env_name, scenario=1))
-            if progress:
-                progress(f"{env_name} scenario 1")
+            jobs += [ProtocolJob(env_name, 1, order, tuple(eps)) for order, eps in by_order.items()]
         if 2 in plan.scenarios:
-            for algo in algos:
-                env = TestConditions.of(2, plan.steps).env(env_name, action_kinds([algo]))
-                try:
-                    policies = {"ac_0": make_policy(env, "ac_0", algo)}
-                    rec = run_episodes(env, policies, seeds, algorithms={"ac_0": algo})
-                finally:
-                    env.close()
-                frames.append(rec.assign(env=env_name, scenario=2))
-                if progress:
-                    progress(f"{env_name} scenario 2 {algo}")
-    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+            jobs += [ProtocolJob(env_name, 2, (algo,), tuple(range(plan.episodes))) for algo in algos]
+    return jobs
+
+
+def run_job(plan: ProtocolPlan, make_policy: PolicyFactory, job: ProtocolJob) -> pd.DataFrame:
+    """Every step of one :class:`ProtocolJob`'s episodes (episode seeds ``plan.seed + e``)."""
+    env = TestConditions.of(job.scenario, plan.steps).env(job.env, action_kinds(list(job.order)))
+    try:
+        agent_algo = dict(zip(env.possible_agents, job.order, strict=True))
+        policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
+        rec = run_episodes(env, policies, [plan.seed + e for e in job.episodes], algorithms=agent_algo)
+    finally:
+        env.close()
+    rec["episode"] = rec["episode"].map(dict(enumerate(job.episodes)))
+    return rec.assign(env=job.env, scenario=job.scenario)
+
+
+_WORKER_POLICIES: list = []  # a test worker process's policy factory (set by _start_worker)
+
+
+def _start_worker(make_policy: PolicyFactory) -> None:
+    import torch
+
+    torch.set_num_threads(1)  # the workers share the machine's cores
+    _WORKER_POLICIES[:] = [make_policy]
+
+
+def _worker_job(plan: ProtocolPlan, job: ProtocolJob) -> pd.DataFrame:
+    return run_job(plan, _WORKER_POLICIES[0], job)
+
+
+def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence[str] = ALGO_ORDER,
+                 progress: Callable[[str], None] | None = None, workers: int = 1) -> pd.DataFrame:
+    """Run Scenario 1 and/or 2 in every environment of the plan; return all records.
+
+    ``workers`` > 1 runs the plan's :func:`protocol_jobs` in that many processes (each with one
+    torch thread); the records are the same, in the same order, as with one. ``progress`` is
+    told "<env> scenario 1" when an environment's Scenario 1 is done and "<env> scenario 2
+    <algo>" for each AC alone."""
+    algos = list(algos)[: plan.agents] if 1 in plan.scenarios else list(algos)
+    jobs = protocol_jobs(plan, algos)
+    left = {env: sum(j.env == env and j.scenario == 1 for j in jobs) for env in plan.envs}
+
+    def done(job: ProtocolJob) -> None:
+        if job.scenario == 1:
+            left[job.env] -= 1
+        if progress and (job.scenario == 2 or not left[job.env]):
+            progress(f"{job.env} scenario {job.scenario}" + (f" {job.order[0]}" if job.scenario == 2 else ""))
+
+    workers = max(1, min(int(workers), len(jobs)))
+    if workers == 1:
+        frames = []
+        for job in jobs:
+            frames.append(run_job(plan, make_policy, job))
+            done(job)
+        return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    import multiprocessing
+    import pickle
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    try:
+        pickle.dumps(make_policy)
+    except (pickle.PicklingError, AttributeError, TypeError) as exc:
+        raise ProtocolError(f"workers={workers}: this policy factory cannot go to another process "
+                            f"({exc}); use policy_factory(...) or workers=1") from exc
+    results: list[pd.DataFrame | None] = [None] * len(jobs)
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_start_worker, initargs=(make_policy,)) as pool:
+        running = {pool.submit(_worker_job, plan, job): k for k, job in enumerate(jobs)}
+        for future in as_completed(running):
+            k = running[future]
+            results[k] = future.result()
+            done(jobs[k])
+    return pd.concat(results, ignore_index=True)
 
 
 def metrics_table(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
@@ -457,7 +544,9 @@ def reference_rows(plan: ProtocolPlan, policies: Sequence[str],
     return pd.concat(frames, ignore_index=True)
 
 
-__all__ = ["METRICS", "ProtocolPlan", "SAMPLED", "action_repeat_of", "cross_env", "drive", "env_policy_factory", "find_checkpoints",
-           "frame_stack_of", "load_for_slot", "metrics_table", "obs_of", "policy_factory", "reference_rows",
-           "rules", "run_env", "run_of", "run_protocol", "slot_checkpoint", "slot_order",
-           "slot_summary", "slot_table", "slots_markdown", "trained_env"]
+__all__ = ["EnvPolicies", "METRICS", "ProtocolJob", "ProtocolPlan", "ReferencePolicies",
+           "SAMPLED", "TrainedPolicies", "action_repeat_of", "cross_env", "drive",
+           "env_policy_factory", "find_checkpoints", "frame_stack_of", "load_for_slot",
+           "metrics_table", "obs_of", "policy_factory", "protocol_jobs", "reference_rows",
+           "rules", "run_env", "run_job", "run_of", "run_protocol", "slot_checkpoint",
+           "slot_order", "slot_summary", "slot_table", "slots_markdown", "trained_env"]

@@ -255,3 +255,47 @@ def test_algos_picks_the_algorithms_tested_in_paper_order(tmp_path):
     assert list(dict.fromkeys(pd.read_csv(long)["algorithm"])) == ["ppo", "td3"]
     prov = json.loads((long.parent / "provenance.json").read_text())
     assert prov["command"].split()[:5] == ["cosim", "test", "--algos", "td3", "ppo"]
+
+
+def test_worker_processes_give_the_same_records_in_the_same_order(tmp_path):
+    """`run_protocol(workers=2)` hands trained checkpoints to two processes (they load them
+    again there) and returns what one process does, in its order, telling the same progress."""
+    import torch
+
+    obs = spaces.Box(0, 255, (84, 84, 3), np.uint8)
+    found = {}
+    for algo, act in (("ppo", spaces.Discrete(9)), ("dqn", spaces.Discrete(9)),
+                      ("td3", spaces.Box(-1, 1, (2,), np.float32))):
+        run = tmp_path / f"env_1__{algo}__0__20260101-000000" / "checkpoints" / "ac_0"
+        run.mkdir(parents=True)
+        get_agent_class(algo).from_spaces(obs, act, seed=3).save(run / "best.pt")
+        found[algo] = run / "best.pt"
+    plan = ProtocolPlan(envs=("env_1",), scenarios=(1, 2), episodes=2, steps=12, agents=3)
+    told = {1: [], 2: []}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as in each worker: the networks' sums in one order
+    try:
+        one = run_protocol(plan, policy_factory("trained", found), list(found), progress=told[1].append)
+    finally:
+        torch.set_num_threads(threads)
+    two = run_protocol(plan, policy_factory("trained", found), list(found), progress=told[2].append,
+                       workers=2)
+    assert len(one) == 2 * 12 * 3 + 3 * 2 * 12  # Scenario 1: 2 episodes x 3 ACs; 2: 3 ACs alone
+    pd.testing.assert_frame_equal(one, two)
+    assert sorted(told[1]) == sorted(told[2]) == ["env_1 scenario 1", "env_1 scenario 2 dqn",
+                                                  "env_1 scenario 2 ppo", "env_1 scenario 2 td3"]
+    with pytest.raises(ProtocolError, match="cannot go to another process.*workers=1"):
+        run_protocol(plan, lambda env, agent, algo: None, list(found), workers=2)
+
+
+def test_cli_test_runs_its_episodes_in_worker_processes(tmp_path, capsys):
+    code = main(["test", "--policy", "autopilot", "--algos", "td3", "ppo", "--envs", "env_1",
+                 "--scenario", "both", "--episodes", "1", "--steps", "5", "--no-replays",
+                 "--references", "none", "--workers", "2", "--out", str(tmp_path), "--quiet"])
+    assert code == 0
+    (records,) = tmp_path.glob("*/records.parquet")
+    rec = pd.read_parquet(records)
+    assert sorted(rec.groupby("scenario").size().items()) == [(1, 10), (2, 10)]
+    with pytest.raises(SystemExit):
+        main(["test", "--policy", "autopilot", "--workers", "0", "--out", str(tmp_path)])
+    assert "--workers: must be >= 1, got 0" in capsys.readouterr().err

@@ -454,3 +454,10 @@ def test_runs_trained_elsewhere_are_linked_instead_of_trained(smoke, tmp_path):
         bad = _run(tmp_path / "bad", *extra)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr[-2000:]
         shutil.rmtree(tmp_path / "bad")
+
+
+def test_no_test_workers_is_refused_naming_the_option(tmp_path):
+    bad = subprocess.run([sys.executable, str(SCRIPT), "--smoke", "--test-workers", "0", "--out",
+                          str(tmp_path / "s")], capture_output=True, text=True, cwd=ROOT)
+    assert bad.returncode == 2 and "--test-workers 0: give 1 or more processes" in bad.stderr
+    assert not (tmp_path / "s").exists()
