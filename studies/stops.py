@@ -57,7 +57,7 @@ def nearest_ac(records: pd.DataFrame) -> pd.Series:
         d = np.hypot(x.values[:, :, None] - x.values[:, None, :], y.values[:, :, None] - y.values[:, None, :])
         idx = np.arange(d.shape[1])
         d[:, idx, idx] = np.inf
-        near = pd.DataFrame(np.nanmin(np.where(np.isnan(d), np.inf, d), axis=2), index=x.index, columns=x.columns)
+        near = pd.DataFrame(np.fmin.reduce(d, axis=2), index=x.index, columns=x.columns)  # NaN: AC gone
         pairs = near.stack().rename("near")
         keyed = g[["step", "agent"]].join(pairs, on=["step", "agent"])
         out.loc[g.index] = keyed["near"].fillna(np.inf).values

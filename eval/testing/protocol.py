@@ -338,6 +338,11 @@ def slots_markdown(table: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
+def slot_index(agent: str) -> int:
+    """k of slot ``ac_k``: the seed of that slot's draws."""
+    return int(agent.rsplit("_", 1)[1])
+
+
 class TrainedPolicies:
     """:func:`policy_factory` ("trained"), as an object a test worker process can receive:
     pickled without the loaded networks, it loads each checkpoint again where it runs."""
@@ -356,7 +361,7 @@ class TrainedPolicies:
                 else slot_checkpoint(self.checkpoints[algo], agent))
         if path not in self.loaded:
             self.loaded[path] = load_for_slot(path, algo)
-        seed = int(agent.rsplit("_", 1)[1]) if algo in SAMPLED and not self.greedy else None
+        seed = slot_index(agent) if algo in SAMPLED and not self.greedy else None
         return drive(self.loaded[path], seed, env, agent)  # one frame history (and draw stream) per AC
 
     def __getstate__(self) -> dict:
@@ -382,7 +387,7 @@ class ReferencePolicies:
     def __call__(self, env, agent: str, algo: str):
         if self.kind == "autopilot":
             return AutopilotPolicy(env, agent)
-        return RandomPolicy(env.action_space(agent), seed=int(agent.rsplit("_", 1)[1]))
+        return RandomPolicy(env.action_space(agent), seed=slot_index(agent))
 
 
 def env_policy_factory(per_env: Mapping[str, Mapping[str, Path]], fixed: Collection[str] = (),
