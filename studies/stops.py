@@ -45,13 +45,25 @@ def policy_label(report: Path, algorithm: str) -> str:
     return algorithm if policy == "trained" else policy
 
 
+def _runs(records: pd.DataFrame):
+    """The records of each simulation run: one (scenario, episode) of ACs driving together,
+    or, where one (step, agent) occurs more than once there (Scenario 2 of a study's records:
+    each algorithm's AC alone, in its own environment), one (scenario, episode, algorithm)."""
+    keys = [k for k in ("scenario", "episode") if k in records]
+    for _key, g in records.groupby(keys, sort=False):
+        if g.duplicated(["step", "agent"]).any():
+            yield from (run for _a, run in g.groupby("algorithm", sort=False))
+        else:
+            yield g
+
+
 def nearest_ac(records: pd.DataFrame) -> pd.Series:
-    """Per record row: metres from this AC's centre to the nearest other AC's at the same
-    (episode, step); infinite for an AC alone."""
+    """Per record row: metres from this AC's centre to the nearest other AC's at the same step of
+    the same run (:func:`_runs`); infinite for an AC alone."""
     out = pd.Series(np.inf, index=records.index)
-    for _episode, g in records.groupby("episode", sort=False):
-        x = g.pivot_table(index="step", columns="agent", values="x")
-        y = g.pivot_table(index="step", columns="agent", values="y")
+    for g in _runs(records):
+        x = g.pivot(index="step", columns="agent", values="x")
+        y = g.pivot(index="step", columns="agent", values="y")
         if x.shape[1] < 2:
             continue
         d = np.hypot(x.values[:, :, None] - x.values[:, None, :], y.values[:, :, None] - y.values[:, None, :])
@@ -75,12 +87,15 @@ def load_records(report: Path) -> pd.DataFrame:
 
 
 def episode_rows(report: Path) -> pd.DataFrame:
-    """One row per (episode, AC) of one `cosim test` report folder (or records file)."""
+    """One row per (scenario, episode, AC, algorithm) of one `cosim test` report folder (or records
+    file): a study's records hold Scenario 1 and each algorithm's Scenario 2 runs, episode numbers alike."""
     records = load_records(report)
     records = records.assign(near_ac=nearest_ac(records))
     folder = Path(report) if Path(report).suffix != ".parquet" else Path(report).parent
     rows = []
-    for (_episode, agent), g in records.groupby(["episode", "agent"], sort=True):
+    keys = [k for k in ("scenario", "episode", "agent", "algorithm") if k in records]
+    for _key, g in records.groupby(keys, sort=True):  # a study's records hold both scenarios
+        agent = str(g.agent.iloc[0])
         g = g.sort_values("step")
         moving = g.loc[g.speed >= MOVING, "step"]
         end = g.iloc[-1]

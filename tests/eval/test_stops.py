@@ -98,3 +98,20 @@ def test_contacts_are_split_into_those_with_another_ac_and_those_standing(stops,
 def test_a_records_file_is_read_as_its_report(stops, tmp_path):
     folder = _report(tmp_path / "r", [_episode(0, "ac_0", [10.0] * 30 + [0.0] * 170, None)])
     assert stops.episode_rows(folder / "records.parquet")["last step moving"].tolist() == [30]
+
+
+def test_a_studys_records_keep_each_scenario_2_run_apart(stops, tmp_path):
+    """A science study's records hold Scenario 1 (ACs of several algorithms together) and
+    Scenario 2 (each algorithm's ac_0 alone, in its own environment) with the same episode
+    numbers: each (scenario, episode, AC, algorithm) is one row, and two ACs alone in their own
+    runs are never counted as touching, however close their positions."""
+    together = [_episode(0, "ac_0", [5.0] * 50, None).assign(scenario=1, algorithm="ppo"),
+                _episode(0, "ac_1", [5.0] * 50, None).assign(scenario=1, algorithm="dqn", x=50.0)]
+    alone = [_episode(0, "ac_0", [0.0] * 50, None).assign(algorithm=a, collision_vehicle=True)
+             for a in ("ppo", "dqn")]  # the same place and steps: one background car each
+    rows = stops.episode_rows(_report(tmp_path / "r", together + alone))
+    assert len(rows) == 4 and (rows["steps"] == 50).all()
+    s2 = rows[rows.scenario == 2].set_index("policy")
+    assert s2.loc["ppo", "vehicle contacts"] == 50 and s2.loc["ppo", "AC contacts"] == 0
+    assert s2.loc["dqn", "AC contacts"] == 0 and s2.loc["dqn", "standing contacts"] == 50
+    assert rows[rows.scenario == 1].set_index("agent").loc["ac_0", "return"] == -50.0
