@@ -4,7 +4,8 @@ A diagnostic for the turning slots (issue 27, target 2): a goal rate of 0 says t
 fails, not how. From each report's per-step records (``records.parquet``) this prints, per
 AC-episode: whether it reached its goal, the last step it was still moving, how far it got
 (DISTANCE, the test's metric) and how much of its route was left at the end, its steps off the road and
-on a wrong lane, its contact steps, and its return; then one summary line per policy and slot.
+on a wrong lane, its contact steps, the reward's charge for them and its return; then one summary
+line per policy and slot, and one per policy with its mean return without the contact charge.
 Contact steps are split by what held them: ``AC contacts`` are vehicle contacts with another AC's
 centre within :data:`AC_CONTACT_M` (two learning cars touching), ``standing contacts`` are contact
 steps of any kind below :data:`MOVING` (a car that stays in contact instead of driving out of it).
@@ -113,6 +114,7 @@ def episode_rows(report: Path) -> pd.DataFrame:
             "AC contacts": int((g.collision_vehicle & (g.near_ac <= AC_CONTACT_M)).sum()),
             "contact steps": int(contact.sum()),
             "standing contacts": int((contact & (g.speed < MOVING)).sum()),
+            "contact charge": round(float(g.r_collision.sum()), 1) if "r_collision" in g else np.nan,
             "return": round(float(g.reward.sum()), 1)})
     return pd.DataFrame(rows)
 
@@ -136,6 +138,21 @@ def summary(rows: pd.DataFrame) -> pd.DataFrame:
     return out.round(2).reset_index()
 
 
+def by_policy(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per (policy, environment, scenario), over its AC-episodes: the mean return, the mean
+    return without the contact steps' charge (the reward's collision term), all contact steps
+    and the shares of those with another AC and standing: how much of a mean the contact sets."""
+    keys = ["policy", "env", "scenario"]
+    out = rows.assign(without=rows["return"] - rows["contact charge"]).groupby(keys, sort=False).agg(
+        ac_episodes=("goal", "size"), goal_rate=("goal", "mean"), mean_return=("return", "mean"),
+        without_contact_charge=("without", "mean"), contact_steps=("contact steps", "sum"),
+        ac=("AC contacts", "sum"), standing=("standing contacts", "sum"))
+    total = out["contact_steps"].where(lambda c: c > 0)
+    out["AC_share"] = out.pop("ac") / total
+    out["standing_share"] = out.pop("standing") / total
+    return out.round(2).reset_index()
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("reports", nargs="+", type=Path, help="`cosim test` report folders or records .parquet files")
@@ -147,6 +164,8 @@ def main(argv=None) -> int:
     print(rows.to_string(index=False))
     print()
     print(summary(rows).to_string(index=False))
+    print()
+    print(by_policy(rows).to_string(index=False))
     return 0
 
 

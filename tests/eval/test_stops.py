@@ -115,3 +115,14 @@ def test_a_studys_records_keep_each_scenario_2_run_apart(stops, tmp_path):
     assert s2.loc["ppo", "vehicle contacts"] == 50 and s2.loc["ppo", "AC contacts"] == 0
     assert s2.loc["dqn", "AC contacts"] == 0 and s2.loc["dqn", "standing contacts"] == 50
     assert rows[rows.scenario == 1].set_index("agent").loc["ac_0", "return"] == -50.0
+
+
+def test_by_policy_gives_the_mean_return_without_the_contact_charge(stops, tmp_path):
+    """The reward's collision term (r_collision) is taken out of each AC-episode's return."""
+    hit = _episode(0, "ac_0", [0.0] * 50, None).assign(collision_vehicle=True, collision_object=False)
+    hit = hit.assign(r_collision=-50.0, reward=-51.0)  # every step in contact: -1 and -50
+    clear = _episode(1, "ac_0", [5.0] * 50, None).assign(r_collision=0.0, collision_object=False)
+    line = stops.by_policy(stops.episode_rows(_report(tmp_path / "r", [hit, clear]))).iloc[0]
+    assert line["ac_episodes"] == 2 and line["mean_return"] == (-51.0 * 50 - 50.0) / 2
+    assert line["without_contact_charge"] == -50.0  # both episodes: -1 a step
+    assert line["contact_steps"] == 50 and line["standing_share"] == 1.0 and line["AC_share"] == 0.0
