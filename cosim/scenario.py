@@ -220,6 +220,12 @@ class Scenario:
     background: Background = field(default_factory=Background)
     pedestrians: bool = False
     """Whether the pedestrian demand runs (env_2 and env_3)."""
+    solid_cars: bool = False
+    """Whether cars are solid for an AC, as road objects are: an AC whose step ends in contact
+    with a vehicle ahead of it (the first one found, its centre in front of the AC's) is put
+    back where it was before the step, standing; that step is charged as any contact step. Off
+    in every bundled scenario (task version 3: an AC can drive through a car, charged each
+    contact step). A candidate for the next task version: docs/task.md, "Solid cars"."""
     reward: RewardWeights = field(default_factory=RewardWeights)
     termination: Termination = field(default_factory=Termination)
     spawn_jitter: SpawnJitter = field(default_factory=SpawnJitter)

@@ -14,7 +14,8 @@ The order of one step (docs/guide.md#the-order-of-one-step), done in :meth:`Worl
 6. events: collisions (vehicle / pedestrian / object), off-road, wrong lane, goal
 7. reward: named terms + weighted sum
 8. termination / truncation; finished ACs leave SUMO. Static road objects are solid:
-   an AC that hit one is put back where it was before the step, standing (no reverse)
+   an AC that hit one is put back where it was before the step, standing (no reverse);
+   with Scenario.solid_cars so is an AC that drove into a car ahead
 (the env then syncs the PyBullet mirror to the snapshot and renders one camera per AC)
 """
 
@@ -206,8 +207,10 @@ class World:
         self.step_count += 1
         results = self._results(idx, stalled=self._stalled(idx, nv))
         for k, i in enumerate(idx):
-            if results[self.ac_ids[i]].events.collision_object:
-                # static objects are solid: the car stops where it was before it hit
+            ev = results[self.ac_ids[i]].events
+            if ev.collision_object or (ev.collision_vehicle and self._solid_ahead(i, ev.hit)):
+                # static objects (and, with Scenario.solid_cars, cars ahead) are solid: the car
+                # stops where it was before it hit
                 self._state[i] = (*s[k, :3], 0.0)
         for ac, res in results.items():
             if res.terminated or res.truncated:
@@ -221,6 +224,21 @@ class World:
         tm.events += t4 - t3
         tm.steps += 1
         return results
+
+    def _solid_ahead(self, i: int, hit: str) -> bool:
+        """With Scenario.solid_cars: whether vehicle `hit`, which AC `i` touches after its move,
+        is ahead of it (its centre in front of the AC's), so the AC drove into it; a car that
+        runs into an AC from behind does not put the AC back. False when the option is off."""
+        if not self.scenario.solid_cars:
+            return False
+        snap = self.snapshot
+        try:
+            j = snap.vehicle_ids.index(hit)
+        except ValueError:
+            return False
+        x, y, h, _ = self._state[i]
+        dx, dy = snap.vehicle_xy[j] - (x, y)
+        return dx * math.cos(h) + dy * math.sin(h) > 0.0
 
     def _stalled(self, idx: np.ndarray, speed: np.ndarray) -> bool:
         """Termination.stall_steps: count each active AC's consecutive steps standing (below

@@ -44,6 +44,11 @@ def _copy_yaml(tmp_path: Path, name="env_3", edit=None) -> Path:
     return out
 
 
+def test_solid_cars_is_read_from_the_yaml_and_off_in_every_bundled_scenario(tmp_path):
+    assert load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(solid_cars=True))).solid_cars
+    assert not any(load_scenario(f"env_{k}").solid_cars for k in range(1, 6))  # task version 3
+
+
 def test_malformed_yaml_names_the_file(tmp_path):
     bad = tmp_path / "broken.yaml"
     bad.write_text("name: x\nacs: [ {route: [a, b}\n")
@@ -71,6 +76,7 @@ def test_unknown_key_lists_valid_keys(tmp_path):
         (lambda d: d["acs"][0].update(depart_speed=40), r"depart_speed must be 0..25.0 m/s"),
         (lambda d: d.update(spawn_jitter={"heading_deg": 90}), r"'spawn_jitter'.*heading_deg must be 0..45"),
         (lambda d: d.update(spawn_jitter={"lateral_m": 1}), r"'spawn_jitter'.*unknown key.*lateral"),
+        (lambda d: d.update(solid_cars="yes"), r"'solid_cars' must be bool"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, edit, message):

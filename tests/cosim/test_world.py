@@ -78,6 +78,45 @@ def test_driving_into_a_background_car_and_passing_beside_it():
         assert not any(r.events.collision for r in out)
 
 
+
+@pytest.mark.parametrize("solid", [False, True])
+def test_solid_cars_stop_an_ac_at_a_car_ahead(solid):
+    """Scenario.solid_cars: an AC that drives into a parked car is put back where it was
+    before that step, standing, and never gets past it; without the option it drives
+    through (each contact step charged)."""
+    sc = dataclasses.replace(load_scenario("env_1"), spawn_jitter=SpawnJitter(), solid_cars=solid)
+    with World(sc, 1, background=False) as w:
+        w.reset(seed=0)
+        x, y, h, _ = w.ac_state("ac_0")
+        w.bridge.place_car("stopped", x + 30, y, h, "st_e")
+        out = []
+        for _ in range(80):
+            before = w.ac_state("ac_0")
+            r = w.step({"ac_0": (1.0, 0.0)})["ac_0"]
+            out.append((before, r, w.ac_state("ac_0")))
+    hits = [(b, r, a) for b, r, a in out if r.events.collision_vehicle]
+    assert hits and all(r.events.hit == "stopped" for _, r, _ in hits)
+    if solid:
+        for before, _r, after in hits:  # put back, standing
+            assert after[:3] == pytest.approx(before[:3]) and after[3] == 0.0
+        assert max(a[0] for _, _, a in out) < x + 30 - 4.0, "it never reached past the car's tail"
+    else:
+        assert max(a[0] for _, _, a in out) > x + 35, "it drove through the parked car"
+
+
+def test_solid_cars_do_not_put_back_an_ac_touched_from_behind():
+    """A car touching the AC from behind does not put the AC back: it keeps its move and speed."""
+    sc = dataclasses.replace(load_scenario("env_1"), spawn_jitter=SpawnJitter(), solid_cars=True)
+    with World(sc, 1, background=False) as w:
+        w.reset(seed=0)
+        x, y, h, _ = w.ac_state("ac_0")
+        w.bridge.place_car("behind", x - 3.0 * math.cos(h), y - 3.0 * math.sin(h), h, "st_e")
+        first = w.step({"ac_0": (1.0, 0.0)})["ac_0"]
+        after = w.ac_state("ac_0")
+    assert first.events.collision_vehicle and first.events.hit == "behind"
+    moved = (after[0] - x) * math.cos(h) + (after[1] - y) * math.sin(h)
+    assert moved > 0.5 and after[3] > 0.0
+
 def test_driving_into_a_pedestrian_on_a_crossing_and_a_near_miss():
     # ac_0 straight through from the west, as placed by hand below (env_3's ac_0 turns left)
     base = load_scenario("env_3")
