@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -275,6 +276,31 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
             or malformed YAML, unknown keys (listing the valid ones), bad values, or
             files it names that do not exist. The message names the file.
     """
+    path = _scenario_file(name_or_path)
+    return _scenario_from_dict(_read_mapping(path), path)
+
+
+FILE_KEYS = ("net", "additional", "demand", "pedestrian_demand")
+"""The scenario keys that name files, each relative to the YAML's folder."""
+
+
+def scenario_data(name_or_path: str | Path, relative_to: Path | None = None) -> dict[str, Any]:
+    """A scenario YAML's mapping as the start of a variant written elsewhere (a pilot's
+    ``solid_cars: true``, a test's bad value): its file paths made absolute, or relative to
+    ``relative_to``, the folder the copy will be written to. Not validated: write the copy
+    and ``load_scenario`` it."""
+    path = _scenario_file(name_or_path)
+    data = _read_mapping(path)
+    for key in FILE_KEYS:
+        if isinstance(data.get(key), (str, list)):  # anything else: load_scenario's error
+            one = isinstance(data[key], str)
+            files = [(path.parent / f).resolve() for f in ([data[key]] if one else data[key])]
+            files = [os.path.relpath(f, relative_to) if relative_to else str(f) for f in files]
+            data[key] = files[0] if one else files
+    return data
+
+
+def _scenario_file(name_or_path: str | Path) -> Path:
     path = Path(name_or_path)
     if path.suffix not in (".yaml", ".yml"):
         candidate = scenarios_dir() / f"{name_or_path}.yaml"
@@ -286,13 +312,17 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         path = candidate
     if not path.exists():
         raise ScenarioError(f"scenario file {path} does not exist")
+    return path
+
+
+def _read_mapping(path: Path) -> dict[str, Any]:
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ScenarioError(f"{path}: malformed YAML: {exc}") from exc
     if not isinstance(data, dict):
         raise ScenarioError(f"{path}: expected a mapping of scenario keys at the top level")
-    return _scenario_from_dict(data, path)
+    return data
 
 
 def _scenario_from_dict(data: dict[str, Any], path: Path) -> Scenario:

@@ -16,24 +16,16 @@ from pathlib import Path
 import yaml
 
 from cosim.errors import ScenarioError
-from cosim.scenario import load_scenario, scenarios_dir
-
-PATH_KEYS = ("net", "additional", "demand", "pedestrian_demand")
-"""The keys that name files, relative to the YAML's folder."""
+from cosim.scenario import load_scenario, scenario_data
 
 
 def copy_scenario(name: str, out: Path, changes: dict) -> Path:
-    """Write bundled scenario ``name`` to ``out`` with absolute paths and ``changes`` applied."""
-    src = scenarios_dir() / f"{name}.yaml"
-    if not src.exists():
-        raise SystemExit(f"scenario_copy: no bundled scenario {name!r}; choose one of "
-                         f"{', '.join(sorted(p.stem for p in scenarios_dir().glob('*.yaml')))}")
-    data = yaml.safe_load(src.read_text())
-    for key in PATH_KEYS:
-        if isinstance(data.get(key), str):
-            data[key] = str((src.parent / data[key]).resolve())
-        elif key in data:
-            data[key] = [str((src.parent / p).resolve()) for p in data[key]]
+    """Write scenario ``name`` (bundled, or a YAML's path) to ``out`` with absolute paths and
+    ``changes`` applied."""
+    try:
+        data = scenario_data(name)
+    except ScenarioError as exc:
+        raise SystemExit(f"scenario_copy: {exc}") from None
     data.update(changes)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -57,7 +49,7 @@ def _change(text: str) -> tuple[str, object]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("scenario", help="a bundled scenario: env_1 .. env_5")
+    p.add_argument("scenario", help="a bundled scenario (env_1 .. env_5) or a scenario YAML")
     p.add_argument("out", type=Path, help="the copy's path (.yaml)")
     p.add_argument("--set", type=_change, action="append", default=[], metavar="KEY=VALUE",
                    help="a top-level scenario key and its YAML value (repeatable)")

@@ -21,7 +21,7 @@ import yaml
 from agents.a3c import A3C
 from agents.td3 import TD3
 from cosim.errors import ActionError, CosimError, OptionError, ScenarioError
-from cosim.scenario import load_scenario, scenarios_dir
+from cosim.scenario import load_scenario, scenario_data, scenarios_dir
 from eval.cli import main
 
 OBS = gymnasium.spaces.Box(0, 255, (84, 84, 3), np.uint8)
@@ -29,13 +29,7 @@ OBS = gymnasium.spaces.Box(0, 255, (84, 84, 3), np.uint8)
 
 def scenario_yaml(tmp_path: Path, name: str = "bad", base: str = "env_1", **changes) -> Path:
     """A copy of a bundled scenario with `changes`, its file paths made absolute."""
-    src = scenarios_dir() / f"{base}.yaml"
-    data = yaml.safe_load(src.read_text())
-    for key in ("net", "demand", "pedestrian_demand", "additional"):
-        if key in data:
-            value = data[key]
-            data[key] = ([str((src.parent / v).resolve()) for v in value] if isinstance(value, list)
-                         else str((src.parent / value).resolve()))
+    data = scenario_data(base)
     data.pop("name", None)
     data.update(changes)
     path = tmp_path / f"{name}.yaml"

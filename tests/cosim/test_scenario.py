@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from cosim.errors import NetError, ScenarioError
-from cosim.scenario import available_scenarios, load_scenario, nets_dir
+from cosim.scenario import available_scenarios, load_scenario, nets_dir, scenario_data
 
 ENVS = ["env_1", "env_2", "env_3", "env_4", "env_5"]
 
@@ -28,15 +28,7 @@ def test_unknown_scenario_lists_the_available_ones():
 
 
 def _copy_yaml(tmp_path: Path, name="env_3", edit=None) -> Path:
-    src = nets_dir() / "scenarios" / f"{name}.yaml"
-    data = yaml.safe_load(src.read_text())
-    for key in ("net", "additional", "demand", "pedestrian_demand"):
-        if key in data:  # absolute paths, so the copy can live anywhere
-            v = data[key]
-            data[key] = (
-                str((src.parent / v).resolve()) if isinstance(v, str)
-                else [str((src.parent / p).resolve()) for p in v]
-            )
+    data = scenario_data(name)  # absolute paths, so the copy can live anywhere
     if edit:
         edit(data)
     out = tmp_path / f"{name}_copy.yaml"
@@ -47,6 +39,16 @@ def _copy_yaml(tmp_path: Path, name="env_3", edit=None) -> Path:
 def test_solid_cars_is_read_from_the_yaml_and_off_in_every_bundled_scenario(tmp_path):
     assert load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(solid_cars=True))).solid_cars
     assert not any(load_scenario(f"env_{k}").solid_cars for k in range(1, 6))  # task version 3
+
+
+def test_scenario_data_makes_every_file_absolute_or_relative_to_the_copys_folder(tmp_path):
+    data = scenario_data("env_3")
+    files = [data["net"], *data["demand"], *data["pedestrian_demand"], *data["additional"]]
+    assert all(Path(f).is_absolute() and Path(f).exists() for f in files)
+    near = scenario_data("env_3", relative_to=tmp_path)
+    assert not Path(near["net"]).is_absolute() and (tmp_path / near["net"]).resolve() == Path(data["net"])
+    with pytest.raises(ScenarioError, match="unknown scenario 'env_9'; available: env_1"):
+        scenario_data("env_9")
 
 
 def test_malformed_yaml_names_the_file(tmp_path):

@@ -3,7 +3,6 @@ degrees, ``max_lateral_accel: null`` for no grip limit. It is how the steering b
 (discrete fractions of 35 degrees, no grip limit) is run; the defaults stay as they are."""
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,7 @@ from cosim.dynamics import (
     discrete_controls,
 )
 from cosim.errors import ScenarioError
-from cosim.scenario import load_scenario, nets_dir
+from cosim.scenario import load_scenario, scenario_data
 
 ENVS = ["env_1", "env_2", "env_3", "env_4", "env_5"]
 OLD = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -47,14 +46,7 @@ def _old_bicycle_step(x, y, heading, speed, throttle_brake, steer, params, dt):
 def _scenario_yaml(folder: Path, name="env_4", vehicle=None, relative=True) -> Path:
     """A copy of a bundled scenario in ``folder`` whose file paths are relative to the copy
     (as a user's own scenario would have them), with a ``vehicle:`` block."""
-    src = nets_dir() / "scenarios" / f"{name}.yaml"
-    data = yaml.safe_load(src.read_text())
-    for key in ("net", "additional", "demand", "pedestrian_demand"):
-        if key in data:
-            files = [data[key]] if isinstance(data[key], str) else data[key]
-            files = [(src.parent / f).resolve() for f in files]
-            files = [os.path.relpath(f, folder) if relative else str(f) for f in files]
-            data[key] = files[0] if isinstance(data[key], str) else files
+    data = scenario_data(name, relative_to=folder if relative else None)
     if vehicle is not None:
         data["vehicle"] = vehicle
     folder.mkdir(parents=True, exist_ok=True)

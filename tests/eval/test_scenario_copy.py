@@ -24,5 +24,5 @@ def test_a_bad_change_is_refused_and_nothing_is_written(copier, tmp_path):
     with pytest.raises(SystemExit, match=r"'solid_cars' must be bool"):
         copier.main(["env_3", str(tmp_path / "x.yaml"), "--set", "solid_cars=maybe"])
     assert not list(tmp_path.iterdir())
-    with pytest.raises(SystemExit, match="no bundled scenario 'env_9'"):
+    with pytest.raises(SystemExit, match="scenario_copy: unknown scenario 'env_9'; available: env_1"):
         copier.main(["env_9", str(tmp_path / "x.yaml")])
