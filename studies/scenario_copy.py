@@ -1,5 +1,5 @@
-"""A bundled scenario's YAML copied anywhere, its file paths made absolute, with top-level keys
-changed: the starting point of a pilot on a variant of the task.
+"""A scenario's YAML (bundled, or any file) copied anywhere, its file paths made absolute, with
+top-level keys changed: the starting point of a pilot on a variant of the task.
 
     python studies/scenario_copy.py env_3 pilots/env_3_solid.yaml --set solid_cars=true
     cosim train --algo dqn --env pilots/env_3_solid.yaml --preset standard --out pilots/solid
