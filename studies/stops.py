@@ -9,11 +9,16 @@ line per policy and slot, and one per policy with its mean return without the co
 Contact steps are split by what held them: ``AC contacts`` are vehicle contacts with another AC's
 centre within :data:`AC_CONTACT_M` (two learning cars touching), ``standing contacts`` are contact
 steps of any kind below :data:`MOVING` (a car that stays in contact instead of driving out of it).
+``--long N`` also lists every unbroken run of N or more contact steps of one AC (:func:`contact_runs`):
+when it began, how it ended, which AC it was held against and where that AC's centre was in this
+one's frame (ahead, beside or behind: a car whose centre is behind this one's cannot be in its
+forward camera), and what share of all contact steps such runs hold.
 
     cosim test --algos dqn --envs env_2 --scenario 2 --episodes 6 --steps 600 --seed 10000 \\
         --runs grid27/runs --references none --out s2/dqn
     python studies/stops.py s2/dqn/* s2/td3/* --out episodes.csv
     python studies/stops.py arms/records/demo.parquet   # `studies/arms.py`'s records work too
+    python studies/stops.py science/test/*.parquet --long 50 --runs-out runs.csv
 
 A report of a reference driver (``cosim test --policy autopilot``) is labelled with the
 driver's name (its provenance.json), a report of trained checkpoints with the algorithm.
@@ -75,6 +80,76 @@ def nearest_ac(records: pd.DataFrame) -> pd.Series:
         keyed = g[["step", "agent"]].join(pairs, on=["step", "agent"])
         out.loc[g.index] = keyed["near"].fillna(np.inf).values
     return out
+
+
+BESIDE_M = 1.0
+"""m: another AC whose centre is within this distance of this AC's centre along its heading is
+*beside* it; further forward it is *ahead*, further back *behind*."""
+
+
+def _bearing(me: pd.Series, other: pd.Series) -> tuple[str, float]:
+    """Where ``other``'s centre lies in ``me``'s frame ("ahead", "beside", "behind") and how far
+    along ``me``'s heading (metres, + ahead); headings are radians from +x, counter-clockwise."""
+    along = float((other.x - me.x) * np.cos(me.heading) + (other.y - me.y) * np.sin(me.heading))
+    side = "ahead" if along > BESIDE_M else "behind" if along < -BESIDE_M else "beside"
+    return side, round(along, 1)
+
+
+def contact_runs(records: pd.DataFrame, min_steps: int = 1) -> pd.DataFrame:
+    """One row per unbroken run of ``min_steps`` or more contact steps (a car, an object or a
+    pedestrian) of one AC in one simulation run: its policy, slot, first step and length, the share
+    of it standing, how it ended (``left`` the contact, ``goal``, or the episode's ``end``), and the
+    other AC it was held against where one's centre was within :data:`AC_CONTACT_M` at its first
+    step (``partner``, that AC's policy, its bearing from this AC and this AC's from it and both
+    speeds at the first step: who drove into whom; its bearing at the run's last step: what this
+    AC's camera could see while it stood); ``partner`` is empty for a contact with a background car
+    or object."""
+    rows = []
+    for g in _runs(records):
+        g = g.sort_values(["agent", "step"])
+        by_step = {a: h.set_index("step") for a, h in g.groupby("agent", sort=False)}
+        for agent, h in by_step.items():
+            contact = (h.collision_vehicle | h.collision_object | h.get("collision_pedestrian", False)).to_numpy()
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], contact.astype(int), [0]])))
+            for start, stop in zip(edges[::2], edges[1::2], strict=True):
+                if stop - start < min_steps:
+                    continue
+                steps = h.index[start:stop]
+                first, last = h.loc[steps[0]], h.loc[steps[-1]]
+                ended = "goal" if last.goal_reached else "end" if stop == len(h) else "left"
+                row = {"policy": str(h.algorithm.iloc[0]), "env": str(h.env.iloc[0]),
+                       "scenario": int(h.scenario.iloc[0]) if "scenario" in h else -1,
+                       "episode seed": int(h.seed.iloc[0]), "agent": agent, "first step": int(steps[0]),
+                       "steps": int(stop - start), "standing": round(float((h.speed.loc[steps] < MOVING).mean()), 2),
+                       "ended": ended, "speed at first": round(float(first.speed), 1),
+                       "partner": "", "partner policy": "", "partner at": "", "partner along m": np.nan,
+                       "seen from partner": "", "partner speed at first": np.nan, "partner at last": ""}
+                others = [(float(np.hypot(o.loc[steps[0]].x - first.x, o.loc[steps[0]].y - first.y)), b)
+                          for b, o in by_step.items() if b != agent and steps[0] in o.index]
+                if others and min(others)[0] <= AC_CONTACT_M and first.collision_vehicle:
+                    b = min(others)[1]
+                    other = by_step[b].loc[steps[0]]
+                    row.update({"partner": b, "partner policy": str(other.algorithm),
+                                "partner speed at first": round(float(other.speed), 1),
+                                "seen from partner": _bearing(other, first)[0]})
+                    row["partner at"], row["partner along m"] = _bearing(first, other)
+                    if steps[-1] in by_step[b].index:
+                        row["partner at last"] = _bearing(last, by_step[b].loc[steps[-1]])[0]
+                rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def runs_summary(runs: pd.DataFrame, all_contact_steps: int) -> pd.DataFrame:
+    """How much of all contact steps the runs hold: per partner kind (another AC, by where it
+    stood, or none) the runs, their steps, the share of all contact steps and of runs that lasted
+    to the episode's end."""
+    kind = np.where(runs["partner"] == "", "no AC (background car, object)",
+                    "AC " + runs["partner at"].astype(str))
+    out = runs.assign(kind=kind, to_end=runs["ended"] == "end").groupby("kind").agg(
+        runs=("steps", "size"), steps=("steps", "sum"), to_end=("to_end", "sum"),
+        standing=("standing", "mean"))
+    out["share_of_all_contact"] = out["steps"] / max(all_contact_steps, 1)
+    return out.round(2).reset_index()
 
 
 def load_records(report: Path) -> pd.DataFrame:
@@ -157,7 +232,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("reports", nargs="+", type=Path, help="`cosim test` report folders or records .parquet files")
     p.add_argument("--out", type=Path, default=None, help="also write the episode rows as CSV")
+    p.add_argument("--long", type=int, default=0, metavar="N",
+                   help="also list every unbroken run of N or more contact steps of one AC and what held it")
+    p.add_argument("--runs-out", type=Path, default=None, help="with --long: also write those runs as CSV")
     args = p.parse_args(argv)
+    if args.long < 0:
+        raise SystemExit(f"stops: --long {args.long} is negative; give a number of contact steps, e.g. --long 50")
     rows = pd.concat([episode_rows(r) for r in args.reports], ignore_index=True)
     if args.out:
         rows.to_csv(args.out, index=False)
@@ -166,6 +246,17 @@ def main(argv=None) -> int:
     print(summary(rows).to_string(index=False))
     print()
     print(by_policy(rows).to_string(index=False))
+    if args.long:
+        runs = pd.concat([contact_runs(load_records(r), args.long) for r in args.reports], ignore_index=True)
+        if args.runs_out:
+            runs.to_csv(args.runs_out, index=False)
+        print()
+        if runs.empty:
+            print(f"no run of {args.long} or more contact steps")
+        else:
+            print(runs.sort_values("steps", ascending=False).to_string(index=False))
+            print()
+            print(runs_summary(runs, int(rows["contact steps"].sum())).to_string(index=False))
     return 0
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -126,3 +127,46 @@ def test_by_policy_gives_the_mean_return_without_the_contact_charge(stops, tmp_p
     assert line["ac_episodes"] == 2 and line["mean_return"] == (-51.0 * 50 - 50.0) / 2
     assert line["without_contact_charge"] == -50.0  # both episodes: -1 a step
     assert line["contact_steps"] == 50 and line["standing_share"] == 1.0 and line["AC_share"] == 0.0
+
+
+def test_a_long_contact_run_names_the_ac_it_was_held_against_and_who_drove_into_whom(stops, tmp_path):
+    """ac_0 drives north into ac_1, which stands 33 m up the road, and both stand in contact to
+    the end: each gets one run with the other as partner, ac_1 ahead of the car that drove in,
+    ac_0 behind the standing one (outside its forward camera); a background car's short contact
+    (ac_2) is a run with no partner, dropped below ``min_steps``, and counted as left."""
+    driver = _episode(0, "ac_0", [10.0] * 30 + [0.0] * 70, None)
+    parked = _episode(0, "ac_1", [0.0] * 100, None).assign(y=33.0)
+    passer = _episode(0, "ac_2", [5.0] * 100, None).assign(x=100.0)
+    for frame in (driver, parked, passer):
+        frame["collision_object"] = False
+        frame["heading"] = np.pi / 2  # north
+    touching = driver["step"] > 29
+    driver["collision_vehicle"] = touching
+    parked["collision_vehicle"] = touching.values
+    passer["collision_vehicle"] = passer["step"].between(10, 14)
+    records = pd.concat([driver, parked, passer], ignore_index=True)
+    runs = stops.contact_runs(records, min_steps=50).set_index("agent")
+    assert sorted(runs.index) == ["ac_0", "ac_1"]
+    rammer, stood = runs.loc["ac_0"], runs.loc["ac_1"]
+    assert rammer["first step"] == 30 and rammer["steps"] == 71 and rammer["ended"] == "end"
+    assert rammer["partner"] == "ac_1" and rammer["partner at"] == "ahead"
+    assert rammer["partner along m"] == pytest.approx(3.0) and rammer["seen from partner"] == "behind"
+    assert rammer["speed at first"] == 10.0 and rammer["partner speed at first"] == 0.0
+    assert stood["partner"] == "ac_0" and stood["partner at"] == "behind" and stood["partner at last"] == "behind"
+    assert stood["standing"] == 1.0
+    short = stops.contact_runs(records).set_index("agent").loc["ac_2"]
+    assert short["steps"] == 5 and short["partner"] == "" and short["ended"] == "left"
+    table = stops.runs_summary(runs.reset_index(), all_contact_steps=71 + 71 + 5).set_index("kind")
+    assert table.loc["AC ahead", "steps"] == 71 and table.loc["AC behind", "to_end"] == 1
+    assert table.loc["AC ahead", "share_of_all_contact"] == round(71 / 147, 2)
+
+
+def test_the_command_lists_long_contact_runs_and_refuses_a_negative_length(stops, tmp_path, capsys):
+    stand = _episode(0, "ac_0", [0.0] * 80, None).assign(collision_vehicle=True, collision_object=False,
+                                                         heading=0.0)
+    folder = _report(tmp_path / "r", [stand])
+    assert stops.main([str(folder), "--long", "50", "--runs-out", str(tmp_path / "runs.csv")]) == 0
+    assert pd.read_csv(tmp_path / "runs.csv")["steps"].tolist() == [80]
+    assert "no AC (background car, object)" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match=r"--long -1 is negative; give a number of contact steps"):
+        stops.main([str(folder), "--long", "-1"])
