@@ -7,7 +7,8 @@ AC-episode: whether it reached its goal, the last step it was still moving, how 
 on a wrong lane, its contact steps, the reward's charge for them and its return; then one summary
 line per policy and slot, and one per policy with its mean return without the contact charge.
 Contact steps are split by what held them: ``AC contacts`` are vehicle contacts with another AC's
-centre within :data:`AC_CONTACT_M` (two learning cars touching), ``standing contacts`` are contact
+centre within :data:`AC_CONTACT_M` that is in a vehicle contact at the same step (two learning
+cars touching; an AC beside one that touches a background car is not counted), ``standing contacts`` are contact
 steps of any kind below :data:`MOVING` (a car that stays in contact instead of driving out of it).
 ``--long N`` also lists every unbroken run of N or more contact steps of one AC (:func:`contact_runs`):
 when it began, how it ended, which AC it was held against and where that AC's centre was in this
@@ -64,15 +65,17 @@ def _runs(records: pd.DataFrame):
 
 
 def nearest_ac(records: pd.DataFrame) -> pd.Series:
-    """Per record row: metres from this AC's centre to the nearest other AC's at the same step of
-    the same run (:func:`_runs`); infinite for an AC alone."""
+    """Per record row: metres from this AC's centre to the nearest other AC's that is in a vehicle
+    contact at the same step of the same run (:func:`_runs`); infinite where there is none."""
     out = pd.Series(np.inf, index=records.index)
     for g in _runs(records):
         x = g.pivot(index="step", columns="agent", values="x")
         y = g.pivot(index="step", columns="agent", values="y")
         if x.shape[1] < 2:
             continue
+        touching = g.pivot(index="step", columns="agent", values="collision_vehicle").fillna(False)
         d = np.hypot(x.values[:, :, None] - x.values[:, None, :], y.values[:, :, None] - y.values[:, None, :])
+        d[~touching.to_numpy(dtype=bool)[:, None, :].repeat(d.shape[1], axis=1)] = np.inf
         idx = np.arange(d.shape[1])
         d[:, idx, idx] = np.inf
         near = pd.DataFrame(np.fmin.reduce(d, axis=2), index=x.index, columns=x.columns)  # NaN: AC gone
@@ -99,8 +102,8 @@ def contact_runs(records: pd.DataFrame, min_steps: int = 1) -> pd.DataFrame:
     """One row per unbroken run of ``min_steps`` or more contact steps (a car, an object or a
     pedestrian) of one AC in one simulation run: its policy, slot, first step and length, the share
     of it standing, how it ended (``left`` the contact, ``goal``, or the episode's ``end``), and the
-    other AC it was held against where one's centre was within :data:`AC_CONTACT_M` at its first
-    step (``partner``, that AC's policy, its bearing from this AC and this AC's from it and both
+    other AC it was held against where one in a vehicle contact had its centre within
+    :data:`AC_CONTACT_M` at the run's first step (``partner``, that AC's policy, its bearing from this AC and this AC's from it and both
     speeds at the first step: who drove into whom; its bearing at the run's last step: what this
     AC's camera could see while it stood); ``partner`` is empty for a contact with a background car
     or object."""
@@ -125,7 +128,8 @@ def contact_runs(records: pd.DataFrame, min_steps: int = 1) -> pd.DataFrame:
                        "partner": "", "partner policy": "", "partner at": "", "partner along m": np.nan,
                        "seen from partner": "", "partner speed at first": np.nan, "partner at last": ""}
                 others = [(float(np.hypot(o.loc[steps[0]].x - first.x, o.loc[steps[0]].y - first.y)), b)
-                          for b, o in by_step.items() if b != agent and steps[0] in o.index]
+                          for b, o in by_step.items() if b != agent and steps[0] in o.index
+                          and o.loc[steps[0]].collision_vehicle]
                 if others and min(others)[0] <= AC_CONTACT_M and first.collision_vehicle:
                     b = min(others)[1]
                     other = by_step[b].loc[steps[0]]

@@ -154,6 +154,12 @@ def test_a_long_contact_run_names_the_ac_it_was_held_against_and_who_drove_into_
     assert rammer["speed at first"] == 10.0 and rammer["partner speed at first"] == 0.0
     assert stood["partner"] == "ac_0" and stood["partner at"] == "behind" and stood["partner at last"] == "behind"
     assert stood["standing"] == 1.0
+    # the same, but ac_1 not in contact itself (the car ac_0 touches is a background car): no partner
+    apart = pd.concat([driver, parked.assign(collision_vehicle=False), passer], ignore_index=True)
+    alone = stops.contact_runs(apart, min_steps=50).set_index("agent")
+    assert list(alone.index) == ["ac_0"] and alone.loc["ac_0", "partner"] == ""
+    rows = stops.episode_rows(_report(tmp_path / "apart", [driver, parked.assign(collision_vehicle=False)]))
+    assert rows.set_index("agent").loc["ac_0", "AC contacts"] == 0
     short = stops.contact_runs(records).set_index("agent").loc["ac_2"]
     assert short["steps"] == 5 and short["partner"] == "" and short["ended"] == "left"
     table = stops.runs_summary(runs.reset_index(), all_contact_steps=71 + 71 + 5).set_index("kind")
