@@ -100,8 +100,9 @@ def _bearing(me: pd.Series, other: pd.Series) -> tuple[str, float]:
 
 def contact_runs(records: pd.DataFrame, min_steps: int = 1) -> pd.DataFrame:
     """One row per unbroken run of ``min_steps`` or more contact steps (a car, an object or a
-    pedestrian) of one AC in one simulation run: its policy, slot, first step and length, the share
-    of it standing, how it ended (``left`` the contact, ``goal``, or the episode's ``end``), and the
+    pedestrian) of one AC in one simulation run: its policy, slot, first step and length, what it
+    touched at the first step (``with``: car, object or pedestrian) and whether it was off its lane
+    then (off the road or on a wrong lane: SUMO's cars do not see such an AC), the share of it standing, how it ended (``left`` the contact, ``goal``, or the episode's ``end``), and the
     other AC it was held against where one in a vehicle contact had its centre within
     :data:`AC_CONTACT_M` at the run's first step (``partner``, that AC's policy, its bearing from this AC and this AC's from it and both
     speeds at the first step: who drove into whom; its bearing at the run's last step: what this
@@ -125,6 +126,9 @@ def contact_runs(records: pd.DataFrame, min_steps: int = 1) -> pd.DataFrame:
                        "episode seed": int(h.seed.iloc[0]), "agent": agent, "first step": int(steps[0]),
                        "steps": int(stop - start), "standing": round(float((h.speed.loc[steps] < MOVING).mean()), 2),
                        "ended": ended, "speed at first": round(float(first.speed), 1),
+                       "with": ("car" if first.collision_vehicle else "object" if first.collision_object
+                                else "pedestrian"),
+                       "off lane at first": bool(first.off_road or first.wrong_lane),
                        "partner": "", "partner policy": "", "partner at": "", "partner along m": np.nan,
                        "seen from partner": "", "partner speed at first": np.nan, "partner at last": ""}
                 others = [(float(np.hypot(o.loc[steps[0]].x - first.x, o.loc[steps[0]].y - first.y)), b)
@@ -145,13 +149,16 @@ def contact_runs(records: pd.DataFrame, min_steps: int = 1) -> pd.DataFrame:
 
 def runs_summary(runs: pd.DataFrame, all_contact_steps: int) -> pd.DataFrame:
     """How much of all contact steps the runs hold: per partner kind (another AC, by where it
-    stood, or none) the runs, their steps, the share of all contact steps and of runs that lasted
-    to the episode's end."""
-    kind = np.where(runs["partner"] == "", "no AC (background car, object)",
+    stood; else what the AC touched at the run's first step: a background car, an object or a
+    pedestrian) the runs, their steps, the runs that lasted to the episode's end, the mean share
+    standing, the steps of runs that began with the AC off its lane, and the share of all contact
+    steps."""
+    kind = np.where(runs["partner"] == "", np.where(runs["with"] == "car", "background car", runs["with"]),
                     "AC " + runs["partner at"].astype(str))
-    out = runs.assign(kind=kind, to_end=runs["ended"] == "end").groupby("kind").agg(
+    off = runs["steps"].where(runs["off lane at first"], 0)
+    out = runs.assign(kind=kind, to_end=runs["ended"] == "end", off=off).groupby("kind").agg(
         runs=("steps", "size"), steps=("steps", "sum"), to_end=("to_end", "sum"),
-        standing=("standing", "mean"))
+        standing=("standing", "mean"), steps_off_lane=("off", "sum"))
     out["share_of_all_contact"] = out["steps"] / max(all_contact_steps, 1)
     return out.round(2).reset_index()
 

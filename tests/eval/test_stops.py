@@ -162,9 +162,12 @@ def test_a_long_contact_run_names_the_ac_it_was_held_against_and_who_drove_into_
     assert rows.set_index("agent").loc["ac_0", "AC contacts"] == 0
     short = stops.contact_runs(records).set_index("agent").loc["ac_2"]
     assert short["steps"] == 5 and short["partner"] == "" and short["ended"] == "left"
+    assert short["with"] == "car" and rammer["with"] == "car"
+    assert not rammer["off lane at first"]  # _episode puts an AC off the road from step 41 on
     table = stops.runs_summary(runs.reset_index(), all_contact_steps=71 + 71 + 5).set_index("kind")
     assert table.loc["AC ahead", "steps"] == 71 and table.loc["AC behind", "to_end"] == 1
     assert table.loc["AC ahead", "share_of_all_contact"] == round(71 / 147, 2)
+    assert table.loc["AC ahead", "steps_off_lane"] == 0
 
 
 def test_the_command_lists_long_contact_runs_and_refuses_a_negative_length(stops, tmp_path, capsys):
@@ -173,6 +176,6 @@ def test_the_command_lists_long_contact_runs_and_refuses_a_negative_length(stops
     folder = _report(tmp_path / "r", [stand])
     assert stops.main([str(folder), "--long", "50", "--runs-out", str(tmp_path / "runs.csv")]) == 0
     assert pd.read_csv(tmp_path / "runs.csv")["steps"].tolist() == [80]
-    assert "no AC (background car, object)" in capsys.readouterr().out
+    assert "background car" in capsys.readouterr().out
     with pytest.raises(SystemExit, match=r"--long -1 is negative; give a number of contact steps"):
         stops.main([str(folder), "--long", "-1"])
