@@ -100,6 +100,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--algos", nargs="+", default=None, help="default: all six")
     p.add_argument("--seeds", type=int, default=None,
                    help="training seeds 0..K-1 (default 3); a larger K on a finished study adds seeds")
+    p.add_argument("--first-seed", type=int, default=None, metavar="S",
+                   help="train and test seeds S..S+K-1 (default 0): one part of a grid run in parts, "
+                        "e.g. --first-seed 1 --seeds 1 for seed 1 alone; --combine joins the parts")
     p.add_argument("--steps", type=int, default=None, help="environment steps per trial "
                                                            "(default: the preset's)")
     p.add_argument("--agents", type=int, default=None,
@@ -143,8 +146,10 @@ def parse(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.test_workers < 1:
         p.error(f"--test-workers {args.test_workers}: give 1 or more processes")
+    if args.first_seed is not None and args.first_seed < 0:
+        p.error(f"--first-seed {args.first_seed}: give 0 or more (the first training seed)")
     given = {k for k, v in vars(args).items() if v is not None}
-    study_options = given & {"preset", "envs", "algos", "seeds", "steps", "agents", "collisions", "episodes",
+    study_options = given & {"preset", "envs", "algos", "seeds", "first_seed", "steps", "agents", "collisions", "episodes",
                              "obs", "share_params", "demo_steps",
                              "test_steps", "scenarios", "concurrent", "ray_address", "runs"}
     if args.combine and (study_options or args.smoke):
@@ -221,6 +226,8 @@ def train(args, plan: BenchmarkPlan, bench: Path, say) -> None:
     cmd = [sys.executable, "-m", "eval.cli", "benchmark", "--preset", plan.preset,
            "--envs", *plan.envs, "--algos", *plan.algos, "--seeds", str(plan.seeds),
            "--out", str(bench), "--train-only"]
+    if plan.first_seed:
+        cmd += ["--first-seed", str(plan.first_seed)]
     if plan.steps:
         cmd += ["--steps", str(plan.steps)]
     if plan.agents:
@@ -311,7 +318,7 @@ EXPORTED = "checkpoints.json"
 """An exported study's provenance of every checkpoint it tested (the files stayed behind)."""
 
 
-def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, int]) -> list[dict]:
+def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, list[int]]) -> list[dict]:
     """One ``{"env", "seed", "algorithm", "path"}`` per tested checkpoint (environments in
     ``seeds_of``'s order) from the run folders under ``out/bench``; where a run is an exported
     copy (no checkpoint), the provenance entry its export recorded (``checkpoints.json``, with
@@ -321,7 +328,7 @@ def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, int])
                 for c in (json.loads(saved.read_text()) if saved.is_file() else [])}
     every = []
     for e, seeds in seeds_of.items():
-        for s in range(seeds):
+        for s in seeds:
             if all((e, s, a) in exported for a in plan.algos):
                 every += [exported[(e, s, a)] for a in plan.algos]
             else:
@@ -332,8 +339,8 @@ def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, int])
 
 def export(out: Path, dest: Path, say) -> None:
     """Copy the finished study at ``out`` to ``dest`` without its checkpoints: science.json,
-    test/ and references/, each run's config.yaml and episodes.csv (what stage 4 reads of
-    a run) and the tested checkpoints' provenance (:data:`EXPORTED`)."""
+    seeds.csv, test/ and references/, each run's config.yaml and episodes.csv (what stage 4
+    reads of a run) and the tested checkpoints' provenance (:data:`EXPORTED`)."""
     import shutil
 
     from eval.reporting.report import checkpoint_provenance
@@ -351,10 +358,10 @@ def export(out: Path, dest: Path, say) -> None:
         raise ScienceError(f"--export {dest}: that folder holds something else; give an empty "
                            "or new one")
     plan = load_plan(out / "bench")
-    seeds_of = {e: plan.seeds for e in plan.envs}
+    seeds_of = {e: list(plan.seed_list) for e in plan.envs}
     entries = checkpoint_provenance("trained", tested_checkpoints(plan, out, seeds_of))
-    files = [saved] + [out / "references" / f"{e}.csv" for e in plan.envs] + [
-        out / "test" / f"{e}__seed{k}.parquet" for e in plan.envs for k in range(plan.seeds)]
+    files = [saved, out / "seeds.csv"] + [out / "references" / f"{e}.csv" for e in plan.envs] + [
+        out / "test" / f"{e}__seed{k}.parquet" for e in plan.envs for k in plan.seed_list]
     for cfg in plan.cells():
         run = out / "bench" / "runs" / cell_name(cfg)
         files += [run / "config.yaml", run / "episodes.csv"]
@@ -378,17 +385,21 @@ def _write(df: pd.DataFrame, path: Path) -> None:
     tmp.replace(path)
 
 
-def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, int],
+def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, list[int]],
          workers: int = 1) -> pd.DataFrame:
-    """Held-out records of every (env, training seed < seeds_of[env]), from the cache where
-    present; ``workers`` processes run each seed's episodes (the same records as one)."""
+    """Held-out records of every (env, training seed in seeds_of[env]), from the cache where
+    present; ``workers`` processes run each seed's episodes (the same records as one). A
+    combined (env, seed) whose records stayed on another machine has its seed means instead
+    (:data:`KEPT`): it is skipped here and joins the results in :func:`kept_seeds`."""
     from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
 
     t = study["test"]
     frames = []
     for env in plan.envs:
-        for seed in range(seeds_of[env]):
+        for seed in seeds_of[env]:
             path = out / "test" / f"{env}__seed{seed}.parquet"
+            if not path.exists() and (out / "test" / KEPT.format(env=env, seed=seed)).is_file():
+                continue
             if not path.exists():
                 start = time.monotonic()
                 pp = ProtocolPlan(envs=(env,), scenarios=tuple(t["scenarios"]),
@@ -399,7 +410,22 @@ def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, i
                 _write(records.assign(train_seed=seed), path)
                 say(f"tested {env} seed {seed} ({time.monotonic() - start:.0f} s)")
             frames.append(pd.read_parquet(path))
-    return pd.concat(frames, ignore_index=True)
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+KEPT = "{env}__seed{seed}.seeds.csv"
+"""In a combination's test/: the seed means (seeds.csv rows) of an (environment, seed) whose
+held-out records are not here, gathered from an exported study (its records are generated data,
+kept out of git): the tables, verdict and IQM take them as they are; the pooled report leaves
+that seed out."""
+
+
+def kept_seeds(out: Path, seeds_of: dict[str, list[int]], records: pd.DataFrame) -> pd.DataFrame:
+    """The seed means of every (env, seed) of ``seeds_of`` without records in ``records``."""
+    have = set(zip(records["env"], records["train_seed"], strict=True)) if len(records) else set()
+    frames = [pd.read_csv(out / "test" / KEPT.format(env=e, seed=k))
+              for e, seeds in seeds_of.items() for k in seeds if (e, k) not in have]
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
 def references(plan: BenchmarkPlan, study: dict, out: Path, say) -> pd.DataFrame:
@@ -425,12 +451,13 @@ COMBINED_KEYS = ("preset", "algos", "steps", "agents", "collisions", "obs", "sha
 """What the studies combined must share (with their whole test plan)."""
 
 
-def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, dict[str, int]]:
-    """Gather finished studies of *different* environments (same algorithms, preset, budget
-    and test) into ``out``: run folders linked, held-out records and references copied.
-    Returns the combined plan (seeds: the most any environment has), the study record and
-    the training seeds per environment. Lets environments train in separate processes (both
-    cores of a small machine, or several machines) and still give one table and one IQM."""
+def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, dict[str, list[int]]]:
+    """Gather finished studies (same algorithms, preset, budget and test) of different
+    environments, or of one environment's different seeds (``--first-seed``), into ``out``: run
+    folders linked, held-out records (or, from an export without them, its seed means) and
+    references copied. Returns the combined plan (seeds: the most any environment has), the
+    study record and the training seeds of each environment. Lets environments and seeds train
+    in separate processes, sessions or machines and still give one table and one IQM."""
     studies = []
     for src in sources:
         src = src.resolve()
@@ -442,7 +469,7 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
         study["benchmark"] = {"collisions": "end", **study["benchmark"]}  # saved before it was recorded
         studies.append((src, study))
     (src0, first), b0 = studies[0], studies[0][1]["benchmark"]
-    seeds_of: dict[str, int] = {}
+    seeds_of: dict[str, list[int]] = {}
     for src, st in studies:
         b = st["benchmark"]
         if "combined" in st:
@@ -452,14 +479,16 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
             what = ", ".join(diff + (["test"] if st["test"] != first["test"] else []))
             raise ScienceError(f"--combine: {src} differs from {src0} in {what}; combine only "
                                "studies run with the same algorithms, preset, steps and test")
+        own = list(range(int(b.get("first_seed", 0)), int(b.get("first_seed", 0)) + int(b["seeds"])))
         for env in b["envs"]:
-            if env in seeds_of:
-                raise ScienceError(f"--combine: {env} is in two of the studies; give each "
-                                   "environment once")
-            seeds_of[env] = int(b["seeds"])
+            twice = sorted(set(own) & set(seeds_of.get(env, [])))
+            if twice:
+                raise ScienceError(f"--combine: {env} seed {twice[0]} is in two of the studies; "
+                                   "give each (environment, seed) once")
+            seeds_of[env] = sorted(seeds_of.get(env, []) + own)
     envs = [e for e in science.ENVS if e in seeds_of] + sorted(set(seeds_of) - set(science.ENVS))
     plan = BenchmarkPlan(preset=b0["preset"], envs=tuple(envs), algos=tuple(b0["algos"]),
-                         seeds=max(seeds_of.values()), steps=b0["steps"], agents=b0.get("agents"),
+                         seeds=max(map(len, seeds_of.values())), steps=b0["steps"], agents=b0.get("agents"),
                          collisions=b0.get("collisions"), obs=b0.get("obs", "image"),
                          share_params=bool(b0.get("share_params", False)),
                          demo_steps=int(b0.get("demo_steps", 0)))
@@ -468,8 +497,10 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
         raise ScienceError(f"{out} holds a study of its own; choose another --out for the "
                            "combination")
     for src, st in studies:
-        for env in st["benchmark"]["envs"]:
-            _gather(src, env, seeds_of[env], plan.algos, out)
+        b = st["benchmark"]
+        first_seed = int(b.get("first_seed", 0))
+        for env in b["envs"]:
+            _gather(src, env, range(first_seed, first_seed + int(b["seeds"])), plan.algos, out, say)
     exported = [c for src, _ in studies if (src / EXPORTED).is_file()
                 for c in json.loads((src / EXPORTED).read_text())]
     if exported:
@@ -477,27 +508,44 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
     study = {"benchmark": {**plan.to_dict(), "seeds": seeds_of}, "test": first["test"],
              "combined": [str(src) for src, _ in studies]}
     saved.write_text(json.dumps(study, indent=2))
-    say(f"combined {len(studies)} studies: " + ", ".join(f"{e} ({k} seed(s))"
+    say(f"combined {len(studies)} studies: " + ", ".join(f"{e} (seeds {' '.join(map(str, k))})"
                                                        for e, k in seeds_of.items()))
     return plan, study, seeds_of
 
 
-def _gather(src: Path, env: str, seeds: int, algos, out: Path) -> None:
+def _gather(src: Path, env: str, seeds, algos, out: Path, say) -> None:
     """Copy one environment's references and held-out records of the study ``src`` into
-    ``out``, and link its run folders."""
+    ``out`` (a seed whose records are not there: its rows of ``src/seeds.csv``, :data:`KEPT`),
+    and link its run folders."""
     import shutil
 
-    files = [src / "references" / f"{env}.csv"] + [
-        src / "test" / f"{env}__seed{k}.parquet" for k in range(seeds)]
+    means = pd.read_csv(src / "seeds.csv") if (src / "seeds.csv").is_file() else None
+    files, kept = [src / "references" / f"{env}.csv"], {}
+    for k in seeds:
+        rec = src / "test" / f"{env}__seed{k}.parquet"
+        rows = (means[(means["env"] == env) & (means["train_seed"] == k)]
+                if means is not None and not rec.is_file() else None)
+        if rows is not None and len(rows):
+            kept[k] = rows
+        else:
+            files.append(rec)
     missing = [f for f in files if not f.is_file()]
     if missing:
         raise ScienceError(f"--combine: {missing[0]} is missing; finish that study first "
                            "(rerun its own command)")
+    (out / "test").mkdir(parents=True, exist_ok=True)
     for f in files:
         (out / f.parent.name).mkdir(parents=True, exist_ok=True)
         shutil.copy2(f, out / f.parent.name / f.name)
+        if f.suffix == ".parquet":
+            (out / "test" / KEPT.format(env=env, seed=f.stem.split("__seed")[-1])).unlink(missing_ok=True)
+    for k, rows in kept.items():
+        (out / "test" / f"{env}__seed{k}.parquet").unlink(missing_ok=True)
+        _write(rows, out / "test" / KEPT.format(env=env, seed=k))
+        say(f"{env} seed {k}: {src} holds no held-out records; its seed means (seeds.csv) join "
+            "the tables, the pooled report leaves it out")
     for algo in algos:
-        for k in range(seeds):
+        for k in seeds:
             name = cell_name({"env": env, "algo": algo, "seed": k})
             link = out / "bench" / "runs" / name
             link.parent.mkdir(parents=True, exist_ok=True)
@@ -509,22 +557,24 @@ def _gather(src: Path, env: str, seeds: int, algos, out: Path) -> None:
 
 # -- 4. results -------------------------------------------------------------------------------
 def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.DataFrame,
-            out: Path, command: str, seeds_of: dict[str, int]) -> str:
-    """Every results file; returns summary.md's text. ``seeds_of``: training seeds per
-    environment (``plan.seeds`` each, except in a --combine'd study)."""
+            out: Path, command: str, seeds_of: dict[str, list[int]]) -> str:
+    """Every results file; returns summary.md's text. ``seeds_of``: the training seeds of each
+    environment (``plan.seed_list`` each, except in a --combine'd study)."""
     from eval.reporting.report import per_episode, provenance, write_paper_report
     from eval.testing.protocol import ProtocolPlan
 
-    per = pd.concat([per_episode(g).assign(train_seed=seed)
-                     for seed, g in records.groupby("train_seed", sort=True)], ignore_index=True)
-    seeds = science.seed_means(per)
+    kept = kept_seeds(out, seeds_of, records)
+    measured = ([science.seed_means(pd.concat(
+        [per_episode(g).assign(train_seed=seed) for seed, g in records.groupby("train_seed", sort=True)],
+        ignore_index=True))] if len(records) else [])
+    seeds = pd.concat(measured + ([kept] if len(kept) else []), ignore_index=True)
     table = science.seed_table(seeds)
     ref_table = science.reference_table(refs)
     verdict = science.verdict(table, ref_table)
     iqm = science.iqm_table(seeds, ref_table)
     bench = out / "bench"
     runs = {(a, e, s): bench / "runs" / cell_name({"env": e, "algo": a, "seed": s})
-            for e in plan.envs for a in plan.algos for s in range(seeds_of[e])}
+            for e in plan.envs for a in plan.algos for s in seeds_of[e]}
     curves = science.convergence_curves(runs)
     budgets = science.budget_check(runs)
 
@@ -547,9 +597,9 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
                if plan.share_params else "")
     budget += (f", DQN, DDPG and TD3 learn from {plan.demo_steps} env steps of the autopilot's "
                "driving too (`--demo-steps`, the demonstration variant)" if plan.demo_steps else "")
-    counts = sorted(set(seeds_of.values()))
+    counts = sorted({len(k) for k in seeds_of.values()})
     per_env = (f"{counts[0]} seed(s)" if len(counts) == 1 else "seeds per environment: " + ", ".join(
-        f"{env_title(e)} {seeds_of[e]}" for e in plan.envs))
+        f"{env_title(e)} {len(seeds_of[e])}" for e in plan.envs))
     how = (f"{len(plan.algos)} algorithm(s) x {len(plan.envs)} environment(s) x {per_env}, "
            f"preset `{b['preset']}`{budget}; "
            f"tested on {t['episodes']} held-out episode(s) of {t['steps']} steps per (environment, "
@@ -598,25 +648,40 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     (out / "summary.md").write_text(text)
 
     # the `cosim test` report of the held-out records, seeds pooled (episodes renumbered)
+    every = tested_checkpoints(plan, out, seeds_of)
+    left_out = sorted({f"{env_title(e)} seed {k}" for e, k in
+                       zip(kept.get("env", []), kept.get("train_seed", []), strict=True)})
+    if not len(records):
+        import shutil
+
+        shutil.rmtree(out / "report", ignore_errors=True)  # a combination's earlier report
+        _record_checkpoints(study, every, out)
+        return text + "\nNo held-out records here (every seed's means came from an export): no report.\n"
     pooled = records.assign(episode=records["train_seed"] * t["episodes"] + records["episode"])
     whole = ProtocolPlan(envs=tuple(plan.envs), scenarios=tuple(t["scenarios"]),
                          episodes=t["episodes"], steps=t["steps"], seed=HELD_OUT_SEED,
                          agents=len(plan.algos))
-    every = tested_checkpoints(plan, out, seeds_of)
     first = {c["algorithm"]: c["path"] for c in every
-             if c["env"] == plan.envs[0] and c["seed"] == 0 and "path" in c}
+             if c["env"] == plan.envs[0] and c["seed"] == seeds_of[plan.envs[0]][0] and "path" in c}
     prov = provenance(policy="trained", plan=whole, algos=list(plan.algos), checkpoints=first,
                       command=command.split()[1:], env_checkpoints=every, benchmark=plan.to_dict())
     write_paper_report(pooled, out / "report", prov=prov, extra_md=(
         f"\n## Science study\n\nTraining seeds pooled ({per_env}): episode = seed x "
         f"{t['episodes']} + test episode. Provenance lists every checkpoint (environment, "
-        "seed, algorithm); science.json too.\n"))
+        "seed, algorithm); science.json too.\n" + (
+            f"\nNot in this report (their held-out records stayed where they were made; their "
+            f"seed means are in the study's tables): {', '.join(left_out)}.\n" if left_out else "")))
+    _record_checkpoints(study, every, out)  # last: a study with its checkpoints recorded is finished
+    return text
+
+
+def _record_checkpoints(study: dict, every: list[dict], out: Path) -> None:
+    """science.json: the study record with every tested checkpoint (path, or an export's entry)."""
     study["checkpoints"] = {}
     for c in every:
         where = str(c["path"].relative_to(out)) if "path" in c else c["checkpoint"]
         study["checkpoints"].setdefault(f"{c['env']}__seed{c['seed']}", {})[c["algorithm"]] = where
     (out / "science.json").write_text(json.dumps(study, indent=2))
-    return text
 
 
 def main(argv=None) -> int:
@@ -635,14 +700,14 @@ def main(argv=None) -> int:
                                  algos=tuple(args.algos), seeds=args.seeds, steps=args.steps,
                                  agents=args.agents, collisions=args.collisions or "continue",
                                  obs=args.obs or "image", share_params=bool(args.share_params),
-                                 demo_steps=args.demo_steps or 0)
+                                 demo_steps=args.demo_steps or 0, first_seed=args.first_seed or 0)
             plan.cells()  # an unknown preset or environment fails here, before any work
             study = study_plan(args, plan)
             check_plan(out, study)
             if args.runs:
                 adopt(plan, out / "bench", args.runs, say)
             train(args, plan, out / "bench", say)
-            seeds_of = {e: plan.seeds for e in plan.envs}
+            seeds_of = {e: list(plan.seed_list) for e in plan.envs}
         records = test(plan, study, out, say, seeds_of, args.test_workers)
         refs = references(plan, study, out, say)
         command = "python studies/science.py " + " ".join(sys.argv[1:] if argv is None else argv)

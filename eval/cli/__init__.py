@@ -366,7 +366,10 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
     b.add_argument("--algos", nargs="+", default=list(ALGORITHMS), metavar="ALGO",
                    help=f"algorithms of the grid: {' '.join(ALGORITHMS)}")
     b.add_argument("--seeds", type=_int_in(1), default=1, metavar="K",
-                   help="seeds 0..K-1 per (algorithm, environment)")
+                   help="seeds 0..K-1 per (algorithm, environment), or from --first-seed")
+    b.add_argument("--first-seed", type=_int_in(0), default=0, metavar="S",
+                   help="train seeds S..S+K-1 (default 0): a grid in parts, e.g. seed 1 alone; "
+                        "each cell is the one a benchmark from seed 0 trains")
     b.add_argument("--steps", type=_int_in(1), default=None,
                    help="environment steps per trial (default: the preset's)")
     b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",

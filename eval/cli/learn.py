@@ -392,7 +392,8 @@ def cmd_benchmark(args) -> int:
         return 2
     plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos), seeds=args.seeds,
                          steps=args.steps, agents=args.agents, collisions=args.collisions,
-                         obs=args.obs, share_params=args.share_params, demo_steps=args.demo_steps)
+                         obs=args.obs, share_params=args.share_params, demo_steps=args.demo_steps,
+                         first_seed=args.first_seed)
     cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
     output_folder(args.out, "--out")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))

@@ -94,7 +94,7 @@ class BenchmarkPlan:
     envs: tuple[str, ...] = ENVS
     algos: tuple[str, ...] = ALGORITHMS
     seeds: int = 1
-    """Seeds 0..seeds-1 per (algorithm, environment)."""
+    """How many seeds per (algorithm, environment): ``first_seed`` .. ``first_seed + seeds - 1``."""
     steps: int | None = None
     """Environment steps per trial (default: the preset's, per algorithm)."""
     agents: int | None = None
@@ -114,6 +114,15 @@ class BenchmarkPlan:
     the autopilot's driving in their replays, pre-train :data:`~eval.training.config.DEMO_UPDATES`
     steps on them and learn with :data:`~eval.training.config.DEMO_HYPER`; the other
     algorithms' trials are the plain grid's. 0: off (the paper's)."""
+    first_seed: int = 0
+    """The first seed (``--first-seed``): a benchmark of seed 1 alone trains exactly the cells
+    "seed 1" of a benchmark of seeds 0..2, so a long grid can run in parts (sessions, machines)
+    and each part's results join the others' (studies/science.py ``--combine``)."""
+
+    @property
+    def seed_list(self) -> range:
+        """The seeds of every (algorithm, environment), in order."""
+        return range(self.first_seed, self.first_seed + self.seeds)
 
     def __post_init__(self):
         unknown = sorted(set(self.algos) - set(ALGORITHMS))
@@ -121,6 +130,8 @@ class BenchmarkPlan:
             raise BenchmarkError(f"--algos {' '.join(unknown) or '(none)'}: choose from {' '.join(ALGORITHMS)}")
         if self.seeds < 1:
             raise BenchmarkError(f"--seeds must be >= 1, got {self.seeds}")
+        if self.first_seed < 0:
+            raise BenchmarkError(f"--first-seed must be >= 0, got {self.first_seed}")
         if not self.envs:
             raise BenchmarkError("--envs: name at least one environment")
         if self.agents is not None and self.agents < 1:
@@ -140,7 +151,7 @@ class BenchmarkPlan:
                             torch_threads=1, collisions=self.collisions, obs=self.obs,
                             share_params=self.share_params and algo not in ASYNC_ALGOS,
                             **self._demos(algo))
-                for env in self.envs for algo in self.algos for seed in range(self.seeds)]
+                for env in self.envs for algo in self.algos for seed in self.seed_list]
 
     def _demos(self, algo: str) -> dict[str, Any]:
         if not self.demo_steps or algo not in DEMO_ALGOS:
@@ -150,8 +161,8 @@ class BenchmarkPlan:
     def to_dict(self) -> dict[str, Any]:
         plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
                 "seeds": self.seeds, "steps": self.steps, "collisions": self.collisions}
-        # only when set: a plan saved before --agents, --obs, --share-params or --demo-steps existed still
-        # reads back as equal
+        # only when set: a plan saved before --agents, --obs, --share-params, --demo-steps or
+        # --first-seed existed still reads back as equal
         extra = {"agents": self.agents} if self.agents is not None else {}
         if self.obs != "image":
             extra["obs"] = self.obs
@@ -159,6 +170,8 @@ class BenchmarkPlan:
             extra["share_params"] = True
         if self.demo_steps:
             extra["demo_steps"] = self.demo_steps
+        if self.first_seed:
+            extra["first_seed"] = self.first_seed
         return {**plan, **extra}
 
 
@@ -412,7 +425,7 @@ def finished_runs(plan: BenchmarkPlan, out: Path) -> dict[str, Path]:
 
 def _saved_cells(old: dict, plan: BenchmarkPlan) -> list[str]:
     """Cell names of the saved plan ``old`` (``plan`` with the saved seed count)."""
-    return [cell_name(c) for c in plan.cells() if c.seed < old["seeds"]]
+    return [cell_name(c) for c in plan.cells() if c.seed < plan.first_seed + old["seeds"]]
 
 
 def run_sequential(plan: BenchmarkPlan, out: Path, resume: bool = False,
@@ -570,7 +583,7 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
     algos = list(plan.algos)
     frames, tested, first, slots = [], [], {}, []
     for env in plan.envs:
-        for seed in range(plan.seeds):
+        for seed in plan.seed_list:
             ckpts = {}
             for algo in algos:
                 run = out / "runs" / f"{Path(env).stem}__{algo}__{seed}__bench"
@@ -587,8 +600,8 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
             records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
             # seeds are pooled: number their episodes apart, or the metrics would merge
             # seed 0's episode 0 with seed 1's episode 0
-            frames.append(records.assign(train_seed=seed,
-                                         episode=records["episode"] + seed * settings.episodes))
+            frames.append(records.assign(train_seed=seed, episode=records["episode"]
+                                         + (seed - plan.first_seed) * settings.episodes))
             if progress:
                 progress(f"tested {env} seed {seed}")
     records = pd.concat(frames, ignore_index=True)
@@ -600,13 +613,14 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
     # every environment's checkpoints, each with its AC and scores (the report's provenance)
     prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
                       selections={t["algorithm"]: t["selection"] for t in tested if t["env"] == plan.envs[0]
-                                  and t["seed"] == 0},
+                                  and t["seed"] == plan.first_seed},
                       command=list(command), env_checkpoints=tested, benchmark=plan.to_dict())
     slots = pd.concat(slots, ignore_index=True)  # which checkpoint drove which slot (as `cosim test`)
     prov["slots"] = slots.to_dict("records")
     (out / "report").mkdir(parents=True, exist_ok=True)
     slots.to_csv(out / "report" / "slots.csv", index=False)
     extra = ("\n## Benchmark grid\n\nEvery environment is tested with its own trained policies, "
-             f"{plan.seeds} seed(s) pooled (`cosim benchmark --preset {plan.preset}`); provenance "
+             f"{plan.seeds} seed(s) pooled (seeds {plan.first_seed}..{plan.seed_list[-1]}, "
+             f"`cosim benchmark --preset {plan.preset}`); provenance "
              "lists every checkpoint (environment, seed, algorithm) with its hash and the AC chosen.\n")
     return write_paper_report(records, out / "report", prov=prov, references=refs, extra_md=extra)

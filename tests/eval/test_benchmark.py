@@ -205,6 +205,44 @@ def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, mo
     assert "trained 4 trials" in out and "trained env_1__ppo__0__bench" not in out
 
 
+def test_a_grid_from_a_first_seed_trains_the_same_cells_as_the_whole_grid(tmp_path, monkeypatch):
+    """--first-seed 1 --seeds 2: the cells "seed 1" and "seed 2" of a grid from seed 0, with
+    the same configs; the plan records it (a plan saved before it reads back as equal) and a
+    resume with more seeds grows from it."""
+    from eval.cli import main
+    from eval.scale import benchmark
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan
+
+    grid = {"preset": "smoke", "envs": ("env_1", "env_2"), "algos": ("ppo", "dqn")}
+    whole, part = BenchmarkPlan(**grid, seeds=3), BenchmarkPlan(**grid, seeds=2, first_seed=1)
+    assert list(part.seed_list) == [1, 2]
+    assert [c.to_dict() for c in part.cells()] == [c.to_dict() for c in whole.cells() if c.seed >= 1]
+    assert part.to_dict() == {**BenchmarkPlan(**grid, seeds=2).to_dict(), "first_seed": 1}
+    assert "first_seed" not in whole.to_dict()
+    with pytest.raises(BenchmarkError, match="--first-seed must be >= 0, got -1"):
+        BenchmarkPlan(first_seed=-1)
+
+    trained = []
+
+    def fake_train_cell(cfg, folder, keep="all"):
+        trained.append(benchmark.cell_name(cfg))
+        run = Path(folder) / "run"
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+        return run
+
+    monkeypatch.setattr(benchmark, "train_cell", fake_train_cell)
+    args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "--no-ray",
+            "--train-only", "--out", str(tmp_path / "b"), "--first-seed", "1"]
+    assert main([*args, "--seeds", "1"]) == 0
+    assert trained == ["env_1__ppo__1__bench"]
+    assert main([*args, "--seeds", "2", "--resume"]) == 0
+    assert trained == ["env_1__ppo__1__bench", "env_1__ppo__2__bench"]
+    assert json.loads((tmp_path / "b" / "benchmark.json").read_text())["first_seed"] == 1
+    # another first seed on the same folder is another plan
+    assert main([*args[:-1], "2", "--seeds", "2", "--resume"]) == 2
+
+
 def test_more_seeds_wait_for_the_saved_benchmark_to_finish(tmp_path):
     from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, _prepare
 

@@ -279,17 +279,23 @@ def test_smoke_study_writes_every_result_and_resumes(smoke):
         assert "repeat those options (only --seeds may grow)" in other.stderr
 
 
-def _as_env(study: Path, dest: Path, env: str, seeds: int) -> None:
-    """A copy of the smoke study (env_1) relabelled as ``env`` with its first ``seeds``
-    training seeds: what a separate study of that environment would have left."""
+def _as_env(study: Path, dest: Path, env: str, seeds: int, first_seed: int = 0) -> None:
+    """A copy of the smoke study (env_1) relabelled as ``env`` with ``seeds`` of its training
+    seeds from ``first_seed``: what a separate study of that environment (and those seeds,
+    ``--first-seed``) would have left."""
     plan = json.loads((study / "science.json").read_text())
     plan["benchmark"].update(envs=[env], seeds=seeds)
+    if first_seed:
+        plan["benchmark"]["first_seed"] = first_seed
     (dest / "test").mkdir(parents=True)
     (dest / "references").mkdir()
     (dest / "science.json").write_text(json.dumps(plan))
     refs = pd.read_csv(study / "references" / "env_1.csv")
     refs.assign(env=env).to_csv(dest / "references" / f"{env}.csv", index=False)
-    for k in range(seeds):
+    means = pd.read_csv(study / "seeds.csv")
+    means[means["train_seed"].between(first_seed, first_seed + seeds - 1)].assign(env=env).to_csv(
+        dest / "seeds.csv", index=False)
+    for k in range(first_seed, first_seed + seeds):
         rec = pd.read_parquet(study / "test" / f"env_1__seed{k}.parquet")
         rec.assign(env=env).to_parquet(dest / "test" / f"{env}__seed{k}.parquet", index=False)
         for algo in plan["benchmark"]["algos"]:
@@ -333,7 +339,7 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
     summary = (both / "summary.md").read_text()
     assert "seeds per environment: Straight 2, " in summary
     assert json.loads((both / "science.json").read_text())["benchmark"]["seeds"] == {
-        "env_1": 2, "env_2": 1}
+        "env_1": [0, 1], "env_2": [0]}
 
     # an environment twice, a study's own folder as the output, a study trained under another
     # collision rule, or study options: refused
@@ -341,7 +347,7 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
     plan3 = json.loads((tmp_path / "s3" / "science.json").read_text())
     plan3["benchmark"]["collisions"] = "end"  # the smoke study trained under the default, continue
     (tmp_path / "s3" / "science.json").write_text(json.dumps(plan3))
-    for extra, words in (([str(study), str(study)], "env_1 is in two"),
+    for extra, words in (([str(study), str(study)], "env_1 seed 0 is in two"),
                          ([str(study), str(tmp_path / "s3")], "in collisions;"),
                          ([str(tmp_path / "s2"), "--out", str(study)], "holds a study of its own"),
                          ([str(study), "--seeds", "2"], "drop --seeds")):
@@ -381,9 +387,80 @@ def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
     again = json.loads((both / "report" / "provenance.json").read_text())["checkpoints"]
     assert [c["sha256"] for c in again] == [c["sha256"] for c in original]
 
+    # as a clone of the repository has it: the held-out records (generated data, out of git)
+    # gone, the seed means (seeds.csv) kept: the same tables and curves, no pooled report
+    for rec in (exp / "test").glob("*.parquet"):
+        rec.unlink()
+    bare = tmp_path / "bare"
+    comb = subprocess.run([sys.executable, str(SCRIPT), "--out", str(bare), "--combine", str(exp)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert comb.returncode == 0, comb.stderr[-2000:]
+    assert "env_1 seed 1: " in comb.stderr and "holds no held-out records" in comb.stderr
+    assert "tested" not in comb.stderr
+    for name in ("results.csv", "verdict.csv", "iqm.csv", "convergence.csv"):
+        a, b = (pd.read_csv(d / name) for d in (study, bare))
+        cols = [c for c in key + ["algorithm", "name"] if c in a.columns]
+        pd.testing.assert_frame_equal(a.sort_values(cols).reset_index(drop=True),
+                                      b.sort_values(cols).reset_index(drop=True))
+    assert not (bare / "report").exists() and "no report" in comb.stdout
+    assert json.loads((bare / "science.json").read_text())["checkpoints"]  # finished
+
     refused = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "none"),
                               "--export", str(tmp_path / "x")], capture_output=True, text=True, cwd=ROOT)
     assert refused.returncode == 2 and "no finished study" in refused.stderr, refused.stderr
+
+
+def test_seed_parts_of_one_environment_combine_into_the_whole_study(smoke, tmp_path):
+    """A grid run in parts: seed 0 in one study, seed 1 in another (``--first-seed 1``), one
+    of them only as an export's seed means: --combine gives the 2-seed study's tables; a seed
+    in two parts is refused."""
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    _as_env(study, tmp_path / "s0", "env_1", seeds=1)
+    _as_env(study, tmp_path / "s1", "env_1", seeds=1, first_seed=1)
+    (tmp_path / "s1" / "test" / "env_1__seed1.parquet").unlink()  # left on another machine
+    both = tmp_path / "both"
+    cmd = [sys.executable, str(SCRIPT), "--out", str(both), "--combine", str(tmp_path / "s1"),
+           str(tmp_path / "s0")]
+    comb = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert comb.returncode == 0, comb.stderr[-2000:]
+    assert "env_1 (seeds 0 1)" in comb.stderr
+    key = ["kind", "name", "env", "metric", "scenario", "mean", "ci_low", "ci_high", "n"]
+    a, b = (pd.read_csv(d / "results.csv")[key].sort_values(key[:5]).reset_index(drop=True)
+            for d in (study, both))
+    pd.testing.assert_frame_equal(a, b)
+    assert pd.read_csv(both / "convergence.csv")["seed"].unique().tolist() == [0, 1]
+    provenance = (both / "report" / "index.md").read_text()
+    assert "Not in this report" in provenance and "Straight seed 1" in provenance
+    _as_env(study, tmp_path / "s01", "env_1", seeds=2)
+    bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x"), "--combine",
+                          str(tmp_path / "s01"), str(tmp_path / "s1")], capture_output=True, text=True, cwd=ROOT)
+    assert bad.returncode == 2 and "env_1 seed 1 is in two of the studies" in bad.stderr, bad.stderr
+
+
+def test_a_study_from_a_first_seed_trains_and_tests_only_its_seeds(smoke, tmp_path):
+    """--first-seed 1 --seeds 1 with the smoke study's runs: only seed 1 is tested, and its
+    seed means are the smoke study's seed-1 rows."""
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    runs = tmp_path / "runs" / "runs"
+    runs.mkdir(parents=True)
+    for name in (p.name for p in (study / "bench" / "runs").iterdir()):
+        (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
+    out = tmp_path / "part"
+    part = _run(out, "--first-seed", "1", "--seeds", "1", "--runs", str(tmp_path / "runs"))
+    assert part.returncode == 0, part.stderr[-2000:]
+    assert "tested env_1 seed 1" in part.stderr and "seed 0" not in part.stderr
+    assert json.loads((out / "science.json").read_text())["benchmark"]["first_seed"] == 1
+    assert sorted(p.name for p in (out / "bench" / "runs").iterdir()) == [
+        "env_1__dqn__1__bench", "env_1__ppo__1__bench"]
+    cols = ["scenario", "env", "algorithm", "train_seed", "return", "goal", "DISTANCE"]
+    mine = pd.read_csv(out / "seeds.csv")[cols]
+    theirs = pd.read_csv(study / "seeds.csv").query("train_seed == 1")[cols]
+    pd.testing.assert_frame_equal(mine.sort_values(cols[:3]).reset_index(drop=True),
+                                  theirs.sort_values(cols[:3]).reset_index(drop=True))
+    bad = _run(tmp_path / "neg", "--first-seed", "-1")
+    assert bad.returncode == 2 and "--first-seed -1: give 0 or more" in bad.stderr
 
 
 def test_a_finished_study_grows_by_seeds(smoke, tmp_path):
