@@ -149,13 +149,14 @@ def test_tune_starts_the_one_cpu_trials_first_so_two_share_two_cores():
     assert [trial_resources(c, 1)["cpu"] for c in packed(cells, max_cpus=1)] == [1] * len(cells)
 
 
-def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch):
+def _fake_training(monkeypatch) -> list[str]:
+    """Patch the benchmark's trainer: each trial leaves a finished run folder at once (its
+    config.yaml) and its cell name in the returned list, in training order."""
     from eval.scale import benchmark
-    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, run_sequential
 
     trained = []
 
-    def fake_train_cell(cfg, folder, keep="all"):  # a finished run folder without training
+    def fake_train_cell(cfg, folder, keep="all"):
         trained.append(benchmark.cell_name(cfg))
         run = Path(folder) / "run"
         run.mkdir(parents=True)
@@ -163,6 +164,13 @@ def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch)
         return run
 
     monkeypatch.setattr(benchmark, "train_cell", fake_train_cell)
+    return trained
+
+
+def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch):
+    from eval.scale.benchmark import BenchmarkError, BenchmarkPlan, run_sequential
+
+    trained = _fake_training(monkeypatch)
     grid = {"preset": "smoke", "envs": ("env_1",), "algos": ("ppo", "dqn")}
     out = tmp_path / "b"
     run_sequential(BenchmarkPlan(**grid, seeds=1), out)
@@ -186,15 +194,8 @@ def test_resume_with_more_seeds_trains_only_the_new_seeds(tmp_path, monkeypatch)
 
 def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, monkeypatch, capsys):
     from eval.cli import main
-    from eval.scale import benchmark
 
-    def fake_train_cell(cfg, folder, keep="all"):
-        run = Path(folder) / "run"
-        run.mkdir(parents=True)
-        (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
-        return run
-
-    monkeypatch.setattr(benchmark, "train_cell", fake_train_cell)
+    _fake_training(monkeypatch)
     args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn", "--no-ray",
             "--train-only", "--out", str(tmp_path / "b")]
     assert main([*args, "--seeds", "1"]) == 0
@@ -205,12 +206,11 @@ def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, mo
     assert "trained 4 trials" in out and "trained env_1__ppo__0__bench" not in out
 
 
-def test_a_grid_from_a_first_seed_trains_the_same_cells_as_the_whole_grid(tmp_path, monkeypatch):
+def test_a_grid_from_a_first_seed_trains_the_same_cells_as_the_whole_grid(tmp_path, monkeypatch, capsys):
     """--first-seed 1 --seeds 2: the cells "seed 1" and "seed 2" of a grid from seed 0, with
     the same configs; the plan records it (a plan saved before it reads back as equal) and a
     resume with more seeds grows from it."""
     from eval.cli import main
-    from eval.scale import benchmark
     from eval.scale.benchmark import BenchmarkError, BenchmarkPlan
 
     grid = {"preset": "smoke", "envs": ("env_1", "env_2"), "algos": ("ppo", "dqn")}
@@ -222,16 +222,7 @@ def test_a_grid_from_a_first_seed_trains_the_same_cells_as_the_whole_grid(tmp_pa
     with pytest.raises(BenchmarkError, match="--first-seed must be >= 0, got -1"):
         BenchmarkPlan(first_seed=-1)
 
-    trained = []
-
-    def fake_train_cell(cfg, folder, keep="all"):
-        trained.append(benchmark.cell_name(cfg))
-        run = Path(folder) / "run"
-        run.mkdir(parents=True)
-        (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
-        return run
-
-    monkeypatch.setattr(benchmark, "train_cell", fake_train_cell)
+    trained = _fake_training(monkeypatch)
     args = ["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "--no-ray",
             "--train-only", "--out", str(tmp_path / "b"), "--first-seed", "1"]
     assert main([*args, "--seeds", "1"]) == 0
@@ -241,6 +232,7 @@ def test_a_grid_from_a_first_seed_trains_the_same_cells_as_the_whole_grid(tmp_pa
     assert json.loads((tmp_path / "b" / "benchmark.json").read_text())["first_seed"] == 1
     # another first seed on the same folder is another plan
     assert main([*args[:-1], "2", "--seeds", "2", "--resume"]) == 2
+    assert "only --seeds may grow" in capsys.readouterr().err
 
 
 def test_more_seeds_wait_for_the_saved_benchmark_to_finish(tmp_path):
