@@ -101,13 +101,14 @@ def _bearing(me: pd.Series, other: pd.Series) -> tuple[str, float]:
 def contact_runs(records: pd.DataFrame, min_steps: int = 1) -> pd.DataFrame:
     """One row per unbroken run of ``min_steps`` or more contact steps (a car, an object or a
     pedestrian) of one AC in one simulation run: its policy, slot, first step and length, what it
-    touched at the first step (``with``: car, object or pedestrian) and whether it was off its lane
-    then (off the road or on a wrong lane: SUMO's cars do not see such an AC), the share of it standing, how it ended (``left`` the contact, ``goal``, or the episode's ``end``), and the
+    touched at the first step (``with``: car, object or pedestrian) and whether it was off its
+    lane then (off the road or on a wrong lane: SUMO's cars do not see such an AC), the share of
+    it standing, how it ended (``left`` the contact, ``goal``, or the episode's ``end``), and the
     other AC it was held against where one in a vehicle contact had its centre within
-    :data:`AC_CONTACT_M` at the run's first step (``partner``, that AC's policy, its bearing from this AC and this AC's from it and both
-    speeds at the first step: who drove into whom; its bearing at the run's last step: what this
-    AC's camera could see while it stood); ``partner`` is empty for a contact with a background car
-    or object."""
+    :data:`AC_CONTACT_M` at the run's first step (``partner``, that AC's policy, its bearing from
+    this AC and this AC's from it and both speeds at the first step: who drove into whom; its
+    bearing at the run's last step: what this AC's camera could see while it stood); ``partner``
+    is empty for a contact with a background car or object."""
     rows = []
     for g in _runs(records):
         g = g.sort_values(["agent", "step"])
