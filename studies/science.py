@@ -479,7 +479,7 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
             what = ", ".join(diff + (["test"] if st["test"] != first["test"] else []))
             raise ScienceError(f"--combine: {src} differs from {src0} in {what}; combine only "
                                "studies run with the same algorithms, preset, steps and test")
-        own = list(range(int(b.get("first_seed", 0)), int(b.get("first_seed", 0)) + int(b["seeds"])))
+        own = list(_study_seeds(b))
         for env in b["envs"]:
             twice = sorted(set(own) & set(seeds_of.get(env, [])))
             if twice:
@@ -497,10 +497,8 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
         raise ScienceError(f"{out} holds a study of its own; choose another --out for the "
                            "combination")
     for src, st in studies:
-        b = st["benchmark"]
-        first_seed = int(b.get("first_seed", 0))
-        for env in b["envs"]:
-            _gather(src, env, range(first_seed, first_seed + int(b["seeds"])), plan.algos, out, say)
+        for env in st["benchmark"]["envs"]:
+            _gather(src, env, _study_seeds(st["benchmark"]), plan.algos, out, say)
     exported = [c for src, _ in studies if (src / EXPORTED).is_file()
                 for c in json.loads((src / EXPORTED).read_text())]
     if exported:
@@ -513,6 +511,13 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
     return plan, study, seeds_of
 
 
+def _study_seeds(bench: dict) -> range:
+    """The training seeds of a study from its saved plan (``BenchmarkPlan.seed_list``; a plan
+    saved before ``first_seed`` existed starts at 0)."""
+    first = int(bench.get("first_seed", 0))
+    return range(first, first + int(bench["seeds"]))
+
+
 def _gather(src: Path, env: str, seeds, algos, out: Path, say) -> None:
     """Copy one environment's references and held-out records of the study ``src`` into
     ``out`` (a seed whose records are not there: its rows of ``src/seeds.csv``, :data:`KEPT`),
@@ -520,7 +525,8 @@ def _gather(src: Path, env: str, seeds, algos, out: Path, say) -> None:
     import shutil
 
     means = pd.read_csv(src / "seeds.csv") if (src / "seeds.csv").is_file() else None
-    files, kept = [src / "references" / f"{env}.csv"], {}
+    refs = src / "references" / f"{env}.csv"
+    records, kept = {}, {}  # seed -> its held-out records file, or its seed means
     for k in seeds:
         rec = src / "test" / f"{env}__seed{k}.parquet"
         rows = (means[(means["env"] == env) & (means["train_seed"] == k)]
@@ -528,17 +534,17 @@ def _gather(src: Path, env: str, seeds, algos, out: Path, say) -> None:
         if rows is not None and len(rows):
             kept[k] = rows
         else:
-            files.append(rec)
-    missing = [f for f in files if not f.is_file()]
+            records[k] = rec
+    missing = [f for f in [refs, *records.values()] if not f.is_file()]
     if missing:
         raise ScienceError(f"--combine: {missing[0]} is missing; finish that study first "
                            "(rerun its own command)")
-    (out / "test").mkdir(parents=True, exist_ok=True)
-    for f in files:
-        (out / f.parent.name).mkdir(parents=True, exist_ok=True)
-        shutil.copy2(f, out / f.parent.name / f.name)
-        if f.suffix == ".parquet":
-            (out / "test" / KEPT.format(env=env, seed=f.stem.split("__seed")[-1])).unlink(missing_ok=True)
+    for folder in ("test", "references"):
+        (out / folder).mkdir(parents=True, exist_ok=True)
+    shutil.copy2(refs, out / "references" / refs.name)
+    for k, rec in records.items():
+        shutil.copy2(rec, out / "test" / rec.name)
+        (out / "test" / KEPT.format(env=env, seed=k)).unlink(missing_ok=True)
     for k, rows in kept.items():
         (out / "test" / f"{env}__seed{k}.parquet").unlink(missing_ok=True)
         _write(rows, out / "test" / KEPT.format(env=env, seed=k))
