@@ -227,6 +227,13 @@ class Scenario:
     back where it was before the step, standing; that step is charged as any contact step. Off
     in every bundled scenario (task version 3: an AC can drive through a car, charged each
     contact step). A candidate for the next task version: docs/task.md, "Solid cars"."""
+    cars_see_acs: bool = False
+    """Whether SUMO's background cars brake for an AC anywhere on their lane ahead, not only for
+    one SUMO has mapped onto that lane as their leader: a car on a lane is held (speed 0) while
+    an AC's body, its centre ahead of the car's front, lies on the car's path ahead within its
+    stopping distance + SEE_BUFFER m (cosim/sumo_bridge.py ``SumoBridge._cars_seeing``). Off in
+    every bundled scenario (task version 3: an AC standing across or beside a lane is invisible
+    to the cars on it). docs/task.md, "Cars that see an AC anywhere"."""
     reward: RewardWeights = field(default_factory=RewardWeights)
     termination: Termination = field(default_factory=Termination)
     spawn_jitter: SpawnJitter = field(default_factory=SpawnJitter)

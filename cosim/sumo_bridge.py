@@ -50,6 +50,11 @@ GATE_MARGIN = 0.3
 GATE_NEAR = 25.0  # metres: only cars this close to an AC are checked
 GATE_DECEL = 4.0  # m/s^2: a car that cannot stop before the junction at this rate is let go
 GATE_AHEAD = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # seconds: where an AC will be, for people
+# with Scenario.cars_see_acs, a background car on a lane also waits while an AC's body lies on
+# its lane ahead, from its front to its stopping distance at GATE_DECEL + SEE_BUFFER m on (the
+# margin for a car that brakes at its own rate from one step later): see _cars_seeing
+SEE_BUFFER = 8.0
+SEE_NEAR = 45.0  # metres: the cars checked for it (a car at 16 m/s, the bundled cars' top speed, needs 40)
 _CMD_GET_VEHICLE_VARIABLE, _CMD_GET_PERSON_VARIABLE = 0xA4, 0xAE
 
 
@@ -67,23 +72,32 @@ def _libsumo():
     return libsumo
 
 
-def _near(actors: list, pts: np.ndarray) -> list:
-    """The (id, subscription results) of `actors` within GATE_NEAR m of any of `pts` (k, 2)."""
+def _near(actors: list, pts: np.ndarray, radius: float = GATE_NEAR) -> list:
+    """The (id, subscription results) of `actors` within `radius` m of any of `pts` (k, 2)."""
     if not actors or not len(pts):
         return []
     at = np.array([var[_VAR_POSITION] for _, var in actors], dtype=float)
     d2 = ((at[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2).min(axis=1)
-    return [a for a, close in zip(actors, d2 <= GATE_NEAR ** 2, strict=True) if close]
+    return [a for a, close in zip(actors, d2 <= radius ** 2, strict=True) if close]
+
+
+def _beside(path: Polyline, pts: np.ndarray, reach: np.ndarray, start: float = 0.0,
+            end: float = math.inf) -> np.ndarray:
+    """Which of `pts` (k, 2) lie beside `path` within their `reach` (k,), between arc lengths
+    `start` and `end` (not beyond the path's ends: a point past an end is another path's)."""
+    hit = np.zeros(len(pts), dtype=bool)
+    lo, hi = path.points.min(axis=0), path.points.max(axis=0)
+    box = np.all((pts >= lo - reach[:, None]) & (pts <= hi + reach[:, None]), axis=1)
+    if box.any():
+        along, lat = path.project_many(pts[box])
+        hit[box] = ((along > max(start, 0.0)) & (along < min(end, path.length))
+                    & (np.abs(lat) < reach[box]))
+    return hit
 
 
 def _touches(path: Polyline, pts: np.ndarray, reach: np.ndarray) -> bool:
     """Whether any of `pts` lies beside `path` (not beyond its ends) within its `reach`."""
-    lo, hi = path.points.min(axis=0), path.points.max(axis=0)
-    box = np.all((pts >= lo - reach[:, None]) & (pts <= hi + reach[:, None]), axis=1)
-    if not box.any():
-        return False
-    along, lat = path.project_many(pts[box])
-    return bool(np.any((along > 0.0) & (along < path.length) & (np.abs(lat) < reach[box])))
+    return bool(_beside(path, pts, reach).any())
 
 
 def sumo_to_heading(angle_deg: float | np.ndarray):
@@ -186,6 +200,7 @@ class SumoBridge:
         self._half: dict[str, float] = {}  # car or crossing -> half its width
         self._lane_length: dict[str, float] = {}
         self._paths: dict[str, Polyline] = {}  # internal lane -> its path through the junction
+        self._lanes: dict[str, Polyline] = {}  # lane -> its centre line (Scenario.cars_see_acs)
         self.time = 0.0
 
     # -- lifecycle -----------------------------------------------------------
@@ -267,6 +282,7 @@ class SumoBridge:
         self._next.clear()
         self._half.clear()
         self._paths.clear()
+        self._lanes.clear()
         self._lane_length.clear()
         self.time = 0.0
         self._steps = 0
@@ -529,7 +545,8 @@ class SumoBridge:
         only the cars its body is in the way of: one that stops with its nose in the
         junction does not stop the cross traffic for good.
         Cars already in a junction are left to SUMO (holding them there would park them in
-        the AC's way).
+        the AC's way). With Scenario.cars_see_acs, cars on a lane are also held for an AC
+        anywhere on their lane ahead (:meth:`_cars_seeing`).
 
         People get the same at zebra crossings, which SUMO lets them step onto in front of
         an AC for the same reason: one on the walking area before a crossing waits while a
@@ -549,6 +566,7 @@ class SumoBridge:
         axis = rear[:, None, :] + np.linspace(0.0, 1.0, 5)[None, :, None] * (front - rear)[:, None, :]
         pts, reach = [corners.reshape(-1, 2), axis.reshape(-1, 2)], [np.zeros(corners.size // 2),
                                                                      np.full(axis.size // 2, half_w)]
+        body, body_reach = np.concatenate(pts), np.concatenate(reach)
         go = np.ones(len(corners), bool) if moving is None else np.asarray(moving, bool)
         for k, ac in enumerate(ids):
             lane = cars[ac][_VAR_LANE_ID] if ac in cars and ac in self._acs else ""
@@ -568,6 +586,8 @@ class SumoBridge:
                     and to_go <= GATE_REACH]
         hold = {vid for vid, var in _near(near_end, xy)
                 if self._blocked_entry(vid, var[_VAR_LANE_ID], xy, rad)}
+        if self.scenario.cars_see_acs:
+            hold |= self._cars_seeing(cars, ids, corners, body, body_reach)
         walkers: set[str] = set()
         if self.pedestrians:
             # a person waits for a moving AC on the crossing or driving onto it, not for one
@@ -628,18 +648,114 @@ class SumoBridge:
     def _blocked_entry(self, vid: str, lane: str, pts: np.ndarray, rad: np.ndarray) -> bool:
         """Whether background car `vid`, on `lane`, enters the junction at its end on a path
         that one of `pts` (each with its radius `rad`) touches."""
+        link = self._next_link(vid, lane)
+        if link is None:
+            return False
+        return _touches(self._junction_path(link[0]), pts, rad + self._half[vid] + GATE_MARGIN)
+
+    def _next_link(self, vid: str, lane: str) -> tuple[str, str] | None:
+        """(first internal lane, lane after the junction) of background car `vid`'s way on
+        from the end of `lane`; None where it enters no junction there, or it has left the
+        simulation. Cached per car and lane (a car's way on from a lane does not change),
+        with half the car's width."""
         key = (vid, lane)
         if key not in self._next:
             try:
                 links = self._ls.vehicle.getNextLinks(vid)
                 self._half[vid] = self._ls.vehicle.getWidth(vid) / 2
             except self._errors:
-                return False  # left the simulation in the last step (a finished AC, a cleared car)
-            self._next[key] = links[0][4] if links and links[0][4].startswith(":") else None
-        internal = self._next[key]
-        if internal is None:
-            return False
-        return _touches(self._junction_path(internal), pts, rad + self._half[vid] + GATE_MARGIN)
+                return None  # left the simulation in the last step (a finished AC, a cleared car)
+            # (lane after, priority, open, foe, via internal lane, state, direction, length)
+            self._next[key] = (links[0][4], links[0][0]) if links and links[0][4].startswith(":") else None
+        return self._next[key]
+
+    def _cars_seeing(self, cars: dict, ids: list[str], corners: np.ndarray, pts: np.ndarray,
+                     rad: np.ndarray) -> set[str]:
+        """With Scenario.cars_see_acs: the background cars on a lane (not in a junction) that
+        one of the ACs `ids` stands in front of, on their path ahead.
+
+        SUMO's car-following sees only a leader on the car's own lane and the lanes after it,
+        and ``moveToXY`` maps an AC standing across or between lanes, or beside the road, to
+        one lane or none: the cars on the other lanes its body covers drive into it and queue
+        against it, each step a contact the AC is charged for. So a car is held while a point
+        of an AC's body (`pts`: the corners, then the centre lines, of `corners` (n, 4, 2),
+        each with its radius `rad`) lies on its path ahead (:meth:`_on_path_ahead`), counting
+        only ACs whose centre is in front of the car's front: a car is not held by an AC that
+        ran into it from behind or stands beside it. An AC SUMO has as the car's leader is
+        left to SUMO, which follows it at its speed: held, the cars behind an AC driving on
+        their lane would stop every step.
+        """
+        n = len(corners)
+        owner = np.concatenate([np.repeat(np.arange(n), 4), np.repeat(np.arange(n), 5)])
+        centre = corners.mean(axis=1)
+        on_lane = [(vid, var) for vid, var in cars.items()
+                   if vid not in self._acs and var[_VAR_LANE_ID]
+                   and not var[_VAR_LANE_ID].startswith(":")
+                   and var[_VAR_TYPE] != "cosim_parked"]  # place_car's: released, it would drive
+        seeing: set[str] = set()
+        for vid, var in _near(on_lane, pts, SEE_NEAR):
+            front = np.asarray(var[_VAR_POSITION], dtype=float)
+            h = float(sumo_to_heading(var[_VAR_ANGLE]))
+            reach = var[_VAR_SPEED] ** 2 / (2 * GATE_DECEL) + SEE_BUFFER
+            half = self._car_half(vid)
+            if half is None:
+                continue  # left the simulation in the last step
+            side = rad + half + GATE_MARGIN
+            # of ACs ahead, the points no further from its front than its path ahead reaches
+            # (a path is never shorter than the straight line; 1 m for the front's projection)
+            ahead = (((centre - front) @ np.array([math.cos(h), math.sin(h)]) > 0.0)[owner]
+                     & (((pts - front) ** 2).sum(axis=1) < (reach + side + 1.0) ** 2))
+            if not ahead.any():
+                continue
+            on = self._on_path_ahead(vid, var, pts[ahead], side[ahead], reach)
+            acs = {ids[k] for k in owner[ahead][on]}
+            if acs and acs != {self._leader(vid, reach)}:
+                seeing.add(vid)
+        return seeing
+
+    def _on_path_ahead(self, vid: str, var: dict, pts: np.ndarray, side: np.ndarray,
+                       reach: float) -> np.ndarray:
+        """Which of `pts` lie on background car `vid`'s path ahead (subscription results
+        `var`): within `side` m (each point's: half the car's width + GATE_MARGIN + its
+        radius) of the centre line of its lane, from its front to `reach` m on; where the lane
+        ends sooner, on along its path through the next junction (its internal lanes) and
+        into the lane after it, no further."""
+        lane = var[_VAR_LANE_ID]
+        path = self._lane_path(lane)
+        start, _ = path.project(*var[_VAR_POSITION])  # its front
+        hit = _beside(path, pts, side, start, start + reach)
+        left = reach - (path.length - start)
+        link = self._next_link(vid, lane) if left > 0 else None
+        if link is not None:
+            through = self._junction_path(link[0])
+            hit |= _beside(through, pts, side, 0.0, left)
+            if left > through.length:
+                hit |= _beside(self._lane_path(link[1]), pts, side, 0.0, left - through.length)
+        return hit
+
+    def _car_half(self, vid: str) -> float | None:
+        """Half the width of car `vid` (cached), None when it has left the simulation."""
+        if vid not in self._half:
+            try:
+                self._half[vid] = self._ls.vehicle.getWidth(vid) / 2
+            except self._errors:
+                return None
+        return self._half[vid]
+
+    def _lane_path(self, lane: str) -> Polyline:
+        """The centre line of a (normal) lane, cached."""
+        if lane not in self._lanes:
+            shape = [p[:2] for p in self._ls.lane.getShape(lane)]
+            self._lanes[lane] = Polyline.from_points(np.asarray(shape, dtype=float))
+        return self._lanes[lane]
+
+    def _leader(self, vid: str, dist: float) -> str:
+        """The vehicle SUMO has as car `vid`'s leader within `dist` m ("" for none)."""
+        try:
+            lead = self._ls.vehicle.getLeader(vid, dist)
+        except self._errors:
+            return ""
+        return lead[0] if lead else ""  # libsumo: ("", -1) for none; TraCI: None
 
     def _junction_path(self, internal: str) -> Polyline:
         """The centre line through the junction from `internal` on (its internal lanes)."""

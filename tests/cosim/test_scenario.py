@@ -41,6 +41,11 @@ def test_solid_cars_is_read_from_the_yaml_and_off_in_every_bundled_scenario(tmp_
     assert not any(load_scenario(f"env_{k}").solid_cars for k in range(1, 6))  # task version 3
 
 
+def test_cars_see_acs_is_read_from_the_yaml_and_off_in_every_bundled_scenario(tmp_path):
+    assert load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(cars_see_acs=True))).cars_see_acs
+    assert not any(load_scenario(f"env_{k}").cars_see_acs for k in range(1, 6))  # task version 3
+
+
 def test_scenario_data_makes_every_file_absolute_or_relative_to_the_copys_folder(tmp_path):
     data = scenario_data("env_3")
     files = [data["net"], *data["demand"], *data["pedestrian_demand"], *data["additional"]]
@@ -79,6 +84,7 @@ def test_unknown_key_lists_valid_keys(tmp_path):
         (lambda d: d.update(spawn_jitter={"heading_deg": 90}), r"'spawn_jitter'.*heading_deg must be 0..45"),
         (lambda d: d.update(spawn_jitter={"lateral_m": 1}), r"'spawn_jitter'.*unknown key.*lateral"),
         (lambda d: d.update(solid_cars="yes"), r"'solid_cars' must be bool"),
+        (lambda d: d.update(cars_see_acs=1), r"'cars_see_acs' must be bool"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, edit, message):

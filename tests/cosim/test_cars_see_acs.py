@@ -1,0 +1,142 @@
+"""Scenario.cars_see_acs: SUMO's cars brake for an AC anywhere on their lane ahead
+(SumoBridge._cars_seeing), not only for one SUMO has mapped onto that lane as their leader.
+
+An AC is moved by moveToXY(keepRoute=2), which maps an AC standing across or between lanes to
+one lane (or none): without the option a car on another lane its body covers drives into it
+(docs/task.md, "Cars that see an AC anywhere").
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import yaml
+
+from cosim.scenario import scenario_data
+from cosim.world import World
+
+BRAKE = {"ac_0": (-1.0, 0.0)}
+LANE = "st_e_1"  # Straight (env_1), eastbound, the right lane: centre line y = 145.2, x from -242.5
+BOUNDARY = 146.8  # y of the line between st_e_1 and st_e_2 (centre y = 148.4), both 3.2 m wide
+
+
+def _scenario(tmp_path, see: bool) -> str:
+    """env_1 with `cars_see_acs: see` and no spawn jitter, written as a YAML (as a pilot's copy)."""
+    data = scenario_data("env_1")
+    data.pop("spawn_jitter", None)  # hand-made poses below
+    data["cars_see_acs"] = see
+    path = tmp_path / f"env_1_see_{see}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def _away(w: World) -> None:
+    w.place_ac("ac_0", -235.0, 145.2, 0.0)  # on its own lane near the road's start, behind the car
+
+
+def _car(ls, pos: float, speed: float) -> None:
+    """A SUMO car (default type: 5 m x 1.8 m) on st_e_1 with its front `pos` m along it."""
+    ls.route.add("east", ["st_e"])
+    ls.vehicle.add("car", "east", departLane="1", departPos=f"{pos:.2f}", departSpeed=f"{speed:.2f}")
+
+
+def _leader(ls) -> str:
+    lead = ls.vehicle.getLeader("car", 100.0)
+    return lead[0] if lead else ""  # libsumo: ("", -1) for none
+
+
+@pytest.mark.parametrize("see", [False, True])
+def test_a_car_stops_for_an_ac_standing_across_its_lane_only_with_the_option(tmp_path, see):
+    """An AC standing across the line between the two eastbound lanes (heading north, centred on
+    it): SUMO maps it to the left lane, so a car on the right lane does not see it. Without the
+    option the car drives into it (2 contact steps at 14.5 m/s, then through it: cars are not
+    solid); with it the car stops before it, held, and drives on once the AC has gone."""
+    with World(_scenario(tmp_path, see), 1, background=False) as w:
+        assert w.scenario.cars_see_acs is see
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        w.place_ac("ac_0", -120.0, BOUNDARY, math.pi / 2)  # across both lanes, 122.5 m along them
+        for _ in range(2):
+            w.step(BRAKE)
+        assert ls.vehicle.getLaneID("ac_0") != LANE, "SUMO has not mapped the AC onto the car's lane"
+        _car(ls, 60.0, 13.89)  # 61 m before the AC, at the speed limit
+        contact, held = [], False
+        for _ in range(80):
+            r = w.step(BRAKE)["ac_0"]
+            contact += [r.events.hit] if r.events.collision_vehicle else []
+            held |= "car" in w.bridge._held
+            assert _leader(ls) != "ac_0", "SUMO does not have the AC as the car's leader"
+        if not see:
+            assert contact and set(contact) == {"car"}, "the car drove into the AC"
+            assert not held
+            return
+        assert not contact, "the car stopped before the AC"
+        assert "car" in w.bridge._held and ls.vehicle.getSpeed("car") == pytest.approx(0.0, abs=0.01)
+        front = ls.vehicle.getPosition("car")[0]
+        assert -120.0 - 0.9 - 10.0 < front < -120.0 - 0.9, "it stands within 10 m of the AC's side"
+        _away(w)
+        for _ in range(40):
+            w.step(BRAKE)
+        assert "car" not in w.bridge._held
+        assert ls.vehicle.getSpeed("car") > 3.0, "released, it drives on at SUMO's own speed"
+        assert ls.vehicle.getPosition("car")[0] > front + 5.0
+
+
+@pytest.mark.parametrize("where, held", [
+    ("beside, its centre 1 m behind the car's front", False),
+    ("beside, its centre 1 m ahead of the car's front", True),
+    ("behind, touching the car's tail", False),
+])
+def test_only_an_ac_whose_centre_is_ahead_of_a_car_holds_it(tmp_path, where, held):
+    """A standing car on st_e_1 and an AC beside it in the left lane, turned 40 degrees to the
+    right so that its front corner pokes 1.16 m from the car's lane centre line into the car's
+    path (half its width + 0.3 m: 1.2 m) ahead of the car's front, 0.26 m clear of its side. Its
+    centre 1 m behind the car's front, the AC does not hold the car (it drives off); 1 m ahead, it
+    does. An AC that ran into the car from behind does not hold it either."""
+    with World(_scenario(tmp_path, True), 1, background=False) as w:
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        _away(w)
+        w.step(BRAKE)
+        _car(ls, 120.0, 0.0)
+        w.step(BRAKE)
+        front = ls.vehicle.getPosition("car")[0]  # x of its front bumper: -122.5
+        if where.startswith("behind"):
+            w.place_ac("ac_0", front - 5.0 - 2.25 + 0.3, 145.2, 0.0)  # 0.3 m into its tail
+        else:
+            dx = -1.0 if "behind" in where else 1.0
+            w.place_ac("ac_0", front + dx, 148.5, math.radians(-40.0))
+        for _ in range(2):
+            w.step(BRAKE)
+        assert ls.vehicle.getLaneID("ac_0") != LANE or where.startswith("behind")
+        if held:
+            for _ in range(20):
+                w.step(BRAKE)
+            assert "car" in w.bridge._held and ls.vehicle.getSpeed("car") == pytest.approx(0.0, abs=0.01)
+            return
+        moved = []
+        for _ in range(30):
+            w.step(BRAKE)
+            moved.append("car" not in w.bridge._held)
+        assert all(moved), "never held"
+        assert ls.vehicle.getPosition("car")[0] > front + 3.0, "it drove off"
+
+
+
+def test_a_car_following_an_ac_on_its_lane_is_left_to_sumo(tmp_path):
+    """An AC driving on the car's lane is SUMO's leader for the car, which follows it at its
+    speed: the option does not hold it (held, the cars behind an AC would stop every step)."""
+    with World(_scenario(tmp_path, True), 1, background=False) as w:
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        w.place_ac("ac_0", -200.0, 145.2, 0.0, speed=8.0)
+        _car(ls, 5.0, 13.89)  # 30 m behind the AC's tail, faster
+        leader, contact = [], []
+        for _ in range(150):
+            r = w.step({"ac_0": (0.1, 0.0)})["ac_0"]
+            assert "car" not in w.bridge._held
+            leader.append(_leader(ls))
+            contact += [r.events.hit] if r.events.collision_vehicle else []
+        assert "ac_0" in leader, "the car caught up with the AC and followed it"
+        assert not contact and ls.vehicle.getSpeed("car") > 5.0
