@@ -85,14 +85,21 @@ def _beside(path: Polyline, pts: np.ndarray, reach: np.ndarray, start: float = 0
             end: float = math.inf) -> np.ndarray:
     """Which of `pts` (k, 2) lie beside `path` within their `reach` (k,), between arc lengths
     `start` and `end` (not beyond the path's ends: a point past an end is another path's)."""
-    hit = np.zeros(len(pts), dtype=bool)
+    return np.isfinite(_along_beside(path, pts, reach, start, end))
+
+
+def _along_beside(path: Polyline, pts: np.ndarray, reach: np.ndarray, start: float = 0.0,
+                  end: float = math.inf) -> np.ndarray:
+    """Each of `pts`' arc length along `path` where it lies beside it as in :func:`_beside`,
+    inf where it does not."""
+    at = np.full(len(pts), np.inf)
     lo, hi = path.points.min(axis=0), path.points.max(axis=0)
     box = np.all((pts >= lo - reach[:, None]) & (pts <= hi + reach[:, None]), axis=1)
     if box.any():
         along, lat = path.project_many(pts[box])
-        hit[box] = ((along > max(start, 0.0)) & (along < min(end, path.length))
-                    & (np.abs(lat) < reach[box]))
-    return hit
+        hit = (along > max(start, 0.0)) & (along < min(end, path.length)) & (np.abs(lat) < reach[box])
+        at[np.flatnonzero(box)[hit]] = along[hit]
+    return at
 
 
 def _touches(path: Polyline, pts: np.ndarray, reach: np.ndarray) -> bool:
@@ -681,9 +688,13 @@ class SumoBridge:
         of an AC's body (`pts`: the corners, then the centre lines, of `corners` (n, 4, 2),
         each with its radius `rad`) lies on its path ahead (:meth:`_on_path_ahead`), counting
         only ACs whose centre is in front of the car's front: a car is not held by an AC that
-        ran into it from behind or stands beside it. An AC SUMO has as the car's leader is
-        left to SUMO, which follows it at its speed: held, the cars behind an AC driving on
-        their lane would stop every step.
+        ran into it from behind or stands beside it. Nor is a car held for an AC's points beyond
+        its SUMO leader (an AC or any car) within reach: it brakes for its leader, and so for
+        what lies beyond it. That leaves an AC SUMO has as the car's leader to SUMO, which
+        follows it at its speed (held, the cars behind an AC driving on their lane would stop
+        every step), and a car held by ``setSpeed`` brakes at most at its normal deceleration,
+        not as hard as car-following would for a leader that stops short (held so for a second
+        AC, a car behind an AC standing after its spawn on the Roundabout ran into it).
         """
         n = len(corners)
         owner = np.concatenate([np.repeat(np.arange(n), 4), np.repeat(np.arange(n), 5)])
@@ -707,31 +718,38 @@ class SumoBridge:
                      & (((pts - front) ** 2).sum(axis=1) < (reach + side + 1.0) ** 2))
             if not ahead.any():
                 continue
-            on = self._on_path_ahead(vid, var, pts[ahead], side[ahead], reach)
-            acs = {ids[k] for k in owner[ahead][on]}
-            if acs and acs != {self._leader(vid, reach)}:
+            dist = self._on_path_ahead(vid, var, pts[ahead], side[ahead], reach)
+            if not np.isfinite(dist).any():
+                continue
+            leader, gap = self._leader(vid, reach)
+            # the other ACs' points on its path: SUMO brakes for its leader (an AC or any car)
+            # and so for what lies beyond it: only the points nearer than it count
+            other = np.array([ids[k] != leader for k in owner[ahead]]) & (dist < gap)
+            if np.isfinite(dist[other]).any():
                 seeing.add(vid)
         return seeing
 
     def _on_path_ahead(self, vid: str, var: dict, pts: np.ndarray, side: np.ndarray,
                        reach: float) -> np.ndarray:
-        """Which of `pts` lie on background car `vid`'s path ahead (subscription results
-        `var`): within `side` m (each point's: half the car's width + GATE_MARGIN + its
-        radius) of the centre line of its lane, from its front to `reach` m on; where the lane
-        ends sooner, on along its path through the next junction (its internal lanes) and
-        into the lane after it, no further."""
+        """How far ahead of background car `vid`'s front (subscription results `var`) each of
+        `pts` lies on its path, inf where it is not on it: within `side` m (each point's: half
+        the car's width + GATE_MARGIN + its radius) of the centre line of its lane, from its
+        front to `reach` m on; where the lane ends sooner, on along its path through the next
+        junction (its internal lanes) and into the lane after it, no further."""
         lane = var[_VAR_LANE_ID]
         path = self._lane_path(lane)
         start, _ = path.project(*var[_VAR_POSITION])  # its front
-        hit = _beside(path, pts, side, start, start + reach)
+        dist = _along_beside(path, pts, side, start, start + reach) - start
         left = reach - (path.length - start)
         link = self._next_link(vid, lane) if left > 0 else None
         if link is not None:
-            through = self._junction_path(link[0])
-            hit |= _beside(through, pts, side, 0.0, left)
+            through, before = self._junction_path(link[0]), path.length - start
+            dist = np.minimum(dist, _along_beside(through, pts, side, 0.0, left) + before)
             if left > through.length:
-                hit |= _beside(self._lane_path(link[1]), pts, side, 0.0, left - through.length)
-        return hit
+                after = self._lane_path(link[1])
+                dist = np.minimum(dist, _along_beside(after, pts, side, 0.0, left - through.length)
+                                  + before + through.length)
+        return dist
 
     def _car_half(self, vid: str) -> float | None:
         """Half the width of car `vid` (cached), None when it has left the simulation."""
@@ -749,13 +767,16 @@ class SumoBridge:
             self._lanes[lane] = Polyline.from_points(np.asarray(shape, dtype=float))
         return self._lanes[lane]
 
-    def _leader(self, vid: str, dist: float) -> str:
-        """The vehicle SUMO has as car `vid`'s leader within `dist` m ("" for none)."""
+    def _leader(self, vid: str, dist: float) -> tuple[str, float]:
+        """(id, metres from car `vid`'s front to its rear) of the vehicle SUMO has as the
+        car's leader within `dist` m; ("", inf) for none."""
         try:
             lead = self._ls.vehicle.getLeader(vid, dist)
+            if not lead or not lead[0]:  # libsumo: ("", -1) for none; TraCI: None
+                return "", math.inf
+            return lead[0], lead[1] + self._ls.vehicle.getMinGap(vid)
         except self._errors:
-            return ""
-        return lead[0] if lead else ""  # libsumo: ("", -1) for none; TraCI: None
+            return "", math.inf
 
     def _junction_path(self, internal: str) -> Polyline:
         """The centre line through the junction from `internal` on (its internal lanes)."""

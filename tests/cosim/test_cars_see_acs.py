@@ -123,7 +123,6 @@ def test_only_an_ac_whose_centre_is_ahead_of_a_car_holds_it(tmp_path, where, hel
         assert ls.vehicle.getPosition("car")[0] > front + 3.0, "it drove off"
 
 
-
 def test_a_car_following_an_ac_on_its_lane_is_left_to_sumo(tmp_path):
     """An AC driving on the car's lane is SUMO's leader for the car, which follows it at its
     speed: the option does not hold it (held, the cars behind an AC would stop every step)."""
@@ -140,3 +139,56 @@ def test_a_car_following_an_ac_on_its_lane_is_left_to_sumo(tmp_path):
             contact += [r.events.hit] if r.events.collision_vehicle else []
         assert "ac_0" in leader, "the car caught up with the AC and followed it"
         assert not contact and ls.vehicle.getSpeed("car") > 5.0
+
+
+def test_a_car_behind_a_leader_nearer_than_the_ac_is_left_to_sumo(tmp_path):
+    """Two cars on st_e_1 towards an AC standing across the lane line: the first is held before
+    the AC; the second, whose leader (the first) is nearer than the AC, is not held (it brakes
+    for its leader: a held car brakes no harder than its normal deceleration, which is too
+    little when its leader stops short) and neither touches the AC."""
+    with World(_scenario(tmp_path, True), 1, background=False) as w:
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        w.place_ac("ac_0", -120.0, BOUNDARY, math.pi / 2)
+        for _ in range(2):
+            w.step(BRAKE)
+        ls.route.add("east", ["st_e"])
+        ls.vehicle.add("lead", "east", departLane="1", departPos="70.00", departSpeed="10.00")
+        ls.vehicle.add("car", "east", departLane="1", departPos="50.00", departSpeed="10.00")
+        ls.vehicle.setLaneChangeMode("car", 0)  # it stays behind its leader (else it may pass it)
+        lead_held, contact = False, []
+        for _ in range(100):
+            r = w.step(BRAKE)["ac_0"]
+            contact += [r.events.hit] if r.events.collision_vehicle else []
+            lead_held |= "lead" in w.bridge._held
+            assert "car" not in w.bridge._held, "its leader is nearer than the AC"
+        assert lead_held and not contact
+        assert ls.vehicle.getSpeed("car") < 0.5, "it stops behind its leader"
+        assert ls.vehicle.getLanePosition("car") < ls.vehicle.getLanePosition("lead") - 5.0, "it did not pass it"
+
+
+def test_a_car_braking_for_an_ac_it_follows_is_not_held_for_one_further_on(tmp_path):
+    """An AC standing on st_e_1 (SUMO's leader for a car coming up behind it at 13.89 m/s) and
+    another standing across the lane line beside it, its side 1.35 m beyond the first's rear: the car is left to SUMO's car-following,
+    which stops it behind the first AC, not held for the second. (A car held by setSpeed
+    brakes at most at its normal deceleration, not as hard as car-following would for a
+    leader that stops short: held so, a car behind an AC that stood after its spawn on the
+    Roundabout ran into it.)"""
+    with World(_scenario(tmp_path, True), 2, background=False) as w:
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        brake = {"ac_0": (-1.0, 0.0), "ac_1": (-1.0, 0.0)}
+        w.place_ac("ac_0", -120.0, 145.2, 0.0)  # on the car's lane, 122.5 m along it
+        w.place_ac("ac_1", -120.0, BOUNDARY, math.pi / 2)  # across the line, beside it
+        for _ in range(2):
+            w.step(brake)
+        _car(ls, 60.0, 13.89)
+        ls.vehicle.setLaneChangeMode("car", 0)  # it stays on st_e_1 behind the first AC
+        leader, contact = [], []
+        for _ in range(100):
+            r = w.step(brake)
+            leader.append(_leader(ls))
+            contact += [a for a in ("ac_0", "ac_1") if r[a].events.collision_vehicle and r[a].events.hit == "car"]
+            assert "car" not in w.bridge._held, "its leader, the first AC, is nearer"
+        assert "ac_0" in leader and not contact, "it stopped behind the first AC"
+        assert ls.vehicle.getSpeed("car") < 0.5
