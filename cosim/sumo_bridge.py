@@ -81,17 +81,11 @@ def _near(actors: list, pts: np.ndarray, radius: float = GATE_NEAR) -> list:
     return [a for a, close in zip(actors, d2 <= radius ** 2, strict=True) if close]
 
 
-def _beside(path: Polyline, pts: np.ndarray, reach: np.ndarray, start: float = 0.0,
-            end: float = math.inf) -> np.ndarray:
-    """Which of `pts` (k, 2) lie beside `path` within their `reach` (k,), between arc lengths
-    `start` and `end` (not beyond the path's ends: a point past an end is another path's)."""
-    return np.isfinite(_along_beside(path, pts, reach, start, end))
-
-
 def _along_beside(path: Polyline, pts: np.ndarray, reach: np.ndarray, start: float = 0.0,
                   end: float = math.inf) -> np.ndarray:
-    """Each of `pts`' arc length along `path` where it lies beside it as in :func:`_beside`,
-    inf where it does not."""
+    """Each of `pts`' (k, 2) arc length along `path` where it lies beside it within its `reach`
+    (k,), between arc lengths `start` and `end` (not beyond the path's ends: a point past an end
+    is another path's); inf where it does not."""
     at = np.full(len(pts), np.inf)
     lo, hi = path.points.min(axis=0), path.points.max(axis=0)
     box = np.all((pts >= lo - reach[:, None]) & (pts <= hi + reach[:, None]), axis=1)
@@ -104,7 +98,7 @@ def _along_beside(path: Polyline, pts: np.ndarray, reach: np.ndarray, start: flo
 
 def _touches(path: Polyline, pts: np.ndarray, reach: np.ndarray) -> bool:
     """Whether any of `pts` lies beside `path` (not beyond its ends) within its `reach`."""
-    return bool(_beside(path, pts, reach).any())
+    return bool(np.isfinite(_along_beside(path, pts, reach)).any())
 
 
 def sumo_to_heading(angle_deg: float | np.ndarray):
@@ -663,15 +657,16 @@ class SumoBridge:
     def _next_link(self, vid: str, lane: str) -> tuple[str, str] | None:
         """(first internal lane, lane after the junction) of background car `vid`'s way on
         from the end of `lane`; None where it enters no junction there, or it has left the
-        simulation. Cached per car and lane (a car's way on from a lane does not change),
-        with half the car's width."""
+        simulation. Cached per car and lane (a car's way on from a lane does not change);
+        half the car's width is cached with it (:meth:`_car_half`)."""
         key = (vid, lane)
         if key not in self._next:
             try:
                 links = self._ls.vehicle.getNextLinks(vid)
-                self._half[vid] = self._ls.vehicle.getWidth(vid) / 2
             except self._errors:
                 return None  # left the simulation in the last step (a finished AC, a cleared car)
+            if self._car_half(vid) is None:
+                return None
             # (lane after, priority, open, foe, via internal lane, state, direction, length)
             self._next[key] = (links[0][4], links[0][0]) if links and links[0][4].startswith(":") else None
         return self._next[key]
@@ -724,7 +719,7 @@ class SumoBridge:
             leader, gap = self._leader(vid, reach)
             # the other ACs' points on its path: SUMO brakes for its leader (an AC or any car)
             # and so for what lies beyond it: only the points nearer than it count
-            other = np.array([ids[k] != leader for k in owner[ahead]]) & (dist < gap)
+            other = (owner[ahead] != (ids.index(leader) if leader in ids else -1)) & (dist < gap)
             if np.isfinite(dist[other]).any():
                 seeing.add(vid)
         return seeing
