@@ -143,9 +143,9 @@ def test_a_car_following_an_ac_on_its_lane_is_left_to_sumo(tmp_path):
 
 def test_a_car_behind_a_leader_nearer_than_the_ac_is_left_to_sumo(tmp_path):
     """Two cars on st_e_1 towards an AC standing across the lane line: the first is held before
-    the AC; the second, whose leader (the first) is nearer than the AC, is not held (it brakes
-    for its leader: a held car brakes no harder than its normal deceleration, which is too
-    little when its leader stops short) and neither touches the AC."""
+    the AC; the second queues behind it, never held, and neither touches the AC. (The second
+    stays out of its own reach of the AC, so this is a queue's test, not the leader rule's: that
+    is the next test's.)"""
     with World(_scenario(tmp_path, True), 1, background=False) as w:
         w.reset(seed=0)
         ls = w.bridge._ls
