@@ -199,6 +199,7 @@ class SumoBridge:
         self._held_people: set[str] = set()  # and people it holds before a crossing
         self._next: dict[tuple[str, str], str | None] = {}  # (car, lane) -> its next internal lane
         self._half: dict[str, float] = {}  # car or crossing -> half its width
+        self._min_gap: dict[str, float] = {}  # car -> its minGap (cached with its half width)
         self._lane_length: dict[str, float] = {}
         self._paths: dict[str, Polyline] = {}  # internal lane -> its path through the junction
         self._lanes: dict[str, Polyline] = {}  # lane -> its centre line (Scenario.cars_see_acs)
@@ -249,6 +250,7 @@ class SumoBridge:
             self._held_people.clear()
             self._next.clear()
             self._half.clear()
+            self._min_gap.clear()
             self.time = 0.0
             self._steps = 0
             return
@@ -282,6 +284,7 @@ class SumoBridge:
         self._held_people.clear()
         self._next.clear()
         self._half.clear()
+        self._min_gap.clear()
         self._paths.clear()
         self._lanes.clear()
         self._lane_length.clear()
@@ -747,12 +750,14 @@ class SumoBridge:
         return dist
 
     def _car_half(self, vid: str) -> float | None:
-        """Half the width of car `vid` (cached), None when it has left the simulation."""
+        """Half the width of car `vid` (cached, with its minGap for :meth:`_leader`), None when
+        it has left the simulation."""
         if vid not in self._half:
             try:
-                self._half[vid] = self._ls.vehicle.getWidth(vid) / 2
+                half, gap = self._ls.vehicle.getWidth(vid) / 2, self._ls.vehicle.getMinGap(vid)
             except self._errors:
                 return None
+            self._half[vid], self._min_gap[vid] = half, gap
         return self._half[vid]
 
     def _lane_path(self, lane: str) -> Polyline:
@@ -764,14 +769,15 @@ class SumoBridge:
 
     def _leader(self, vid: str, dist: float) -> tuple[str, float]:
         """(id, metres from car `vid`'s front to its rear) of the vehicle SUMO has as the
-        car's leader within `dist` m; ("", inf) for none."""
+        car's leader within `dist` m; ("", inf) for none. `vid` has been through
+        :meth:`_car_half` (its minGap is cached there)."""
         try:
             lead = self._ls.vehicle.getLeader(vid, dist)
-            if not lead or not lead[0]:  # libsumo: ("", -1) for none; TraCI: None
-                return "", math.inf
-            return lead[0], lead[1] + self._ls.vehicle.getMinGap(vid)
         except self._errors:
             return "", math.inf
+        if not lead or not lead[0]:  # libsumo: ("", -1) for none; TraCI: None
+            return "", math.inf
+        return lead[0], lead[1] + self._min_gap[vid]
 
     def _junction_path(self, internal: str) -> Polyline:
         """The centre line through the junction from `internal` on (its internal lanes)."""
