@@ -129,12 +129,11 @@ def _pbt_trial(config: dict) -> None:
     history.parent.mkdir(parents=True, exist_ok=True)
 
     def report(run: Path, env_steps: int, mean_return: float) -> None:
-        (run / "pbt_trial.json").write_text(json.dumps({"trial": trial, "env_steps": env_steps,
-                                                        "mean_return": finite(mean_return),
-                                                        "hyper": hyper}))
+        record = json.dumps({"trial": trial, "env_steps": env_steps,
+                             "mean_return": finite(mean_return), "hyper": hyper})
+        (run / "pbt_trial.json").write_text(record)  # the checkpoint's: who made it, with what
         with open(history, "a") as f:
-            f.write(json.dumps({"trial": trial, "env_steps": env_steps,
-                                "mean_return": finite(mean_return), "hyper": hyper}) + "\n")
+            f.write(record + "\n")
         tune.report({"env_steps": env_steps, "mean_return": finite(mean_return)},
                     checkpoint=tune.Checkpoint.from_directory(str(run)))
 
