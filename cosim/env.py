@@ -38,7 +38,7 @@ Arguments
     "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci"),
     reward_scale (> 0, default 1.0: multiplies the returned rewards; reward_terms
     and ``cosim_episode`` stay unscaled), stall_truncate (a training option: truncate
-    every AC's episode once all have stood still that many steps; Termination.stall_steps).
+    every AC's episode once all have stood still that many steps; Termination.stall_truncate).
 Pickling
     ``pickle`` and ``copy.deepcopy`` rebuild the environment from its constructor
     arguments (SUMO and PyBullet state cannot be copied): the copy starts un-reset.
@@ -107,9 +107,9 @@ class CosimParallelEnv(ParallelEnv):
             )
         if horizon is not None:
             sc = sc.with_overrides(horizon=int(horizon))
-        if stall_truncate is not None:  # a training option (Termination.stall_steps)
+        if stall_truncate is not None:  # a training option (Termination.stall_truncate)
             sc = sc.with_overrides(
-                termination=dataclasses.replace(sc.termination, stall_steps=stall_truncate)
+                termination=dataclasses.replace(sc.termination, stall_truncate=stall_truncate)
             )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")

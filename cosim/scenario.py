@@ -86,7 +86,7 @@ class Termination:
     """End the AC's episode when it leaves the scenario region (there is no world beyond it)."""
     goal_radius: float = 3.0
     """Metres from the goal point that count as reached."""
-    stall_steps: int = 0
+    stall_truncate: int = 0
     """A training option, off (0) in every scenario and in the test: truncate every active AC's
     episode once all of them have stood still (below 0.1 m/s, and not waiting at a red or
     yellow signal within 30 m ahead) for this many consecutive steps. Truncated, not
@@ -97,8 +97,8 @@ class Termination:
     def __post_init__(self) -> None:
         if not self.goal_radius > 0:
             raise ValueError(f"goal_radius must be > 0 metres, got {self.goal_radius}")
-        if isinstance(self.stall_steps, bool) or not isinstance(self.stall_steps, int) or self.stall_steps < 0:
-            raise ValueError(f"stall_steps must be a whole number of steps >= 0 (0: off), got {self.stall_steps!r}")
+        if isinstance(self.stall_truncate, bool) or not isinstance(self.stall_truncate, int) or self.stall_truncate < 0:
+            raise ValueError(f"stall_truncate must be a whole number of steps >= 0 (0: off), got {self.stall_truncate!r}")
 
 
 @dataclass(frozen=True)

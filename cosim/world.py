@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 SPAWN_CLEARANCE = 12.0  # metres around each spawn point cleared of background cars
 STALL_SPEED = 0.1
-"""m/s: an AC slower than this stands (Termination.stall_steps)."""
+"""m/s: an AC slower than this stands (Termination.stall_truncate)."""
 STALL_SIGNAL_M = 30.0
 """Metres: an AC standing this near a red or yellow signal ahead waits for it, not stalls."""
 AC_COLORS = (
@@ -241,10 +241,10 @@ class World:
         return dx * math.cos(h) + dy * math.sin(h) > 0.0
 
     def _stalled(self, idx: np.ndarray, speed: np.ndarray) -> bool:
-        """Termination.stall_steps: count each active AC's consecutive steps standing (below
+        """Termination.stall_truncate: count each active AC's consecutive steps standing (below
         STALL_SPEED, not waiting at a red or yellow signal within STALL_SIGNAL_M ahead); True once
         every active AC has stood that many. Always False when the option is off (0)."""
-        need = self.scenario.termination.stall_steps
+        need = self.scenario.termination.stall_truncate
         if not need:
             return False
         for k, i in enumerate(idx):

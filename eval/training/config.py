@@ -137,7 +137,7 @@ class TrainConfig:
     stall_truncate: int = 0
     """0 (the default, the test's rule): an episode runs to its goals or the horizon. N > 0
     (``--stall-truncate N``): a training episode is truncated once every AC has stood still for
-    N steps away from a red light (cosim.scenario.Termination.stall_steps), so the ACs get
+    N steps away from a red light (cosim.scenario.Termination.stall_truncate), so the ACs get
     more attempts per env step; the rewards are the test's (docs/task.md, Training rule)."""
     demo_steps: int = 0
     """0 (the default): no demonstrations. N > 0 (``--demo-steps N``, DQN, DDPG and TD3): before

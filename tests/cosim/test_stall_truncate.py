@@ -1,4 +1,4 @@
-"""`--stall-truncate N` (Termination.stall_steps): a training episode is truncated once every
+"""`--stall-truncate N` (Termination.stall_truncate): a training episode is truncated once every
 AC has stood still N steps away from a red light; off, the episode runs to the horizon."""
 
 import dataclasses
@@ -15,10 +15,10 @@ from eval.training.trainer import make_env
 BRAKE = (-1.0, 0.0)
 
 
-def _world(stall_steps: int, agents: int = 2, horizon: int = 120) -> World:
+def _world(stall_truncate: int, agents: int = 2, horizon: int = 120) -> World:
     sc = load_scenario("env_1")
     sc = sc.with_overrides(horizon=horizon,
-                           termination=dataclasses.replace(sc.termination, stall_steps=stall_steps))
+                           termination=dataclasses.replace(sc.termination, stall_truncate=stall_truncate))
     return World(sc, agents, background=False, pedestrians=False)
 
 
@@ -33,7 +33,7 @@ def _brake_until_done(world: World, seed: int = 0):
 
 
 def test_braking_cars_are_truncated_n_steps_after_all_stand():
-    with _world(stall_steps=20) as w:
+    with _world(stall_truncate=20) as w:
         w.reset(seed=0)
         steps, all_stand_at, last = 0, None, {}
         while w.active:
@@ -48,14 +48,14 @@ def test_braking_cars_are_truncated_n_steps_after_all_stand():
 
 
 def test_off_the_same_cars_stand_to_the_horizon():
-    with _world(stall_steps=0) as w:
+    with _world(stall_truncate=0) as w:
         steps, last = _brake_until_done(w)
     assert steps == 120
     assert all(r.truncated and not r.terminated for r in last.values())
 
 
 def test_one_moving_ac_keeps_the_episode_going():
-    with _world(stall_steps=10) as w:
+    with _world(stall_truncate=10) as w:
         w.reset(seed=0)
         for _ in range(60):  # ac_0 brakes and stands; ac_1 rolls on at a little throttle
             out = w.step({"ac_0": BRAKE, "ac_1": (0.2, 0.0)})
@@ -63,7 +63,7 @@ def test_one_moving_ac_keeps_the_episode_going():
 
 
 def test_waiting_at_a_red_light_is_not_stalling(monkeypatch):
-    with _world(stall_steps=10) as w:
+    with _world(stall_truncate=10) as w:
         monkeypatch.setattr(w.bridge, "next_tls", lambda ac: ("r", 12.0))
         w.reset(seed=0)
         for _ in range(60):
@@ -74,7 +74,7 @@ def test_waiting_at_a_red_light_is_not_stalling(monkeypatch):
 
 
 def test_a_red_light_far_ahead_does_not_excuse_standing(monkeypatch):
-    with _world(stall_steps=10) as w:
+    with _world(stall_truncate=10) as w:
         monkeypatch.setattr(w.bridge, "next_tls", lambda ac: ("r", 80.0))
         steps, _ = _brake_until_done(w)
     assert steps < 120
@@ -82,8 +82,8 @@ def test_a_red_light_far_ahead_does_not_excuse_standing(monkeypatch):
 
 @pytest.mark.parametrize("bad", [-1, True, 2.5])
 def test_termination_refuses_a_bad_stall_count(bad):
-    with pytest.raises(ValueError, match="stall_steps"):
-        Termination(stall_steps=bad)
+    with pytest.raises(ValueError, match="stall_truncate"):
+        Termination(stall_truncate=bad)
 
 
 def test_train_option_reaches_the_env_and_old_configs_read_it_as_off(tmp_path):
@@ -91,12 +91,12 @@ def test_train_option_reaches_the_env_and_old_configs_read_it_as_off(tmp_path):
     assert cfg.stall_truncate == 25
     env = make_env(cfg)
     try:
-        assert env.unwrapped.scenario.termination.stall_steps == 25
+        assert env.unwrapped.scenario.termination.stall_truncate == 25
     finally:
         env.close()
     off = make_env(make_config("dqn", "env_1", "smoke"))
     try:
-        assert off.unwrapped.scenario.termination.stall_steps == 0
+        assert off.unwrapped.scenario.termination.stall_truncate == 0
     finally:
         off.close()
     data = cfg.to_dict()
