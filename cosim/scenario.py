@@ -283,7 +283,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
             or malformed YAML, unknown keys (listing the valid ones), bad values, or
             files it names that do not exist. The message names the file.
     """
-    path = _scenario_file(name_or_path)
+    path = scenario_file(name_or_path)
     return _scenario_from_dict(_read_mapping(path), path)
 
 
@@ -296,7 +296,7 @@ def scenario_data(name_or_path: str | Path, relative_to: Path | None = None) -> 
     ``solid_cars: true``, a test's bad value): its file paths made absolute, or relative to
     ``relative_to``, the folder the copy will be written to. Not validated: write the copy
     and ``load_scenario`` it."""
-    path = _scenario_file(name_or_path)
+    path = scenario_file(name_or_path)
     data = _read_mapping(path)
     for key in FILE_KEYS:
         if isinstance(data.get(key), (str, list)):  # anything else: load_scenario's error
@@ -307,7 +307,9 @@ def scenario_data(name_or_path: str | Path, relative_to: Path | None = None) -> 
     return data
 
 
-def _scenario_file(name_or_path: str | Path) -> Path:
+def scenario_file(name_or_path: str | Path) -> Path:
+    """The YAML file of a bundled scenario's name (``env_3``) or of a path; ScenarioError for
+    an unknown name or a missing file."""
     path = Path(name_or_path)
     if path.suffix not in (".yaml", ".yml"):
         candidate = scenarios_dir() / f"{name_or_path}.yaml"

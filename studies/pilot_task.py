@@ -77,7 +77,7 @@ import yaml  # noqa: E402
 from science import _write  # noqa: E402
 
 from cosim.errors import CosimError  # noqa: E402
-from cosim.scenario import load_scenario, scenario_data, scenarios_dir  # noqa: E402
+from cosim.scenario import load_scenario, scenario_data, scenario_file  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum", "warm")
@@ -238,7 +238,7 @@ def check_plan(out: Path, args) -> None:
 def old_scenario(out: Path, env: str) -> Path:
     """``OUT/scenarios/<env>_old.yaml``: the bundled scenario with the old steering. Its file
     paths are made absolute (the copy lives elsewhere than the bundled YAML it comes from)."""
-    src = scenarios_dir() / f"{env}.yaml" if not env.endswith((".yaml", ".yml")) else Path(env)
+    src = scenario_file(env)
     data = scenario_data(src)
     if "vehicle" in data:
         raise PilotError(f"{src} has a vehicle: block of its own; the old arm replaces it")
