@@ -438,6 +438,35 @@ def test_seed_parts_of_one_environment_combine_into_the_whole_study(smoke, tmp_p
     assert bad.returncode == 2 and "env_1 seed 1 is in two of the studies" in bad.stderr, bad.stderr
 
 
+def test_part_page_tables_one_seed_beside_the_other_seeds_and_the_combination(smoke, load_study):
+    """studies/part_page.py: seed 1's row of each algorithm holds its own seed means, seed 0's
+    column the other seed's, the last column the study's mean [CI] over seeds; the contact
+    bullet counts seed 1's Scenario 1 records; a seed the study lacks is refused by name."""
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    page, stops = load_study("part_page"), load_study("stops")
+    text = page.tables(study, [study], study, seed=1)
+    rows = {cells[0]: cells for cells in ([c.strip() for c in line.strip("|").split(" | ")]
+                                          for line in text.splitlines() if line.startswith("| "))}
+    head = rows["algorithm"]
+    means = pd.read_csv(study / "seeds.csv").query("scenario == 1").set_index(["algorithm", "train_seed"])
+    results = pd.read_csv(study / "results.csv").query("scenario == 1 and metric == 'return'").set_index("name")
+    for algo in json.loads((study / "science.json").read_text())["benchmark"]["algos"]:
+        row = dict(zip(head, rows[page.NAMES[algo]], strict=True))
+        assert row["Scenario 1 return, seed 1"] == f"{means.loc[(algo, 1), 'return']:,.1f}"
+        assert row["Scenario 1, seed 0 (goal rate)"] == (f"{means.loc[(algo, 0), 'return']:,.1f} "
+                                                         f"({means.loc[(algo, 0), 'goal']:.2f})")
+        assert row["seeds together: mean [95% CI over seeds]"].startswith(f"{results.loc[algo, 'mean']:,.1f} [")
+    assert "*always-brake*" in rows and "*safe non-turner*" not in rows  # Straight: no route turns
+    episodes = stops.episode_rows(study / "test" / "env_1__seed1.parquet").query("scenario == 1")
+    assert (f"{int(episodes['contact steps'].sum()):,} contact steps in Scenario 1's "
+            f"{len(episodes)} AC-episodes") in text
+    with pytest.raises(SystemExit, match="has no seed 7; it holds 0, 1"):
+        page.tables(study, [], None, seed=7)
+    with pytest.raises(SystemExit, match="choose one with --seed"):
+        page.tables(study, [], None)
+
+
 def test_a_study_from_a_first_seed_trains_and_tests_only_its_seeds(smoke, tmp_path):
     """--first-seed 1 --seeds 1 with the smoke study's runs: only seed 1 is tested, and its
     seed means are the smoke study's seed-1 rows."""

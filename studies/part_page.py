@@ -1,0 +1,155 @@
+"""The tables of one part of the 6x5 study (one environment, one training seed, as a
+`studies/science.py --envs env_N --first-seed K --seeds 1` study trains) for its docs/results page:
+each algorithm's budget, best validation return, Scenario 1 and 2 return and goal rate, beside
+the same environment's other seeds (their exports' seeds.csv) and, with ``--combined``, the
+seeds together (a ``--combine`` folder: mean [95% CI over seeds]); the reference rows; which
+algorithms are above always-brake; the turning slots' goals; the contact (studies/stops.py).
+
+    python studies/part_page.py sci_2s1 --earlier docs/results/2026-11-27-science-v3-threeway-2/study \\
+        --combined comb_2 > page-tables.md
+
+The page's prose (what moved a mean, what did not work) is written by hand around it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import pandas as pd
+from stops import contact_runs, episode_rows, load_records
+
+from eval.scale.gridstatus import grid_status
+
+NAMES = {"ppo": "PPO", "a3c": "A3C", "impala": "IMPALA", "dqn": "DQN", "ddpg": "DDPG", "td3": "TD3"}
+REFERENCES = {"autopilot": "autopilot", "autopilot-discrete": "discrete autopilot",
+              "safe-non-turner": "safe non-turner", "always-brake": "always-brake"}
+DEGENERATE = ("always-forward", "always-coast", "random", "random-box", "full-left", "full-right",
+              "forward-drift-left", "forward-drift-right")
+LONG = 50
+"""Contact steps in one unbroken run that count as a long run (as on the contact-runs page)."""
+
+
+def _part(study: Path, env: str | None, seed: int | None) -> tuple[str, int]:
+    """(environment, training seed) of the page: given, or the study's only ones; SystemExit
+    where the study has no such part or more than one to choose from."""
+    saved = study / "science.json"
+    if not saved.is_file() or not (study / "seeds.csv").is_file():
+        raise SystemExit(f"part_page: {study} has no science.json and seeds.csv; give the --out folder "
+                         "of a finished studies/science.py study")
+    seeds = pd.read_csv(study / "seeds.csv")
+    for name, value, have in (("--env", env, seeds.env), ("--seed", seed, seeds.train_seed)):
+        found = sorted(have.unique())
+        if value is None and len(found) != 1:
+            raise SystemExit(f"part_page: {study} holds {name[2:]}s {', '.join(map(str, found))}; "
+                             f"choose one with {name}")
+        if value is not None and value not in found:
+            raise SystemExit(f"part_page: {study} has no {name[2:]} {value}; it holds "
+                             f"{', '.join(map(str, found))}")
+    return env or str(seeds.env.iloc[0]), int(seed if seed is not None else seeds.train_seed.iloc[0])
+
+
+def _scenario(seeds: pd.DataFrame, k: int) -> pd.DataFrame:
+    return seeds[seeds.scenario == k].set_index("algorithm")
+
+
+def _num(x: float, digits: int = 1) -> str:
+    return "-" if pd.isna(x) else f"{x:,.{digits}f}"
+
+
+def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | None = None,
+           seed: int | None = None) -> str:
+    """The page's tables and bullets, as markdown (`env` and `seed`: see :func:`_part`)."""
+    env, seed = _part(study, env, seed)
+    seeds = pd.read_csv(study / "seeds.csv")
+    seeds = seeds[(seeds.env == env) & (seeds.train_seed == seed)]
+    s1, s2 = _scenario(seeds, 1), _scenario(seeds, 2)
+    turning = s1["goal_turning"].notna().any()
+    others = []
+    for src in earlier:
+        rows = pd.read_csv(src / "seeds.csv")
+        rows = rows[(rows.env == env) & (rows.train_seed != seed)]
+        if rows.empty:
+            raise SystemExit(f"part_page: {src}/seeds.csv has no other seed of {env}; give studies "
+                             f"or exports of {env}'s other seeds")
+        others += [(int(k), _scenario(g, 1)) for k, g in rows.groupby("train_seed")]
+    comb = None
+    if combined is not None:
+        comb = pd.read_csv(combined / "results.csv")
+        comb = comb[(comb.scenario == 1) & (comb.kind != "reference") & (comb.metric == "return")]
+        comb = comb.set_index("name")
+    status = grid_status(study / "bench")
+    status = status[(status.env == env) & (status.seed == seed)].set_index("algo")
+    results = pd.read_csv(study / "results.csv")
+    refs = results[(results.kind == "reference") & (results.scenario == 1) & (results.env == env)]
+
+    head = ["algorithm", "training budget (env steps)", "best validation return",
+            f"Scenario 1 return, seed {seed}", "goal rate"] + (["turning slots' goal rate"] if turning else []) \
+        + ["CV", "Scenario 2 return", "goal rate"] + [f"Scenario 1, seed {k} (goal rate)" for k, _ in others] \
+        + (["seeds together: mean [95% CI over seeds]"] if comb is not None else [])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for algo in [a for a in NAMES if a in s1.index]:
+        a1, a2 = s1.loc[algo], s2.loc[algo] if algo in s2.index else None
+        cells = [NAMES[algo], f"{int(status.loc[algo, 'budget']):,}", _num(status.loc[algo, "best"], 0),
+                 _num(a1["return"]), _num(a1.goal, 2)] + ([_num(a1.goal_turning, 2)] if turning else []) \
+            + [_num(a1.CV, 3), _num(a2["return"]) if a2 is not None else "-",
+               _num(a2.goal, 2) if a2 is not None else "-"] \
+            + [f"{_num(o.loc[algo, 'return'])} ({_num(o.loc[algo, 'goal'], 2)})" for _, o in others]
+        if comb is not None:
+            c = comb.loc[algo]
+            cells.append(f"{_num(c['mean'])} [{_num(c.ci_low)}, {_num(c.ci_high)}]")
+        lines.append("| " + " | ".join(cells) + " |")
+    for name, label in REFERENCES.items():
+        x = refs[refs.name == name].set_index("metric")
+        if x.empty or (name == "safe-non-turner" and not turning):  # no turn: the autopilot
+            continue
+        r = x.loc["return"]
+        cells = [f"*{label}*", "", "", f"{_num(r['mean'])} [{_num(r.ci_low)}, {_num(r.ci_high)}]",
+                 _num(x.loc["goal", "mean"], 2)]
+        if turning:
+            cells.append(_num(x.loc["goal_turning", "mean"], 2) if "goal_turning" in x.index else "-")
+        lines.append("| " + " | ".join(cells + [""] * (len(head) - len(cells))) + " |")
+
+    brake = float(refs[(refs.name == "always-brake") & (refs.metric == "return")]["mean"].iloc[0])
+    degen_goal = refs[refs.name.isin(DEGENERATE) & (refs.metric == "goal")]["mean"].max()
+    above = [a for a in s1.index if s1.loc[a, "return"] > brake]
+    every = [a for a in above if all(o.loc[a, "return"] > brake for _, o in others)]
+    order = s1["return"].sort_values(ascending=False)
+    bullets = [
+        f"- **Above always-brake ({_num(brake)})** with seed {seed}: "
+        + (", ".join(f"{NAMES[a]} {_num(s1.loc[a, 'return'])} (goal rate {_num(s1.loc[a, 'goal'], 2)})"
+                     for a in above) or "no algorithm")
+        + (f"; in every seed so far: {', '.join(NAMES[a] for a in every) or 'none'}" if others else "")
+        + ". Order: " + ", ".join(f"{NAMES[a]} {_num(v)}" for a, v in order.items())
+        + f". Best degenerate goal rate: {_num(degen_goal, 2)}."]
+    if turning:
+        turners = [f"{NAMES[a]} {_num(s1.loc[a, 'goal_turning'], 2)}" for a in s1.index if s1.loc[a, "goal_turning"] > 0]
+        bullets.append("- **Turning slots' goals** (Scenario 1): " + (", ".join(turners) or "none, in any algorithm") + ".")
+    records = study / "test" / f"{env}__seed{seed}.parquet"
+    if records.is_file():
+        rows = episode_rows(records)
+        rows = rows[rows.scenario == 1]
+        runs = contact_runs(load_records(records), LONG)
+        long_steps = int(runs[runs.scenario == 1].steps.sum()) if len(runs) else 0
+        bullets.append(f"- **Contact**: {int(rows['contact steps'].sum()):,} contact steps in Scenario 1's "
+                       f"{len(rows)} AC-episodes, {long_steps:,} of them in runs of {LONG} steps or more "
+                       f"(`python studies/stops.py {records.name} --long {LONG}`).")
+    return "\n".join(lines) + "\n\n" + "\n".join(bullets) + "\n"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("study", type=Path, help="a finished studies/science.py --out folder (trained there)")
+    p.add_argument("--env", default=None, help="the page's environment (default: the study's only one)")
+    p.add_argument("--seed", type=int, default=None, help="the page's training seed (default: the study's only one)")
+    p.add_argument("--earlier", nargs="*", type=Path, default=[], metavar="STUDY",
+                   help="the same environment's other seeds: their studies or exports (for seeds.csv)")
+    p.add_argument("--combined", type=Path, default=None, metavar="DIR",
+                   help="a studies/science.py --combine folder of the seeds together (its results.csv)")
+    args = p.parse_args(argv)
+    print(tables(args.study, args.earlier, args.combined, args.env, args.seed))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
