@@ -19,13 +19,13 @@ from pathlib import Path
 import pandas as pd
 from stops import contact_runs, episode_rows, load_records
 
+from eval.reporting.page import md_table
 from eval.scale.gridstatus import grid_status
+from eval.testing.validity import DEGENERATE
 
 NAMES = {"ppo": "PPO", "a3c": "A3C", "impala": "IMPALA", "dqn": "DQN", "ddpg": "DDPG", "td3": "TD3"}
 REFERENCES = {"autopilot": "autopilot", "autopilot-discrete": "discrete autopilot",
               "safe-non-turner": "safe non-turner", "always-brake": "always-brake"}
-DEGENERATE = ("always-forward", "always-coast", "random", "random-box", "full-left", "full-right",
-              "forward-drift-left", "forward-drift-right")
 LONG = 50
 """Contact steps in one unbroken run that count as a long run (as on the contact-runs page)."""
 
@@ -76,7 +76,7 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
     comb = None
     if combined is not None:
         comb = pd.read_csv(combined / "results.csv")
-        comb = comb[(comb.scenario == 1) & (comb.kind != "reference") & (comb.metric == "return")]
+        comb = comb[(comb.scenario == 1) & (comb.kind != "reference") & (comb.metric == "return") & (comb.env == env)]
         comb = comb.set_index("name")
     status = grid_status(study / "bench")
     status = status[(status.env == env) & (status.seed == seed)].set_index("algo")
@@ -87,7 +87,7 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
             f"Scenario 1 return, seed {seed}", "goal rate"] + (["turning slots' goal rate"] if turning else []) \
         + ["CV", "Scenario 2 return", "goal rate"] + [f"Scenario 1, seed {k} (goal rate)" for k, _ in others] \
         + (["seeds together: mean [95% CI over seeds]"] if comb is not None else [])
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = []
     for algo in [a for a in NAMES if a in s1.index]:
         a1, a2 = s1.loc[algo], s2.loc[algo] if algo in s2.index else None
         cells = [NAMES[algo], f"{int(status.loc[algo, 'budget']):,}", _num(status.loc[algo, "best"], 0),
@@ -98,7 +98,7 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
         if comb is not None:
             c = comb.loc[algo]
             cells.append(f"{_num(c['mean'])} [{_num(c.ci_low)}, {_num(c.ci_high)}]")
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(cells)
     for name, label in REFERENCES.items():
         x = refs[refs.name == name].set_index("metric")
         if x.empty or (name == "safe-non-turner" and not turning):  # no turn: the autopilot
@@ -108,10 +108,10 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
                  _num(x.loc["goal", "mean"], 2)]
         if turning:
             cells.append(_num(x.loc["goal_turning", "mean"], 2) if "goal_turning" in x.index else "-")
-        lines.append("| " + " | ".join(cells + [""] * (len(head) - len(cells))) + " |")
+        lines.append(cells + [""] * (len(head) - len(cells)))
 
     brake = float(refs[(refs.name == "always-brake") & (refs.metric == "return")]["mean"].iloc[0])
-    degen_goal = refs[refs.name.isin(DEGENERATE) & (refs.metric == "goal")]["mean"].max()
+    degen_goal = refs[refs.name.isin(set(DEGENERATE) - {"always-brake"}) & (refs.metric == "goal")]["mean"].max()
     above = [a for a in s1.index if s1.loc[a, "return"] > brake]
     every = [a for a in above if all(o.loc[a, "return"] > brake for _, o in others)]
     order = s1["return"].sort_values(ascending=False)
@@ -134,7 +134,7 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
         bullets.append(f"- **Contact**: {int(rows['contact steps'].sum()):,} contact steps in Scenario 1's "
                        f"{len(rows)} AC-episodes, {long_steps:,} of them in runs of {LONG} steps or more "
                        f"(`python studies/stops.py {records.name} --long {LONG}`).")
-    return "\n".join(lines) + "\n\n" + "\n".join(bullets) + "\n"
+    return md_table(head, lines) + "\n" + "\n".join(bullets) + "\n"
 
 
 def main(argv=None) -> int:
