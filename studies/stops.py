@@ -20,6 +20,7 @@ forward camera), and what share of all contact steps such runs hold.
     python studies/stops.py s2/dqn/* s2/td3/* --out episodes.csv
     python studies/stops.py arms/records/demo.parquet   # `studies/arms.py`'s records work too
     python studies/stops.py science/test/*.parquet --long 50 --runs-out runs.csv
+    python studies/stops.py sci_2s1/test/*.parquet --policy-out docs/results/<page>/study/contact.csv
 
 A report of a reference driver (``cosim test --policy autopilot``) is labelled with the
 driver's name (its provenance.json), a report of trained checkpoints with the algorithm.
@@ -53,10 +54,10 @@ def policy_label(report: Path, algorithm: str) -> str:
 
 
 def _runs(records: pd.DataFrame):
-    """The records of each simulation run: one (scenario, episode) of ACs driving together,
-    or, where one (step, agent) occurs more than once there (Scenario 2 of a study's records:
-    each algorithm's AC alone, in its own environment), one (scenario, episode, algorithm)."""
-    keys = [k for k in ("scenario", "episode") if k in records]
+    """The records of each simulation run: one (training seed, scenario, episode) of ACs driving
+    together, or, where one (step, agent) occurs more than once there (Scenario 2 of a study's
+    records: each algorithm's AC alone, in its own environment), one (..., algorithm)."""
+    keys = [k for k in ("train_seed", "scenario", "episode") if k in records]
     for _key, g in records.groupby(keys, sort=False):
         if g.duplicated(["step", "agent"]).any():
             yield from (run for _a, run in g.groupby("algorithm", sort=False))
@@ -181,7 +182,7 @@ def episode_rows(report: Path) -> pd.DataFrame:
     records = records.assign(near_ac=nearest_ac(records))
     folder = Path(report) if Path(report).suffix != ".parquet" else Path(report).parent
     rows = []
-    keys = [k for k in ("scenario", "episode", "agent", "algorithm") if k in records]
+    keys = [k for k in ("train_seed", "scenario", "episode", "agent", "algorithm") if k in records]
     for _key, g in records.groupby(keys, sort=True):  # a study's records hold both scenarios
         agent = str(g.agent.iloc[0])
         g = g.sort_values("step")
@@ -190,7 +191,9 @@ def episode_rows(report: Path) -> pd.DataFrame:
         contact = g.collision_vehicle | g.collision_object | g.get("collision_pedestrian", False)
         rows.append({
             "policy": policy_label(folder, str(g.algorithm.iloc[0])),
-            "env": str(g.env.iloc[0]), "scenario": int(g.scenario.iloc[0]), "agent": agent,
+            "env": str(g.env.iloc[0]), "scenario": int(g.scenario.iloc[0]),
+            **({"train seed": int(g.train_seed.iloc[0])} if "train_seed" in g else {}),
+            "agent": agent,
             "episode seed": int(g.seed.iloc[0]), "goal": bool(g.goal_reached.any()),
             "steps": len(g), "last step moving": int(moving.max()) if len(moving) else 0,
             "driven m": round(distance_driven(g), 1),
@@ -226,11 +229,12 @@ def summary(rows: pd.DataFrame) -> pd.DataFrame:
 
 
 def by_policy(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per (policy, environment, scenario), over its AC-episodes: the mean return, the mean
-    return without the contact steps' charge (the reward's collision term), all contact steps
-    and the shares of those with another AC and standing: how much of a mean the contact sets."""
-    keys = ["policy", "env", "scenario"]
-    out = rows.assign(without=rows["return"] - rows["contact charge"]).groupby(keys, sort=False).agg(
+    """Per (policy, environment, scenario and, for a science study's records, training seed),
+    over its AC-episodes: the mean return, the mean return without the contact steps' charge
+    (the reward's collision term), all contact steps and the shares of those with another AC
+    and standing: how much of a mean the contact sets."""
+    keys = ["policy", "env", "scenario", *(["train seed"] if "train seed" in rows else [])]
+    out = rows.assign(without=rows["return"] - rows["contact charge"]).groupby(keys, sort=False, dropna=False).agg(
         ac_episodes=("goal", "size"), goal_rate=("goal", "mean"), mean_return=("return", "mean"),
         without_contact_charge=("without", "mean"), contact_steps=("contact steps", "sum"),
         ac=("AC contacts", "sum"), standing=("standing contacts", "sum"))
@@ -247,6 +251,9 @@ def main(argv=None) -> int:
     p.add_argument("--long", type=int, default=0, metavar="N",
                    help="also list every unbroken run of N or more contact steps of one AC and what held it")
     p.add_argument("--runs-out", type=Path, default=None, help="with --long: also write those runs as CSV")
+    p.add_argument("--policy-out", type=Path, default=None,
+                   help="also write the per-policy lines (mean return without the contact charge) as CSV: "
+                        "a science study part's contact.csv, which studies/contact_table.py reads")
     args = p.parse_args(argv)
     if args.long < 0:
         raise SystemExit(f"stops: --long {args.long} is negative; give a number of contact steps, e.g. --long 50")
@@ -257,7 +264,10 @@ def main(argv=None) -> int:
     print()
     print(summary(rows).to_string(index=False))
     print()
-    print(by_policy(rows).to_string(index=False))
+    per_policy = by_policy(rows)
+    if args.policy_out:
+        per_policy.to_csv(args.policy_out, index=False)
+    print(per_policy.to_string(index=False))
     if args.long:
         runs = pd.concat([contact_runs(load_records(r), args.long) for r in args.reports], ignore_index=True)
         if args.runs_out:

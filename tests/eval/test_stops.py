@@ -129,6 +129,26 @@ def test_by_policy_gives_the_mean_return_without_the_contact_charge(stops, tmp_p
     assert line["contact_steps"] == 50 and line["standing_share"] == 1.0 and line["AC_share"] == 0.0
 
 
+def test_a_science_studys_seeds_get_a_line_each_and_policy_out_writes_them(stops, tmp_path):
+    """A science study's records carry ``train_seed``: by_policy keeps each seed's mean apart
+    (one seed in contact, the other not), ``--policy-out`` writes those lines (a part's
+    contact.csv); a report without training seeds keeps its line beside them."""
+    hit = _episode(0, "ac_0", [0.0] * 50, None).assign(collision_vehicle=True, collision_object=False,
+                                                        r_collision=-50.0, reward=-51.0)
+    clear = _episode(0, "ac_0", [5.0] * 50, None).assign(r_collision=0.0, collision_object=False)
+    seeds = pd.concat([hit.assign(train_seed=0), clear.assign(train_seed=1)], ignore_index=True)
+    (tmp_path / "study").mkdir()
+    seeds.to_parquet(tmp_path / "study" / "env_2__seeds.parquet")
+    plain = _report(tmp_path / "r", [clear.assign(algorithm="ppo")])
+    out = tmp_path / "contact.csv"
+    assert stops.main([str(tmp_path / "study" / "env_2__seeds.parquet"), str(plain), "--policy-out", str(out)]) == 0
+    lines = pd.read_csv(out)
+    dqn = lines[lines.policy == "dqn"].set_index("train seed")
+    assert dqn.loc[0, "mean_return"] == -51.0 * 50 and dqn.loc[0, "without_contact_charge"] == -50.0
+    assert dqn.loc[1, "mean_return"] == -50.0 and dqn.loc[1, "contact_steps"] == 0
+    assert lines[lines.policy == "ppo"]["train seed"].isna().all() and len(lines) == 3
+
+
 def test_a_long_contact_run_names_the_ac_it_was_held_against_and_who_drove_into_whom(stops, tmp_path):
     """ac_0 drives north into ac_1, which stands 33 m up the road, and both stand in contact to
     the end: each gets one run with the other as partner, ac_1 ahead of the car that drove in,
