@@ -37,7 +37,9 @@ asks for 3 (eval.reporting.science.MIN_SEEDS) whatever the intervals say.
 ``--export DEST`` copies a finished study's portable part (``science.json``, the held-out
 records, the references, each run's ``config.yaml`` and ``episodes.csv``, and the tested
 checkpoints' provenance as ``checkpoints.json``: a few MB, no checkpoint) to ``DEST``, say
-a docs/results page; ``--combine`` takes such a copy as a study. A study whose machine is
+a docs/results page, with ``contact.csv`` (``studies/stops.py``'s per-policy lines of the
+held-out records: each mean return without the contact charge, which stays in git where the
+records do not; ``studies/contact_table.py`` reads it); ``--combine`` takes such a copy as a study. A study whose machine is
 gone (run folders are not kept in git) still joins the final table that way.
 """
 
@@ -370,8 +372,20 @@ def export(out: Path, dest: Path, say) -> None:
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(f, target)  # through a run's link, to the file itself
     (dest / EXPORTED).write_text(json.dumps(entries, indent=2, default=str))
+    contact(sorted((dest / "test").glob("*.parquet")), dest / "contact.csv")
     size = sum(f.stat().st_size for f in dest.rglob("*") if f.is_file())
-    say(f"exported {out} to {dest}: {len(files) + 1} files, {size / 1e6:.1f} MB")
+    say(f"exported {out} to {dest}: {len(files) + 2} files, {size / 1e6:.1f} MB")
+
+
+def contact(records: list[Path], dest: Path) -> None:
+    """``dest``: the per-policy lines (``studies/stops.py --policy-out``) of a study's held-out
+    records files, one per (policy, environment, scenario, training seed)."""
+    here = str(Path(__file__).resolve().parent)
+    if here not in sys.path:  # its sibling, also when this file is imported
+        sys.path.insert(0, here)
+    from stops import by_policy, episode_rows
+
+    by_policy(pd.concat([episode_rows(r) for r in records], ignore_index=True)).to_csv(dest, index=False)
 
 
 def _write(df: pd.DataFrame, path: Path) -> None:

@@ -373,6 +373,13 @@ def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
     recorded = json.loads((exp / "checkpoints.json").read_text())
     assert [(c["env"], c["seed"], c["algorithm"], c["sha256"]) for c in recorded] == [
         (c["env"], c["seed"], c["algorithm"], c["sha256"]) for c in original]
+    # contact.csv: per (algorithm, scenario, seed) the mean return the study's seeds.csv has
+    lines = pd.read_csv(exp / "contact.csv").set_index(["policy", "scenario", "train seed"])
+    means = pd.read_csv(study / "seeds.csv").set_index(["algorithm", "scenario", "train_seed"])
+    assert len(lines) == len(means) and set(lines.index) == set(means.index)
+    for key, row in means.iterrows():
+        assert lines.loc[key, "mean_return"] == pytest.approx(row["return"], abs=0.06)
+        assert lines.loc[key, "without_contact_charge"] >= lines.loc[key, "mean_return"] - 0.06
 
     both = tmp_path / "both"
     comb = subprocess.run([sys.executable, str(SCRIPT), "--out", str(both), "--combine", str(exp)],
