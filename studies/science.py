@@ -39,8 +39,9 @@ records, the references, each run's ``config.yaml`` and ``episodes.csv``, and th
 checkpoints' provenance as ``checkpoints.json``: a few MB, no checkpoint) to ``DEST``, say
 a docs/results page, with ``contact.csv`` (``studies/stops.py``'s per-policy lines of the
 held-out records: each mean return without the contact charge, which stays in git where the
-records do not; ``studies/contact_table.py`` reads it); ``--combine`` takes such a copy as a study. A study whose machine is
-gone (run folders are not kept in git) still joins the final table that way.
+records do not; ``studies/contact_table.py`` reads it); ``--combine`` takes such a copy as a
+study. A study whose machine is gone (run folders are not kept in git) still joins the final
+table that way.
 """
 
 from __future__ import annotations
