@@ -19,7 +19,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from eval.labels import algo_order, env_title
@@ -27,7 +26,8 @@ from eval.reporting.page import md_table
 from eval.reporting.stats import bootstrap_ci
 
 FILE = "contact.csv"
-COLUMNS = {"mean_return": "return", "without_contact_charge": "without the contact charge"}
+COLUMNS = ("mean_return", "without_contact_charge")
+"""contact.csv's columns the table puts side by side: the return, the same without the contact charge."""
 
 
 def load(paths: list[Path]) -> pd.DataFrame:
@@ -53,9 +53,8 @@ def load(paths: list[Path]) -> pd.DataFrame:
     return every
 
 
-def cell(values: np.ndarray) -> str:
+def cell(mean: float, lo: float, hi: float, n: int) -> str:
     """'mean [low, high]' over seeds; one seed: its value."""
-    mean, lo, hi, n = bootstrap_ci(values)
     return f"{mean:,.1f}" if n == 1 else f"{mean:,.1f} [{lo:,.1f}, {hi:,.1f}]"
 
 
@@ -68,7 +67,7 @@ def table(lines: pd.DataFrame, scenario: int = 1) -> pd.DataFrame:
         row = {"env": env, "policy": policy, "seeds": " ".join(map(str, g["train seed"]))}
         for col in COLUMNS:
             mean, lo, hi, n = bootstrap_ci(g[col].to_numpy(float))
-            row.update({col: mean, f"{col}_low": lo, f"{col}_high": hi, f"{col}_cell": cell(g[col].to_numpy(float))})
+            row.update({col: mean, f"{col}_low": lo, f"{col}_high": hi, f"{col}_cell": cell(mean, lo, hi, n)})
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -381,10 +381,7 @@ def export(out: Path, dest: Path, say) -> None:
 def contact(records: list[Path], dest: Path) -> None:
     """``dest``: the per-policy lines (``studies/stops.py --policy-out``) of a study's held-out
     records files, one per (policy, environment, scenario, training seed)."""
-    here = str(Path(__file__).resolve().parent)
-    if here not in sys.path:  # its sibling, also when this file is imported
-        sys.path.insert(0, here)
-    from stops import by_policy, episode_rows
+    from stops import by_policy, episode_rows  # its sibling in studies/ (on the path as a script)
 
     by_policy(pd.concat([episode_rows(r) for r in records], ignore_index=True)).to_csv(dest, index=False)
 
