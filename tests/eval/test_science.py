@@ -459,7 +459,7 @@ def test_part_page_tables_one_seed_beside_the_other_seeds_and_the_combination(sm
     means = pd.read_csv(study / "seeds.csv").query("scenario == 1").set_index(["algorithm", "train_seed"])
     results = pd.read_csv(study / "results.csv").query("scenario == 1 and metric == 'return'").set_index("name")
     for algo in json.loads((study / "science.json").read_text())["benchmark"]["algos"]:
-        row = dict(zip(head, rows[page.NAMES[algo]], strict=True))
+        row = dict(zip(head, rows[algo.upper()], strict=True))
         assert row["Scenario 1 return, seed 1"] == f"{means.loc[(algo, 1), 'return']:,.1f}"
         assert row["Scenario 1, seed 0 (goal rate)"] == (f"{means.loc[(algo, 0), 'return']:,.1f} "
                                                          f"({means.loc[(algo, 0), 'goal']:.2f})")
