@@ -123,7 +123,7 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
         + ". Order: " + ", ".join(f"{a.upper()} {_num(v)}" for a, v in order.items())
         + f". Best degenerate goal rate: {_num(degen_goal, 2)}."]
     if turning:
-        turners = [f"{a.upper()} {_num(s1.loc[a, 'goal_turning'], 2)}" for a in s1.index if s1.loc[a, "goal_turning"] > 0]
+        turners = [f"{a.upper()} {_num(s1.loc[a, 'goal_turning'], 2)}" for a in algo_order(s1.index) if s1.loc[a, "goal_turning"] > 0]
         bullets.append("- **Turning slots' goals** (Scenario 1): " + (", ".join(turners) or "none, in any algorithm") + ".")
     records = study / "test" / f"{env}__seed{seed}.parquet"
     if records.is_file():
