@@ -474,10 +474,35 @@ def verdict_markdown(v: pd.DataFrame) -> str:
                      f"{r['return_best_reference']} {r['return_reference']:.1f}",
                      fmt("goal", r["goal_mean"], r["goal_ci_low"], r["goal_ci_high"]),
                      f"{r['goal_best_reference']} {r['goal_reference']:.2f}",
-                     "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"]
-                                                 else "FAIL"), r["why"]])
+                     _verdict_word(r), r["why"]])
     return md_table(["algorithm", "environment", "seeds", "return [95% CI]", "best degenerate return",
                      "goal rate [95% CI]", "best degenerate goal rate", "verdict", "why"], rows)
+
+
+def _verdict_word(r) -> str:
+    """'pass', 'not shown' (above every reference, too few seeds) or 'FAIL' for a verdict row."""
+    return "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"] else "FAIL")
+
+
+def verdict_grid_markdown(v: pd.DataFrame) -> str:
+    """The :func:`verdict` as one algorithms x environments grid: each cell 'return [95% CI]
+    (goal rate), verdict' with a pass in bold; below, each environment's strongest degenerate
+    return and goal rate (what a cell's CI must clear). The README's results table."""
+    envs = sorted(v["env"].unique())
+    title = dict(zip(v["env"], v["title"], strict=False))
+    cells = {}
+    for _, r in v.iterrows():
+        word = _verdict_word(r)
+        ret = f"{r['return_mean']:,.1f}" + (f" [{r['return_ci_low']:,.1f}, {r['return_ci_high']:,.1f}]"
+                                              if r["n"] > 1 else " (1 seed)")
+        cells[(r["algorithm"], r["env"])] = f"{ret} ({r['goal_mean']:.2f}), " + (
+            f"**{word}**" if word == "pass" else word)
+    rows = [[a] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
+    first = v.drop_duplicates("env").set_index("env")
+    rows.append(["*best degenerate*"] + [
+        f"{first.loc[e, 'return_reference']:,.1f} ({first.loc[e, 'return_best_reference']}); "
+        f"{first.loc[e, 'goal_reference']:.2f} ({first.loc[e, 'goal_best_reference']})" for e in envs])
+    return md_table(["algorithm", *[title[e] for e in envs]], rows)
 
 
 def iqm_markdown(t: pd.DataFrame) -> str:
@@ -490,4 +515,5 @@ def iqm_markdown(t: pd.DataFrame) -> str:
 
 
 __all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",
-           "convergence_figure", "iqm_table", "normalise", "reference_table", "seed_means", "seed_table", "verdict"]
+           "convergence_figure", "iqm_table", "normalise", "reference_table", "seed_means", "seed_table", "verdict",
+           "verdict_grid_markdown"]

@@ -148,6 +148,13 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
     assert "| *autopilot* | 1000.0 [1000.0, 1000.0] |" in grid
     assert "| *best degenerate* | 300.0 (always-forward) |" in grid
     assert "| *best degenerate* | 0.10 (always-forward) |" in science.grid_markdown(table, "goal", 1, refs)
+    both = pd.concat([v.reset_index(), one.reset_index()], ignore_index=True)
+    cells = {line.split(" | ")[0].strip("| "): line.split(" | ")[1].rstrip(" |")
+             for line in science.verdict_grid_markdown(both).splitlines()[2:]}
+    assert cells["ppo"] == "500.0 [400.0, 600.0] (0.40), **pass**"
+    assert cells["dqn"].endswith("(0.40), FAIL") and cells["td3"].endswith(", FAIL")
+    assert cells["a3c"] == "500.0 (1 seed) (0.50), not shown"
+    assert cells["*best degenerate*"] == "300.0 (always-forward); 0.10 (always-forward)"
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
 
