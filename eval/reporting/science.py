@@ -486,16 +486,16 @@ def _verdict_word(r) -> str:
 
 def verdict_grid_markdown(v: pd.DataFrame) -> str:
     """The :func:`verdict` as one algorithms x environments grid: each cell 'return [95% CI]
-    (goal rate), verdict' with a pass in bold; below, each environment's strongest degenerate
+    (goal rate), verdict' ('return (goal rate; 1 seed)' with one seed), a pass in bold; below, each environment's strongest degenerate
     return and goal rate (what a cell's CI must clear). The README's results table."""
     envs = sorted(v["env"].unique())
     title = dict(zip(v["env"], v["title"], strict=False))
     cells = {}
     for _, r in v.iterrows():
         word = _verdict_word(r)
-        ret = f"{r['return_mean']:,.1f}" + (f" [{r['return_ci_low']:,.1f}, {r['return_ci_high']:,.1f}]"
-                                              if r["n"] > 1 else " (1 seed)")
-        cells[(r["algorithm"], r["env"])] = f"{ret} ({r['goal_mean']:.2f}), " + (
+        ci = f" [{r['return_ci_low']:,.1f}, {r['return_ci_high']:,.1f}]" if r["n"] > 1 else ""
+        goal = f"{r['goal_mean']:.2f}" + ("" if r["n"] > 1 else "; 1 seed")
+        cells[(r["algorithm"], r["env"])] = f"{r['return_mean']:,.1f}{ci} ({goal}), " + (
             f"**{word}**" if word == "pass" else word)
     rows = [[a] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
     first = v.drop_duplicates("env").set_index("env")

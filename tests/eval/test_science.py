@@ -153,7 +153,7 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
              for line in science.verdict_grid_markdown(both).splitlines()[2:]}
     assert cells["ppo"] == "500.0 [400.0, 600.0] (0.40), **pass**"
     assert cells["dqn"].endswith("(0.40), FAIL") and cells["td3"].endswith(", FAIL")
-    assert cells["a3c"] == "500.0 (1 seed) (0.50), not shown"
+    assert cells["a3c"] == "500.0 (0.50; 1 seed), not shown"
     assert cells["*best degenerate*"] == "300.0 (always-forward); 0.10 (always-forward)"
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
