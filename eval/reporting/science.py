@@ -486,8 +486,9 @@ def _verdict_word(r) -> str:
 
 def verdict_grid_markdown(v: pd.DataFrame) -> str:
     """The :func:`verdict` as one algorithms x environments grid: each cell 'return [95% CI]
-    (goal rate), verdict' ('return (goal rate; 1 seed)' with one seed), a pass in bold; below, each environment's strongest degenerate
-    return and goal rate (what a cell's CI must clear). The README's results table."""
+    (goal rate), verdict' ('return (goal rate; 1 seed)' with one seed), a pass in bold; below,
+    each environment's strongest degenerate return and goal rate (what a cell's CI must
+    clear). The README's results table."""
     envs = sorted(v["env"].unique())
     title = dict(zip(v["env"], v["title"], strict=False))
     cells = {}
