@@ -490,7 +490,6 @@ def verdict_grid_markdown(v: pd.DataFrame) -> str:
     each environment's strongest degenerate return and goal rate (what a cell's CI must
     clear). The README's results table."""
     envs = sorted(v["env"].unique())
-    title = dict(zip(v["env"], v["title"], strict=False))
     cells = {}
     for _, r in v.iterrows():
         word = _verdict_word(r)
@@ -503,7 +502,7 @@ def verdict_grid_markdown(v: pd.DataFrame) -> str:
     rows.append(["*best degenerate*"] + [
         f"{first.loc[e, 'return_reference']:,.1f} ({first.loc[e, 'return_best_reference']}); "
         f"{first.loc[e, 'goal_reference']:.2f} ({first.loc[e, 'goal_best_reference']})" for e in envs])
-    return md_table(["algorithm", *[title[e] for e in envs]], rows)
+    return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
 
 
 def iqm_markdown(t: pd.DataFrame) -> str:
