@@ -23,6 +23,7 @@ import pandas as pd
 
 from eval.labels import algo_order, env_title
 from eval.reporting.page import md_table
+from eval.reporting.science import over_seeds
 from eval.reporting.stats import bootstrap_ci
 
 FILE = "contact.csv"
@@ -53,11 +54,6 @@ def load(paths: list[Path]) -> pd.DataFrame:
     return every
 
 
-def cell(mean: float, lo: float, hi: float, n: int) -> str:
-    """'mean [low, high]' over seeds; one seed: its value."""
-    return f"{mean:,.1f}" if n == 1 else f"{mean:,.1f} [{lo:,.1f}, {hi:,.1f}]"
-
-
 def table(lines: pd.DataFrame, scenario: int = 1) -> pd.DataFrame:
     """One row per (environment, policy): the seeds, and per column of :data:`COLUMNS` the
     mean over seeds with its 95% bootstrap interval."""
@@ -67,7 +63,7 @@ def table(lines: pd.DataFrame, scenario: int = 1) -> pd.DataFrame:
         row = {"env": env, "policy": policy, "seeds": " ".join(map(str, g["train seed"]))}
         for col in COLUMNS:
             mean, lo, hi, n = bootstrap_ci(g[col].to_numpy(float))
-            row.update({col: mean, f"{col}_low": lo, f"{col}_high": hi, f"{col}_cell": cell(mean, lo, hi, n)})
+            row.update({col: mean, f"{col}_low": lo, f"{col}_high": hi, f"{col}_cell": over_seeds(mean, lo, hi, n)})
         rows.append(row)
     return pd.DataFrame(rows)
 

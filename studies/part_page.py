@@ -21,6 +21,7 @@ from stops import contact_runs, episode_rows, load_records
 
 from eval.labels import algo_order
 from eval.reporting.page import md_table
+from eval.reporting.science import over_seeds
 from eval.scale.gridstatus import grid_status
 from eval.testing.validity import DEGENERATE
 
@@ -97,14 +98,14 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
             + [f"{_num(o.loc[algo, 'return'])} ({_num(o.loc[algo, 'goal'], 2)})" for _, o in others]
         if comb is not None:
             c = comb.loc[algo]
-            cells.append(f"{_num(c['mean'])} [{_num(c.ci_low)}, {_num(c.ci_high)}]")
+            cells.append(over_seeds(c["mean"], c.ci_low, c.ci_high, c.n))
         lines.append(cells)
     for name, label in REFERENCES.items():
         x = refs[refs.name == name].set_index("metric")
         if x.empty or (name == "safe-non-turner" and not turning):  # no turn: the autopilot
             continue
         r = x.loc["return"]
-        cells = [f"*{label}*", "", "", f"{_num(r['mean'])} [{_num(r.ci_low)}, {_num(r.ci_high)}]",
+        cells = [f"*{label}*", "", "", over_seeds(r["mean"], r.ci_low, r.ci_high, r.n),
                  _num(x.loc["goal", "mean"], 2)]
         if turning:
             cells.append(_num(x.loc["goal_turning", "mean"], 2) if "goal_turning" in x.index else "-")

@@ -113,6 +113,12 @@ def fmt(metric: str, mean: float, lo: float, hi: float, n: int | None = None,
     return text + (f" (n={n})" if n is not None and of is not None and n != of else "")
 
 
+def over_seeds(mean: float, lo: float, hi: float, n: int) -> str:
+    """A return over seeds as the README's tables write it: 'mean [low, high]' with thousands
+    separators; one seed (no interval): the mean alone."""
+    return f"{mean:,.1f}" if n == 1 else f"{mean:,.1f} [{lo:,.1f}, {hi:,.1f}]"
+
+
 def _row(scenario, env, kind, name, metric, values) -> dict:
     mean, lo, hi, n = bootstrap_ci(values)
     cell = fmt(metric, mean, lo, hi, n, len(values))
@@ -493,9 +499,9 @@ def verdict_grid_markdown(v: pd.DataFrame) -> str:
     cells = {}
     for _, r in v.iterrows():
         word = _verdict_word(r)
-        ci = f" [{r['return_ci_low']:,.1f}, {r['return_ci_high']:,.1f}]" if r["n"] > 1 else ""
+        ret = over_seeds(r["return_mean"], r["return_ci_low"], r["return_ci_high"], r["n"])
         goal = f"{r['goal_mean']:.2f}" + ("" if r["n"] > 1 else "; 1 seed")
-        cells[(r["algorithm"], r["env"])] = f"{r['return_mean']:,.1f}{ci} ({goal}), " + (
+        cells[(r["algorithm"], r["env"])] = f"{ret} ({goal}), " + (
             f"**{word}**" if word == "pass" else word)
     rows = [[a] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
     first = v.drop_duplicates("env").set_index("env")
@@ -516,4 +522,4 @@ def iqm_markdown(t: pd.DataFrame) -> str:
 
 __all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",
            "convergence_figure", "iqm_table", "normalise", "reference_table", "seed_means", "seed_table", "verdict",
-           "verdict_grid_markdown"]
+           "verdict_grid_markdown", "over_seeds"]
