@@ -114,8 +114,8 @@ def fmt(metric: str, mean: float, lo: float, hi: float, n: int | None = None,
 
 
 def over_seeds(mean: float, lo: float, hi: float, n: int) -> str:
-    """A return over seeds as the README's tables write it: 'mean [low, high]' with thousands
-    separators; one seed (no interval): the mean alone."""
+    """A mean return and its 95% interval as the README's tables write them: 'mean [low, high]'
+    with thousands separators; one value (n = 1, no interval): the mean alone."""
     return f"{mean:,.1f}" if n == 1 else f"{mean:,.1f} [{lo:,.1f}, {hi:,.1f}]"
 
 
