@@ -490,11 +490,13 @@ def _verdict_word(r) -> str:
     return "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"] else "FAIL")
 
 
-def verdict_grid_markdown(v: pd.DataFrame) -> str:
+def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = None) -> str:
     """The :func:`verdict` as one algorithms x environments grid: each cell 'return [95% CI]
-    (goal rate), verdict' ('return (goal rate; 1 seed)' with one seed), a pass in bold; below,
-    each environment's strongest degenerate return and goal rate (what a cell's CI must
-    clear). The README's results table."""
+    (goal rate), verdict' ('return (goal rate; 1 seed)' with one seed), a pass in bold; with
+    ``references`` (:func:`reference_table`'s Scenario 1 rows) the autopilot's and the safe
+    non-turner's 'return (goal rate)' below (the safe non-turner only where a route turns: elsewhere
+    it is the autopilot); last, each environment's strongest degenerate return and goal rate (what
+    a cell's CI must clear). The README's results table."""
     envs = sorted(v["env"].unique())
     cells = {}
     for _, r in v.iterrows():
@@ -503,7 +505,16 @@ def verdict_grid_markdown(v: pd.DataFrame) -> str:
         goal = f"{r['goal_mean']:.2f}" + ("" if r["n"] > 1 else "; 1 seed")
         cells[(r["algorithm"], r["env"])] = f"{ret} ({goal}), " + (
             f"**{word}**" if word == "pass" else word)
-    rows = [[a] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
+    rows = [[a.upper()] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
+    if references is not None:
+        r = references.set_index(["name", "env", "metric"])["mean"]
+        turns = v.groupby("env")["turning_goal_mean"].apply(lambda x: x.notna().any())
+        for name, label in (("autopilot", "autopilot"), ("safe-non-turner", "safe non-turner")):
+            shown = [e for e in envs if (name, e, "return") in r.index
+                     and (name == "autopilot" or turns.get(e, False))]
+            if shown:
+                rows.append([f"*{label}*"] + [f"{r[(name, e, 'return')]:,.1f} ({r[(name, e, 'goal')]:.2f})"
+                                              if e in shown else "" for e in envs])
     first = v.drop_duplicates("env").set_index("env")
     rows.append(["*best degenerate*"] + [
         f"{first.loc[e, 'return_reference']:,.1f} ({first.loc[e, 'return_best_reference']}); "

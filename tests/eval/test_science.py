@@ -150,10 +150,14 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
     assert "| *best degenerate* | 0.10 (always-forward) |" in science.grid_markdown(table, "goal", 1, refs)
     both = pd.concat([v.reset_index(), one.reset_index()], ignore_index=True)
     cells = {line.split(" | ")[0].strip("| "): line.split(" | ")[1].rstrip(" |")
-             for line in science.verdict_grid_markdown(both).splitlines()[2:]}
-    assert cells["ppo"] == "500.0 [400.0, 600.0] (0.40), **pass**"
-    assert cells["dqn"].endswith("(0.40), FAIL") and cells["td3"].endswith(", FAIL")
-    assert cells["a3c"] == "500.0 (0.50; 1 seed), not shown"
+             for line in science.verdict_grid_markdown(both, refs).splitlines()[2:]}
+    assert cells["PPO"] == "500.0 [400.0, 600.0] (0.40), **pass**"
+    assert cells["DQN"].endswith("(0.40), FAIL") and cells["TD3"].endswith(", FAIL")
+    assert cells["A3C"] == "500.0 (0.50; 1 seed), not shown"
+    assert cells["*autopilot*"] == "1,000.0 (1.00)"
+    assert cells["*safe non-turner*"] == "0.0 (0.00)"  # these seeds have turning slots' goal rates
+    no_turn = science.verdict_grid_markdown(both.assign(turning_goal_mean=np.nan), refs)
+    assert "*safe non-turner*" not in no_turn and "*autopilot*" in no_turn  # no route turns: it is the autopilot
     assert cells["*best degenerate*"] == "300.0 (always-forward); 0.10 (always-forward)"
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
