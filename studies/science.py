@@ -647,7 +647,8 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
         f"({', '.join(science.DEGENERATE)}) with the 95% CI's lower end above the reference's "
         f"value, over at least {science.MIN_SEEDS} training seeds ('not shown': above with "
         "fewer seeds). Return [95% CI over seeds] (goal rate) and verdict per pair:\n",
-        science.verdict_grid_markdown(verdict, ref_table[ref_table.scenario == 1]), "\nEach pair with what failed:\n", science.verdict_markdown(verdict),
+        science.verdict_grid_markdown(verdict, ref_table[ref_table.scenario == 1]),
+        "\nEach pair with what failed:\n", science.verdict_markdown(verdict),
         "\nIQM across environments (Scenario 1 return normalised per environment: uniform "
         "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "
         "95% stratified bootstrap CI resampling seeds within environments):\n",

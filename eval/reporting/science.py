@@ -510,11 +510,11 @@ def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = Non
         r = references.set_index(["name", "env", "metric"])["mean"]
         turns = v.groupby("env")["turning_goal_mean"].apply(lambda x: x.notna().any())
         for name, label in (("autopilot", "autopilot"), ("safe-non-turner", "safe non-turner")):
-            shown = [e for e in envs if (name, e, "return") in r.index
-                     and (name == "autopilot" or turns.get(e, False))]
-            if shown:
-                rows.append([f"*{label}*"] + [f"{r[(name, e, 'return')]:,.1f} ({r[(name, e, 'goal')]:.2f})"
-                                              if e in shown else "" for e in envs])
+            row = [f"{r[(name, e, 'return')]:,.1f} ({r[(name, e, 'goal')]:.2f})"
+                   if (name, e, "return") in r.index and (name == "autopilot" or turns[e]) else ""
+                   for e in envs]
+            if any(row):
+                rows.append([f"*{label}*", *row])
     first = v.drop_duplicates("env").set_index("env")
     rows.append(["*best degenerate*"] + [
         f"{first.loc[e, 'return_reference']:,.1f} ({first.loc[e, 'return_best_reference']}); "
