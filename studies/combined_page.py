@@ -1,0 +1,157 @@
+"""The docs/results page of a `studies/science.py --combine` folder (the 6x5 study's exported
+parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv and
+convergence.png into the page folder and writes README.md around them: the training seeds per
+environment, the command, the verdict grid (summary.md's, the README's results table), issue
+27's target per environment, the convergence figure, the IQM, the return with and without the
+contact charge (studies/contact_table.py over the same parts) and the budgets.
+
+    python studies/science.py --combine <the parts' study/ exports> --out comb
+    python studies/combined_page.py comb --page docs/results/<date>-science-v3-seeds012 \\
+        --title "The 6x5 study on task version 3, seeds 0, 1 and 2"
+
+The page's prose beyond that (what moved a mean, what did not work) is written by hand.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+from contact_table import load, markdown, table
+
+from eval.labels import env_title
+
+COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "convergence.png")
+HEADINGS = {"grid": "verdict per pair:", "target": "Issue 27's target per environment",
+            "iqm": "IQM across environments", "budget": "Did the budgets suffice?"}
+"""summary.md's sections the page shows: each is the first table after its heading's line."""
+
+
+def sections(summary: str) -> dict[str, str]:
+    """The tables of summary.md the page shows (:data:`HEADINGS`), each as markdown; SystemExit
+    naming the heading that summary.md lacks (a summary.md of another format)."""
+    lines = summary.splitlines()
+    out = {}
+    for key, heading in HEADINGS.items():
+        start = next((i for i, line in enumerate(lines) if heading in line), None)
+        if start is None:
+            raise SystemExit(f"combined_page: summary.md has no '{heading}' section; give a folder "
+                             "written by studies/science.py --combine")
+        rows = []
+        for line in lines[start + 1:]:
+            if line.startswith("|"):
+                rows.append(line)
+            elif rows:
+                break
+        out[key] = "\n".join(rows)
+    return out
+
+
+def seeds_text(seeds: pd.DataFrame) -> str:
+    """'Straight 0 and 1, Three-way 0 and 1, ...': the training seeds per environment."""
+    per_env = seeds.groupby("env")["train_seed"].unique()
+    return ", ".join(f"{env_title(e)} {' and '.join(map(str, sorted(s)))}" for e, s in per_env.items())
+
+
+def page(comb: Path, title: str, parts: list[str], commit: str, contact: str) -> str:
+    """README.md of the page for the --combine folder ``comb`` of ``parts`` (repository paths)."""
+    s = sections((comb / "summary.md").read_text())
+    test = json.loads((comb / "science.json").read_text())["test"]
+    first, last = min(test["episode_seeds"]), max(test["episode_seeds"])
+    seeds = pd.read_csv(comb / "seeds.csv").query("scenario == 1")
+    fewest = int(seeds.groupby("env")["train_seed"].nunique().min())
+    verdict = ("Every pair has three seeds or more, what a verdict needs." if fewest >= 3 else
+               "Fewer than three seeds (issue 27 asks for three) are too few for a verdict: a pair "
+               "above every reference reads \"not shown\".")
+    cmd = "python studies/science.py --combine \\\n      " + " \\\n      ".join(parts) + f" --out {comb.name}"
+    return f"""# {title} (issue 27), {pd.Timestamp.now(tz="UTC"):%Y-%m-%d}
+
+The 6x5 study's exported parts combined (their seed means join the tables; a fresh clone gives
+the same files): training seeds per environment: {seeds_text(seeds)}. Each tested on the same
+{test["episodes"]} held-out {test["steps"]}-step episodes (seeds {first:,}-{last:,}); Scenario 1, the six algorithms together (one AC each, rotated
+over the slots). {verdict}
+
+- **Commit**: {commit}
+- **Command** (from a checkout):
+  ```bash
+  {cmd}
+  python studies/combined_page.py {comb.name} --page <this folder> --title "{title}"
+  ```
+- **Files**: [summary.md](summary.md) (return, goal rate, turning slots' goal rate, verdict, IQM,
+  issue 27's target per environment, budgets), [results.md](results.md) (every metric with the
+  reference rows), [verdict.md](verdict.md), [iqm.md](iqm.md), [budget.csv](budget.csv)
+
+## Return, goal rate and verdict
+
+Scenario 1: return [95% CI over seeds] (goal rate) and the verdict per pair; reference rows:
+mean (goal rate) over episodes x ACs (their intervals: [results.md](results.md)); the best
+degenerate row is what a pair's lower CI ends must clear (the safe non-turner brakes in every
+turning slot and is not a degenerate reference).
+
+{s["grid"]}
+
+Issue 27's target per environment:
+
+{s["target"]}
+
+## Convergence
+
+Training return against environment steps, mean over the seeds, band: min-max over them:
+
+![Training return against environment steps, mean over the seeds, five environments](convergence.png)
+
+## IQM across the five environments
+
+Scenario 1 return normalised per environment (uniform random = 0, autopilot = 1), interquartile
+mean over the (environment, seed) scores, 95% stratified bootstrap CI:
+
+{s["iqm"]}
+
+## Contact
+
+{contact}
+
+## Did the budgets suffice?
+
+Training return of the last 20% of each run's budget minus the 20% before (mean over seeds); bold:
+still rising in some seed ([budget.csv](budget.csv)):
+
+{s["budget"]}
+"""
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("comb", type=Path, help="the --out folder of studies/science.py --combine")
+    p.add_argument("--page", type=Path, required=True, help="the docs/results/<date>-<study> folder to write")
+    p.add_argument("--title", required=True, help="the page's heading")
+    a = p.parse_args(argv)
+    saved = a.comb / "science.json"
+    combined = json.loads(saved.read_text()).get("combined") if saved.is_file() else None
+    if not combined:
+        raise SystemExit(f"combined_page: {a.comb} is not a --combine folder (no 'combined' list in "
+                         "its science.json); run studies/science.py --combine <parts> --out it first")
+    root = Path(__file__).resolve().parent.parent
+    parts = [str(Path(x).resolve().relative_to(root)) if Path(x).resolve().is_relative_to(root) else x
+             for x in combined]
+    a.page.mkdir(parents=True, exist_ok=True)
+    for name in COPIED:
+        text_or_bytes = (a.comb / name).read_bytes()
+        if name.endswith(".md"):  # the folder's own path -> its name (pages carry no machine paths)
+            text_or_bytes = text_or_bytes.replace(str(a.comb.resolve()).encode(), a.comb.name.encode())
+        (a.page / name).write_bytes(text_or_bytes)
+    contact = ("Scenario 1: mean return / mean return without the contact charge, per AC-episode, mean "
+               "over training seeds [95% bootstrap CI over seeds] (`studies/contact_table.py`):\n\n"
+               + markdown(table(load([Path(x) for x in combined]))).strip())
+    commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip() or "unknown"
+    (a.page / "README.md").write_text(page(a.comb, a.title, parts, commit, contact))
+    print(f"combined_page: {a.page / 'README.md'} ({len(parts)} parts)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
