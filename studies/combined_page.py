@@ -137,12 +137,15 @@ def main(argv=None) -> int:
     root = Path(__file__).resolve().parent.parent
     parts = [str(Path(x).resolve().relative_to(root)) if Path(x).resolve().is_relative_to(root) else x
              for x in combined]
+    missing = [name for name in COPIED if not (a.comb / name).is_file()]
+    if missing:
+        raise SystemExit(f"combined_page: {a.comb} lacks {', '.join(missing)}; run its --combine again")
     a.page.mkdir(parents=True, exist_ok=True)
     for name in COPIED:
-        text_or_bytes = (a.comb / name).read_bytes()
+        data = (a.comb / name).read_bytes()
         if name.endswith(".md"):  # the folder's own path -> its name (pages carry no machine paths)
-            text_or_bytes = text_or_bytes.replace(str(a.comb.resolve()).encode(), a.comb.name.encode())
-        (a.page / name).write_bytes(text_or_bytes)
+            data = data.replace(str(a.comb.resolve()).encode(), a.comb.name.encode())
+        (a.page / name).write_bytes(data)
     contact = ("Scenario 1: mean return / mean return without the contact charge, per AC-episode, mean "
                "over training seeds [95% bootstrap CI over seeds] (`studies/contact_table.py`):\n\n"
                + markdown(table(load([Path(x) for x in combined]))).strip())

@@ -71,3 +71,10 @@ def test_seeds_per_environment_in_the_environments_order(cp):
 def test_not_a_combine_folder_is_a_clear_error(cp, tmp_path):
     with pytest.raises(SystemExit, match="not a --combine folder"):
         cp.main([str(tmp_path), "--page", str(tmp_path / "page"), "--title", "t"])
+
+
+def test_a_combine_folder_missing_a_file_names_it(cp, tmp_path):
+    (tmp_path / "science.json").write_text('{"combined": ["a/study", "b/study"]}')
+    with pytest.raises(SystemExit, match="lacks summary.md"):
+        cp.main([str(tmp_path), "--page", str(tmp_path / "page"), "--title", "t"])
+    assert not (tmp_path / "page").exists()  # nothing written
