@@ -20,9 +20,10 @@ import sys
 from pathlib import Path
 
 import pandas as pd
-from contact_table import load, markdown, table
+from contact_table import caption, load, markdown, table
 
 from eval.labels import env_title
+from eval.reporting.science import MIN_SEEDS
 
 COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "convergence.png")
 HEADINGS = {"grid": "verdict per pair:", "target": "Issue 27's target per environment",
@@ -63,8 +64,8 @@ def page(comb: Path, title: str, parts: list[str], commit: str, contact: str) ->
     first, last = min(test["episode_seeds"]), max(test["episode_seeds"])
     seeds = pd.read_csv(comb / "seeds.csv").query("scenario == 1")
     fewest = int(seeds.groupby("env")["train_seed"].nunique().min())
-    verdict = ("Every pair has three seeds or more, what a verdict needs." if fewest >= 3 else
-               "Fewer than three seeds (issue 27 asks for three) are too few for a verdict: a pair "
+    verdict = (f"Every pair has {MIN_SEEDS} seeds or more, what a verdict needs." if fewest >= MIN_SEEDS else
+               f"Fewer than {MIN_SEEDS} seeds (what issue 27 asks for) are too few for a verdict: a pair "
                "above every reference reads \"not shown\".")
     cmd = "python studies/science.py --combine \\\n      " + " \\\n      ".join(parts) + f" --out {comb.name}"
     return f"""# {title} (issue 27), {pd.Timestamp.now(tz="UTC"):%Y-%m-%d}
@@ -146,8 +147,7 @@ def main(argv=None) -> int:
         if name.endswith(".md"):  # the folder's own path -> its name (pages carry no machine paths)
             data = data.replace(str(a.comb.resolve()).encode(), a.comb.name.encode())
         (a.page / name).write_bytes(data)
-    contact = ("Scenario 1: mean return / mean return without the contact charge, per AC-episode, mean "
-               "over training seeds [95% bootstrap CI over seeds] (`studies/contact_table.py`):\n\n"
+    contact = (f"{caption()} (`studies/contact_table.py`):\n\n"
                + markdown(table(load([Path(x) for x in combined]))).strip())
     commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
                             capture_output=True, text=True).stdout.strip() or "unknown"

@@ -84,6 +84,12 @@ def markdown(t: pd.DataFrame) -> str:
     return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
 
 
+def caption(scenario: int = 1) -> str:
+    """The line above the :func:`markdown` table."""
+    return (f"Scenario {scenario}: mean return / mean return without the contact charge, per "
+            "AC-episode, mean over training seeds [95% bootstrap CI over seeds]")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("parts", nargs="+", type=Path, help=f"study parts' {FILE} files or the study/ folders holding them")
@@ -95,8 +101,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"contact_table: no Scenario {args.scenario} lines in the parts given")
     if args.out:
         t.drop(columns=[c for c in t if c.endswith("_cell")]).to_csv(args.out, index=False)
-    print(f"Scenario {args.scenario}: mean return / mean return without the contact charge, per "
-          "AC-episode, mean over training seeds [95% bootstrap CI over seeds]\n")
+    print(caption(args.scenario) + "\n")
     print(markdown(t))
     return 0
 
