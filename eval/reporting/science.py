@@ -438,7 +438,7 @@ def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCEN
     t = table[(table["metric"] == metric) & (table["scenario"] == scenario)]
     envs = sorted(t["env"].unique())
     cells = t.set_index(["name", "env"])["cell"]
-    rows = [[a] + [cells.get((a, e), "") for e in envs] for a in algo_order(t["name"].unique())]
+    rows = [[a.upper()] + [cells.get((a, e), "") for e in envs] for a in algo_order(t["name"].unique())]
     if references is not None and scenario == VERDICT_SCENARIO:
         r = references[references["metric"] == metric].set_index(["name", "env"])["cell"]
         rows += [[f"*{n}*"] + [r.get((n, e), "") for e in envs] for n in reference_names
@@ -466,7 +466,7 @@ def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: in
         names = [("algorithm", a) for a in algo_order(e.loc[e["kind"] == "algorithm", "name"].unique())]
         names += [("reference", p) for p in POLICIES if p in set(e.loc[e["kind"] == "reference", "name"])]
         for kind, name in names:
-            label = name if kind == "algorithm" else f"*{name}*"
+            label = name.upper() if kind == "algorithm" else f"*{name}*"
             rows.append([env_title(env), label, int(n.get((env, kind, name, "return"), 0))]
                         + [cells.get((env, kind, name, m), "") for m in METRICS])
     return md_table(["environment", "policy", "n", *[NAMES.get(m, m) for m in METRICS]], rows)
@@ -475,7 +475,7 @@ def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: in
 def verdict_markdown(v: pd.DataFrame) -> str:
     rows = []
     for _, r in v.iterrows():
-        rows.append([r["algorithm"], r["title"], r["n"],
+        rows.append([r["algorithm"].upper(), r["title"], r["n"],
                      fmt("return", r["return_mean"], r["return_ci_low"], r["return_ci_high"]),
                      f"{r['return_best_reference']} {r['return_reference']:.1f}",
                      fmt("goal", r["goal_mean"], r["goal_ci_low"], r["goal_ci_high"]),
@@ -526,7 +526,7 @@ def iqm_markdown(t: pd.DataFrame) -> str:
     rows = []
     for _, r in t.iterrows():
         ci = f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]" if np.isfinite(r["ci_low"]) else "-"
-        label = r["name"] if r["kind"] == "algorithm" else f"*{r['name']}*"
+        label = r["name"].upper() if r["kind"] == "algorithm" else f"*{r['name']}*"
         rows.append([label, f"{r['iqm']:.2f}", ci, r["envs"], r["runs"]])
     return md_table(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
 

@@ -140,12 +140,13 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
                           refs).set_index("algorithm")
     assert one.loc["a3c", "return_ok"] and one.loc["a3c", "goal_ok"] and not one.loc["a3c", "seeds_ok"]
     assert not one.loc["a3c", "passed"] and one.loc["a3c", "why"] == "1 seed(s), item 1 needs 3"
-    assert "| a3c | Straight | 1 |" in science.verdict_markdown(one.reset_index())
+    assert "| A3C | Straight | 1 |" in science.verdict_markdown(one.reset_index())  # the names as the README writes them
     single = science.seed_table(_seeds({"return": [500.0], "goal": [0.5]}, "a3c")).set_index("metric")
     assert single.loc["return", "cell"] == "500.0 (1 seed)"  # no interval drawn from one value
     assert "not shown" in science.verdict_markdown(one.reset_index())
     grid = science.grid_markdown(table, "return", 1, refs)
     assert "| *autopilot* | 1000.0 [1000.0, 1000.0] |" in grid
+    assert [line.split(" | ")[0] for line in grid.splitlines()[2:5]] == ["| PPO", "| DQN", "| TD3"]
     assert "| *best degenerate* | 300.0 (always-forward) |" in grid
     assert "| *best degenerate* | 0.10 (always-forward) |" in science.grid_markdown(table, "goal", 1, refs)
     both = pd.concat([v.reset_index(), one.reset_index()], ignore_index=True)
