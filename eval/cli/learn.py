@@ -373,6 +373,7 @@ def cmd_benchmark(args) -> int:
 
     from eval.scale.benchmark import (
         BenchmarkPlan,
+        finished_cells,
         finished_runs,
         report_steps,
         run_ray,
@@ -397,7 +398,10 @@ def cmd_benchmark(args) -> int:
     cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
     output_folder(args.out, "--out")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
-    start, kept = time.monotonic(), len(finished_runs(plan, args.out))
+    # finished earlier: in runs/, or (Tune moves runs there only when the whole grid ends) a
+    # trial at its budget; --no-ray finishes and counts such a trial itself
+    kept = len((finished_runs if args.no_ray else finished_cells)(plan, args.out))
+    start = time.monotonic()
     say(f"benchmark {args.preset}: {len(cells)} trials ({kept} finished earlier, kept) -> {args.out}")
     if args.no_ray:
         runs = run_sequential(plan, args.out, resume=args.resume, keep=args.keep,

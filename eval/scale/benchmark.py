@@ -404,16 +404,22 @@ def steps_done(run: Path) -> int:
     return int(json.loads(state.read_text()).get("env_steps", 0)) if state.exists() else 0
 
 
-def finished_count(out: Path) -> tuple[int, int]:
-    """(finished, all) cells of the benchmark in ``out``: a finished cell's run is in
-    ``runs/`` or, not yet moved, in ``trials/<cell>`` at its budget."""
-    cells = load_plan(out).cells()
-    done = 0
-    for cfg in cells:
+def finished_cells(plan: BenchmarkPlan, out: Path) -> list[str]:
+    """Names of ``plan``'s cells that finished training in ``out``: the run is in ``runs/`` or,
+    not yet moved (Tune moves them when the whole grid ends), in ``trials/<cell>`` at its budget."""
+    done = []
+    for cfg in plan.cells():
         name = cell_name(cfg)
-        started = sorted((Path(out) / "trials" / name).glob("*"))
-        done += (Path(out) / "runs" / name).exists() or any(steps_done(r) >= cfg.steps for r in started)
-    return done, len(cells)
+        started = (Path(out) / "trials" / name).glob("*")
+        if (Path(out) / "runs" / name).exists() or any(steps_done(r) >= cfg.steps for r in started):
+            done.append(name)
+    return done
+
+
+def finished_count(out: Path) -> tuple[int, int]:
+    """(finished, all) cells of the benchmark in ``out`` (:func:`finished_cells` of its saved plan)."""
+    plan = load_plan(out)
+    return len(finished_cells(plan, out)), len(plan.cells())
 
 
 def finished_runs(plan: BenchmarkPlan, out: Path) -> dict[str, Path]:

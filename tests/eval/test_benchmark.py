@@ -206,6 +206,35 @@ def test_benchmark_command_counts_kept_runs_apart_from_trained_ones(tmp_path, mo
     assert "trained 4 trials" in out and "trained env_1__ppo__0__bench" not in out
 
 
+def test_a_resumed_ray_grid_counts_trials_at_their_budget_as_kept(tmp_path, monkeypatch, capsys):
+    """Tune moves finished runs into runs/ only when the whole grid ends: a grid cut before that
+    has finished trials in trials/<cell> at their budget; the resume's first line counts them
+    (it said "0 finished earlier" with two finished), and its last counts only what it trained."""
+    from eval.cli import main
+    from eval.scale import benchmark, raysession
+    from eval.scale.benchmark import BenchmarkPlan, _prepare, cell_name, finished_cells
+
+    out = tmp_path / "b"
+    plan = BenchmarkPlan(preset="smoke", envs=("env_1",), algos=("ppo", "dqn"), seeds=2)
+    _prepare(plan, out, resume=False)
+    cells = {cell_name(c): c.steps for c in plan.cells()}
+    ppo0, ppo1, dqn0 = "env_1__ppo__0__bench", "env_1__ppo__1__bench", "env_1__dqn__0__bench"
+    for name, steps, where in ((ppo0, cells[ppo0], "runs"), (ppo1, cells[ppo1], "trials"),
+                               (dqn0, cells[dqn0] - 1, "trials")):
+        run = out / where / name / ("" if where == "runs" else f"{name}-1")
+        run.mkdir(parents=True)
+        (run / "state.json").write_text(json.dumps({"env_steps": steps}))
+    assert finished_cells(plan, out) == [ppo0, ppo1]  # dqn0 is one step short; dqn1 never started
+
+    monkeypatch.setattr(raysession, "ray_available", lambda: True)
+    monkeypatch.setattr(benchmark, "run_ray", lambda plan, out, **_: {cell_name(c): out / "runs" / cell_name(c)
+                                                                       for c in plan.cells()})
+    assert main(["benchmark", "--preset", "smoke", "--envs", "env_1", "--algos", "ppo", "dqn", "--seeds", "2",
+                 "--train-only", "--resume", "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "4 trials (2 finished earlier, kept)" in said and "trained 2 trials" in said
+
+
 def test_a_grid_from_a_first_seed_trains_the_same_cells_as_the_whole_grid(tmp_path, monkeypatch, capsys):
     """--first-seed 1 --seeds 2: the cells "seed 1" and "seed 2" of a grid from seed 0, with
     the same configs; the plan records it (a plan saved before it reads back as equal) and a
