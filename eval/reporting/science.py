@@ -230,7 +230,7 @@ def targets(v: pd.DataFrame) -> pd.DataFrame:
 
 def targets_markdown(t: pd.DataFrame) -> str:
     def names(xs):
-        return ", ".join(xs) if xs else "none"
+        return ", ".join(x.upper() for x in xs) if xs else "none"
     rows = [[r["title"], names(r["discrete"]), names(r["continuous"]),
              names(r["turning"]) if r["has_turns"] else "(no turning slot)",
              "met" if r["met"] else "not met"] for _, r in t.iterrows()]

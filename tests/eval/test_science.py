@@ -102,6 +102,7 @@ def test_targets_need_a_discrete_and_a_continuous_pass_and_turning_goals_where_r
     assert not t.loc["env_5", "met"] and t.loc["env_5", "continuous"] == []
     md = science.targets_markdown(science.targets(v))
     assert "(no turning slot)" in md and md.count("not met") == 2
+    assert "| Four-way | PPO | TD3 | DQN | met |" in md  # the names as the other tables write them
 
 
 def _refs(env="env_1", values: dict | None = None) -> pd.DataFrame:
