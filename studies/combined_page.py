@@ -52,9 +52,13 @@ def sections(summary: str) -> dict[str, str]:
 
 
 def seeds_text(seeds: pd.DataFrame) -> str:
-    """'Straight 0 and 1, Three-way 0 and 1, ...': the training seeds per environment."""
+    """'Straight 0, 1 and 2, Three-way 0 and 1, ...': the training seeds per environment."""
+    def listed(xs):
+        xs = [str(x) for x in sorted(xs)]
+        return " and ".join(xs) if len(xs) < 3 else f"{', '.join(xs[:-1])} and {xs[-1]}"
+
     per_env = seeds.groupby("env")["train_seed"].unique()
-    return ", ".join(f"{env_title(e)} {' and '.join(map(str, sorted(s)))}" for e, s in per_env.items())
+    return ", ".join(f"{env_title(e)} {listed(s)}" for e, s in per_env.items())
 
 
 def page(comb: Path, title: str, parts: list[str], commit: str, contact: str) -> str:

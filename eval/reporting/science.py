@@ -372,7 +372,7 @@ def budget_markdown(check: pd.DataFrame) -> str:
             text = f"{c['gain'].mean():+.0f} (rising {rising}/{len(c)})" if len(c) else "-"
             cells.append(f"**{text}**" if rising else text)
         budget = int(check.loc[check["algorithm"] == algo, "budget"].max())
-        rows.append([algo, f"{budget:,}", *cells])
+        rows.append([algo.upper(), f"{budget:,}", *cells])
     return md_table(["algorithm", "budget (env steps)", *[env_title(e) for e in envs]], rows)
 
 

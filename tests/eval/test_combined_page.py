@@ -64,8 +64,9 @@ def test_science_py_summary_has_every_section(cp):
 
 
 def test_seeds_per_environment_in_the_environments_order(cp):
-    seeds = pd.DataFrame({"env": ["env_2", "env_1", "env_1", "env_2"], "train_seed": [1, 1, 0, 0]})
-    assert cp.seeds_text(seeds) == "Straight 0 and 1, Three-way 0 and 1"
+    seeds = pd.DataFrame({"env": ["env_2", "env_1", "env_1", "env_2", "env_1"], "train_seed": [1, 1, 0, 0, 2]})
+    assert cp.seeds_text(seeds) == "Straight 0, 1 and 2, Three-way 0 and 1"
+    assert cp.seeds_text(seeds.iloc[[2]]) == "Straight 0"
 
 
 def test_not_a_combine_folder_is_a_clear_error(cp, tmp_path):

@@ -213,7 +213,7 @@ def test_budget_check_flags_a_run_whose_return_still_rises_at_its_end(tmp_path):
     assert check["rising"].tolist() == [False, True]
     assert "**+5 (rising 1/2)**" in science.budget_markdown(check)
     none = science.budget_check({("td3", "env_1", 0): runs[("dqn", "env_1", 0)]}).assign(n=0)
-    assert science.budget_markdown(none).splitlines()[-1] == "| td3 | 100 | - |"
+    assert science.budget_markdown(none).splitlines()[-1] == "| TD3 | 100 | - |"
 
 
 # -- the smoke study ---------------------------------------------------------------------------
