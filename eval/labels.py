@@ -39,6 +39,12 @@ def algo_order(names) -> list[str]:
     return [a for a in ALGO_ORDER if a in names] + sorted(names - set(ALGO_ORDER))
 
 
+def algo_label(algo: str) -> str:
+    """An algorithm's name as the study tables, their figures and the README write it: PPO, DQN
+    (the catalogue's names are lower case: ppo, dqn); a name outside the catalogue the same way."""
+    return algo.upper()
+
+
 def colour(algo: str) -> str:
     """The algorithm's colour; a name outside the catalogue gets a fixed one of :data:`EXTRA`."""
     if algo in COLOURS:

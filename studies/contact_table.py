@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from eval.labels import algo_order, env_title
+from eval.labels import algo_label, algo_order, env_title
 from eval.reporting.page import md_table
 from eval.reporting.science import over_seeds
 from eval.reporting.stats import bootstrap_ci
@@ -79,7 +79,7 @@ def markdown(t: pd.DataFrame) -> str:
         return (f"{r.mean_return_cell} / {r.without_contact_charge_cell} "
                 f"({n} seed{'s' if n > 1 else ''})")
 
-    rows = [[p.upper()] + [text(by.loc[(p, e)]) if (p, e) in by.index else "" for e in envs]
+    rows = [[algo_label(p)] + [text(by.loc[(p, e)]) if (p, e) in by.index else "" for e in envs]
             for p in algo_order(t.policy.unique())]
     return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
 

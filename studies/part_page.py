@@ -19,7 +19,7 @@ from pathlib import Path
 import pandas as pd
 from stops import contact_runs, episode_rows, load_records
 
-from eval.labels import algo_order
+from eval.labels import algo_label, algo_order
 from eval.reporting.page import md_table
 from eval.reporting.science import over_seeds
 from eval.scale.gridstatus import grid_status
@@ -91,7 +91,7 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
     lines = []
     for algo in algo_order(s1.index):
         a1, a2 = s1.loc[algo], s2.loc[algo] if algo in s2.index else None
-        cells = [algo.upper(), f"{int(status.loc[algo, 'budget']):,}", _num(status.loc[algo, "best"], 0),
+        cells = [algo_label(algo), f"{int(status.loc[algo, 'budget']):,}", _num(status.loc[algo, "best"], 0),
                  _num(a1["return"]), _num(a1.goal, 2)] + ([_num(a1.goal_turning, 2)] if turning else []) \
             + [_num(a1.CV, 3), _num(a2["return"]) if a2 is not None else "-",
                _num(a2.goal, 2) if a2 is not None else "-"] \
@@ -118,13 +118,13 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
     order = s1["return"].sort_values(ascending=False)
     bullets = [
         f"- **Above always-brake ({_num(brake)})** with seed {seed}: "
-        + (", ".join(f"{a.upper()} {_num(s1.loc[a, 'return'])} (goal rate {_num(s1.loc[a, 'goal'], 2)})"
+        + (", ".join(f"{algo_label(a)} {_num(s1.loc[a, 'return'])} (goal rate {_num(s1.loc[a, 'goal'], 2)})"
                      for a in above) or "no algorithm")
-        + (f"; in every seed so far: {', '.join(a.upper() for a in every) or 'none'}" if others else "")
-        + ". Order: " + ", ".join(f"{a.upper()} {_num(v)}" for a, v in order.items())
+        + (f"; in every seed so far: {', '.join(algo_label(a) for a in every) or 'none'}" if others else "")
+        + ". Order: " + ", ".join(f"{algo_label(a)} {_num(v)}" for a, v in order.items())
         + f". Best degenerate goal rate: {_num(degen_goal, 2)}."]
     if turning:
-        turners = [f"{a.upper()} {_num(s1.loc[a, 'goal_turning'], 2)}" for a in algo_order(s1.index) if s1.loc[a, "goal_turning"] > 0]
+        turners = [f"{algo_label(a)} {_num(s1.loc[a, 'goal_turning'], 2)}" for a in algo_order(s1.index) if s1.loc[a, "goal_turning"] > 0]
         bullets.append("- **Turning slots' goals** (Scenario 1): " + (", ".join(turners) or "none, in any algorithm") + ".")
     records = study / "test" / f"{env}__seed{seed}.parquet"
     if records.is_file():

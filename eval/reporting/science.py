@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from eval.labels import ENVS, env_colour  # noqa: F401 - ENVS re-exported (studies/science.py)
+from eval.labels import ENVS, algo_label, env_colour  # noqa: F401 - ENVS re-exported (studies/science.py)
 from eval.reporting.page import md_table
 from eval.reporting.report import algo_order, env_title
 from eval.reporting.stats import BOOTSTRAP, CI_SEED, bootstrap_ci, iqm, stratified_bootstrap
@@ -230,7 +230,7 @@ def targets(v: pd.DataFrame) -> pd.DataFrame:
 
 def targets_markdown(t: pd.DataFrame) -> str:
     def names(xs):
-        return ", ".join(x.upper() for x in xs) if xs else "none"
+        return ", ".join(algo_label(x) for x in xs) if xs else "none"
     rows = [[r["title"], names(r["discrete"]), names(r["continuous"]),
              names(r["turning"]) if r["has_turns"] else "(no turning slot)",
              "met" if r["met"] else "not met"] for _, r in t.iterrows()]
@@ -372,7 +372,7 @@ def budget_markdown(check: pd.DataFrame) -> str:
             text = f"{c['gain'].mean():+.0f} (rising {rising}/{len(c)})" if len(c) else "-"
             cells.append(f"**{text}**" if rising else text)
         budget = int(check.loc[check["algorithm"] == algo, "budget"].max())
-        rows.append([algo.upper(), f"{budget:,}", *cells])
+        rows.append([algo_label(algo), f"{budget:,}", *cells])
     return md_table(["algorithm", "budget (env steps)", *[env_title(e) for e in envs]], rows)
 
 
@@ -413,7 +413,7 @@ def convergence_figure(curves: pd.DataFrame, out: Path, stem: str = "convergence
             ax.plot(b["env_step"], b["mean"], color=c, lw=0.9, marker="o" if lone else None, ms=2)
             if seeds.get((algo, env), 1) > 1:
                 ax.fill_between(b["env_step"], b["low"], b["high"], color=c, alpha=0.18, lw=0)
-        ax.set_title(algo.upper(), loc="left")
+        ax.set_title(algo_label(algo), loc="left")
         ax.grid(lw=0.3)
         ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
         ax.set_xlabel("environment steps")
@@ -438,7 +438,7 @@ def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCEN
     t = table[(table["metric"] == metric) & (table["scenario"] == scenario)]
     envs = sorted(t["env"].unique())
     cells = t.set_index(["name", "env"])["cell"]
-    rows = [[a.upper()] + [cells.get((a, e), "") for e in envs] for a in algo_order(t["name"].unique())]
+    rows = [[algo_label(a)] + [cells.get((a, e), "") for e in envs] for a in algo_order(t["name"].unique())]
     if references is not None and scenario == VERDICT_SCENARIO:
         r = references[references["metric"] == metric].set_index(["name", "env"])["cell"]
         rows += [[f"*{n}*"] + [r.get((n, e), "") for e in envs] for n in reference_names
@@ -466,7 +466,7 @@ def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: in
         names = [("algorithm", a) for a in algo_order(e.loc[e["kind"] == "algorithm", "name"].unique())]
         names += [("reference", p) for p in POLICIES if p in set(e.loc[e["kind"] == "reference", "name"])]
         for kind, name in names:
-            label = name.upper() if kind == "algorithm" else f"*{name}*"
+            label = algo_label(name) if kind == "algorithm" else f"*{name}*"
             rows.append([env_title(env), label, int(n.get((env, kind, name, "return"), 0))]
                         + [cells.get((env, kind, name, m), "") for m in METRICS])
     return md_table(["environment", "policy", "n", *[NAMES.get(m, m) for m in METRICS]], rows)
@@ -475,7 +475,7 @@ def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: in
 def verdict_markdown(v: pd.DataFrame) -> str:
     rows = []
     for _, r in v.iterrows():
-        rows.append([r["algorithm"].upper(), r["title"], r["n"],
+        rows.append([algo_label(r["algorithm"]), r["title"], r["n"],
                      fmt("return", r["return_mean"], r["return_ci_low"], r["return_ci_high"]),
                      f"{r['return_best_reference']} {r['return_reference']:.1f}",
                      fmt("goal", r["goal_mean"], r["goal_ci_low"], r["goal_ci_high"]),
@@ -505,7 +505,7 @@ def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = Non
         goal = f"{r['goal_mean']:.2f}" + ("" if r["n"] > 1 else "; 1 seed")
         cells[(r["algorithm"], r["env"])] = f"{ret} ({goal}), " + (
             f"**{word}**" if word == "pass" else word)
-    rows = [[a.upper()] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
+    rows = [[algo_label(a)] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
     if references is not None:
         r = references.set_index(["name", "env", "metric"])["mean"]
         turns = v.groupby("env")["turning_goal_mean"].apply(lambda x: x.notna().any())
@@ -526,7 +526,7 @@ def iqm_markdown(t: pd.DataFrame) -> str:
     rows = []
     for _, r in t.iterrows():
         ci = f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]" if np.isfinite(r["ci_low"]) else "-"
-        label = r["name"].upper() if r["kind"] == "algorithm" else f"*{r['name']}*"
+        label = algo_label(r["name"]) if r["kind"] == "algorithm" else f"*{r['name']}*"
         rows.append([label, f"{r['iqm']:.2f}", ci, r["envs"], r["runs"]])
     return md_table(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
 
