@@ -129,13 +129,38 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
     records = study / "test" / f"{env}__seed{seed}.parquet"
     if records.is_file():
         rows = episode_rows(records)
-        rows = rows[rows.scenario == 1]
         runs = contact_runs(load_records(records), LONG)
-        long_steps = int(runs[runs.scenario == 1].steps.sum()) if len(runs) else 0
-        bullets.append(f"- **Contact**: {int(rows['contact steps'].sum()):,} contact steps in Scenario 1's "
-                       f"{len(rows)} AC-episodes, {long_steps:,} of them in runs of {LONG} steps or more "
-                       f"(`python studies/stops.py {records.name} --long {LONG}`).")
+        bullets.append(contact_bullet(rows[rows.scenario == 1], runs[runs.scenario == 1] if len(runs) else runs,
+                                      records.name))
     return md_table(head, lines) + "\n" + "\n".join(bullets) + "\n"
+
+
+def contact_bullet(episodes: pd.DataFrame, runs: pd.DataFrame, records: str, long: int = LONG) -> str:
+    """The contact bullet of a part page from Scenario 1's AC-episodes (stops.episode_rows) and
+    their contact runs of ``long``+ steps (stops.contact_runs): how many contact steps, how many in
+    long runs, against what, how many last to the episode's end, per algorithm, and the longest."""
+    text = (f"- **Contact**: {int(episodes['contact steps'].sum()):,} contact steps in Scenario 1's "
+            f"{len(episodes)} AC-episodes, {int(runs.steps.sum()) if len(runs) else 0:,} of them in "
+            f"{len(runs)} runs of {long} steps or more (`python studies/stops.py {records} --long {long}`)")
+    if not len(runs):
+        return text + "."
+    kinds = runs.groupby("with").steps.agg(["count", "sum"]).sort_values("sum", ascending=False)
+    plural = {"car": "cars", "object": "objects", "pedestrian": "pedestrians"}
+    text += ": " + ", ".join(f"{int(k['count'])} against {plural.get(w, w) if k['count'] > 1 else w} "
+                             f"({int(k['sum']):,} steps)" for w, k in kinds.iterrows()) + "."
+    ends = runs[runs.ended == "end"]
+    text += (f" {len(ends)} last to the episode's end ({int(ends.steps.sum()):,} steps)." if len(ends) else
+             " None lasts to the episode's end.")
+    per = runs.groupby("policy").steps.agg(["count", "sum"]).sort_values("sum", ascending=False)
+    text += " By algorithm: " + ", ".join(f"{algo_label(a)} {int(k['count'])} ({int(k['sum']):,} steps)"
+                                          for a, k in per.iterrows()) + "."
+    top = runs.sort_values("steps", ascending=False).iloc[0]
+    held = f" against {algo_label(str(top['partner policy']))}'s `{top.partner}`" if isinstance(top.partner, str) else \
+        f" against a{'n' if str(top['with'])[0] in 'aeiou' else ''} {top['with']}"
+    text += (f" The longest: {algo_label(top.policy)}'s `{top.agent}`{held} from step {int(top['first step'])} of "
+             f"episode {int(top['episode seed'])}, {int(top.steps)} steps"
+             f"{' (to the end)' if top.ended == 'end' else ''}.")
+    return text
 
 
 def main(argv=None) -> int:

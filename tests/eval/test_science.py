@@ -487,6 +487,29 @@ def test_part_page_tables_one_seed_beside_the_other_seeds_and_the_combination(sm
         page.tables(study, [], None)
 
 
+def test_part_page_contact_bullet_counts_the_long_runs_by_kind_end_and_algorithm(load_study):
+    """The contact bullet sums what stops.contact_runs found: per kind of contact, those lasting to
+    the episode's end, per algorithm (most steps first), and names the longest run's partner."""
+    page = load_study("part_page")
+    episodes = pd.DataFrame({"contact steps": [500, 120, 60, 0]})
+    runs = pd.DataFrame([
+        {"policy": "dqn", "agent": "ac_0", "episode seed": 10003, "first step": 176, "steps": 425, "ended": "end",
+         "with": "car", "partner": "ac_4", "partner policy": "a3c"},
+        {"policy": "a3c", "agent": "ac_5", "episode seed": 10004, "first step": 35, "steps": 75, "ended": "end",
+         "with": "object", "partner": np.nan, "partner policy": np.nan},
+        {"policy": "a3c", "agent": "ac_5", "episode seed": 10010, "first step": 44, "steps": 55, "ended": "left",
+         "with": "object", "partner": np.nan, "partner policy": np.nan}])
+    text = page.contact_bullet(episodes, runs, "env_1__seed2.parquet")
+    assert "680 contact steps in Scenario 1's 4 AC-episodes, 555 of them in 3 runs of 50 steps or more" in text
+    assert ": 1 against car (425 steps), 2 against objects (130 steps). 2 last to the episode's end (500 steps)." in text
+    assert "By algorithm: DQN 1 (425 steps), A3C 2 (130 steps)." in text
+    assert text.endswith("The longest: DQN's `ac_0` against A3C's `ac_4` from step 176 of episode 10003, 425 steps (to the end).")
+    alone = page.contact_bullet(episodes, runs.iloc[1:], "x.parquet")
+    assert alone.endswith("The longest: A3C's `ac_5` against an object from step 35 of episode 10004, 75 steps (to the end).")
+    assert page.contact_bullet(episodes, runs.iloc[:0], "x.parquet").endswith("0 of them in 0 runs of 50 steps or more "
+                                                                                "(`python studies/stops.py x.parquet --long 50`).")
+
+
 def test_a_study_from_a_first_seed_trains_and_tests_only_its_seeds(smoke, tmp_path):
     """--first-seed 1 --seeds 1 with the smoke study's runs: only seed 1 is tested, and its
     seed means are the smoke study's seed-1 rows."""
