@@ -3,7 +3,8 @@
 each algorithm's budget, best validation return, Scenario 1 and 2 return and goal rate, beside
 the same environment's other seeds (their exports' seeds.csv) and, with ``--combined``, the
 seeds together (a ``--combine`` folder: mean [95% CI over seeds]); the reference rows; which
-algorithms are above always-brake; the turning slots' goals; the contact (studies/stops.py).
+algorithms are above always-brake; the turning slots' goals; the contact (studies/stops.py: its
+long runs by kind, to the episode's end, per algorithm, the longest); each ``ac_0`` alone (Scenario 2).
 
     python studies/part_page.py sci_2s1 --earlier docs/results/2026-11-27-science-v3-threeway-2/study \\
         --combined comb_2 > page-tables.md
@@ -132,7 +133,27 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
         runs = contact_runs(load_records(records), LONG)
         bullets.append(contact_bullet(rows[rows.scenario == 1], runs[runs.scenario == 1] if len(runs) else runs,
                                       records.name))
+        if (rows.scenario == 2).any():
+            bullets.append(alone_bullet(rows[rows.scenario == 2]))
     return md_table(head, lines) + "\n" + "\n".join(bullets) + "\n"
+
+
+def alone_bullet(episodes: pd.DataFrame) -> str:
+    """The Scenario 2 bullet (each algorithm's ``ac_0`` alone) from its AC-episodes
+    (stops.episode_rows): per algorithm the goals, or how far the car drove, how far short of its
+    goal it stopped and how much of the episode it spent off the road; the mean return."""
+    parts = []
+    for algo in algo_order(episodes.policy.unique()):
+        e = episodes[episodes.policy == algo]
+        goals, n = int(e.goal.sum()), len(e)
+        off = e["steps off road"].sum() / max(int(e.steps.sum()), 1)
+        if goals:
+            what = f"reaches its goal in {goals} of {n} episodes"
+        else:
+            what = (f"reaches none: drives {e['driven m'].min():,.0f}-{e['driven m'].max():,.0f} m and stands "
+                    f"{e['route m left'].min():,.0f}-{e['route m left'].max():,.0f} m short")
+        parts.append(f"{algo_label(algo)} {what}, off the road in {off:.0%} of its steps ({e['return'].mean():,.1f})")
+    return "- **Alone (Scenario 2, `ac_0` with no other AC)**: " + "; ".join(parts) + "."
 
 
 def contact_bullet(episodes: pd.DataFrame, runs: pd.DataFrame, records: str, long: int = LONG) -> str:

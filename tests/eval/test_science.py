@@ -510,6 +510,19 @@ def test_part_page_contact_bullet_counts_the_long_runs_by_kind_end_and_algorithm
                                                                                 "(`python studies/stops.py x.parquet --long 50`).")
 
 
+def test_part_page_alone_bullet_gives_goals_or_how_far_short_each_algorithm_stood(load_study):
+    page = load_study("part_page")
+    episodes = pd.DataFrame([
+        {"policy": "td3", "goal": False, "steps": 600, "steps off road": 540, "driven m": 30.0, "route m left": 170.0, "return": -400.0},
+        {"policy": "td3", "goal": False, "steps": 600, "steps off road": 420, "driven m": 63.0, "route m left": 141.0, "return": -500.0},
+        {"policy": "dqn", "goal": True, "steps": 150, "steps off road": 0, "driven m": 202.0, "route m left": 2.0, "return": 3100.0},
+        {"policy": "dqn", "goal": False, "steps": 600, "steps off road": 75, "driven m": 90.0, "route m left": 110.0, "return": 1000.0}])
+    text = page.alone_bullet(episodes)
+    assert text == ("- **Alone (Scenario 2, `ac_0` with no other AC)**: DQN reaches its goal in 1 of 2 episodes, off the road "
+                    "in 10% of its steps (2,050.0); TD3 reaches none: drives 30-63 m and stands 141-170 m short, off the "
+                    "road in 80% of its steps (-450.0).")
+
+
 def test_a_study_from_a_first_seed_trains_and_tests_only_its_seeds(smoke, tmp_path):
     """--first-seed 1 --seeds 1 with the smoke study's runs: only seed 1 is tested, and its
     seed means are the smoke study's seed-1 rows."""
