@@ -29,6 +29,9 @@ COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "con
 HEADINGS = {"grid": "verdict per pair:", "target": "Issue 27's target per environment",
             "iqm": "IQM across environments", "budget": "Did the budgets suffice?"}
 """summary.md's sections the page shows: each is the first table after its heading's line."""
+OPTIONAL = {"alone": "Alone (Scenario 2"}
+"""Sections shown where summary.md has them (a study tested without Scenario 2 has no alone table;
+summary.md files written before 2026-11-28 neither)."""
 
 
 def sections(summary: str) -> dict[str, str]:
@@ -36,8 +39,10 @@ def sections(summary: str) -> dict[str, str]:
     naming the heading that summary.md lacks (a summary.md of another format)."""
     lines = summary.splitlines()
     out = {}
-    for key, heading in HEADINGS.items():
+    for key, heading in {**HEADINGS, **OPTIONAL}.items():
         start = next((i for i, line in enumerate(lines) if heading in line), None)
+        if start is None and key in OPTIONAL:
+            continue
         if start is None:
             raise SystemExit(f"combined_page: summary.md has no '{heading}' section; give a folder "
                              "written by studies/science.py --combine")
@@ -71,6 +76,8 @@ def page(comb: Path, title: str, parts: list[str], commit: str, contact: str) ->
     verdict = (f"Every pair has {MIN_SEEDS} seeds or more, what a verdict needs." if fewest >= MIN_SEEDS else
                f"Fewer than {MIN_SEEDS} seeds (what issue 27 asks for) are too few for a verdict: a pair "
                "above every reference reads \"not shown\".")
+    alone = ("" if "alone" not in s else "\nAlone (Scenario 2): each algorithm's `ac_0` with no other AC (in the "
+             "junctions and on the Merge a turning slot), return [95% CI over seeds] (goal rate):\n\n" + s["alone"] + "\n")
     cmd = "python studies/science.py --combine \\\n      " + " \\\n      ".join(parts) + f" --out {comb.name}"
     return f"""# {title} (issue 27), {pd.Timestamp.now(tz="UTC"):%Y-%m-%d}
 
@@ -85,7 +92,7 @@ over the slots). {verdict}
   {cmd}
   python studies/combined_page.py {comb.name} --page <this folder> --title "{title}"
   ```
-- **Files**: [summary.md](summary.md) (return, goal rate, turning slots' goal rate, verdict, IQM,
+- **Files**: [summary.md](summary.md) (return, goal rate, turning slots' goal rate, alone, verdict, IQM,
   issue 27's target per environment, budgets), [results.md](results.md) (every metric with the
   reference rows), [verdict.md](verdict.md), [iqm.md](iqm.md), [budget.csv](budget.csv)
 
@@ -101,7 +108,7 @@ turning slot and is not a degenerate reference).
 Issue 27's target per environment:
 
 {s["target"]}
-
+{alone}
 ## Convergence
 
 Training return against environment steps, mean over the seeds, band: min-max over them:

@@ -642,6 +642,8 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
         "\nGoal rate, Scenario 1:\n", science.grid_markdown(table, "goal", 1, ref_table),
         "\nGoal rate of the turning slots (the AC-episodes whose slot's route turns), Scenario 1:\n",
         science.grid_markdown(table, "goal_turning", 1, ref_table),
+        *(["\nAlone (Scenario 2, each algorithm's `ac_0` with no other AC): return [95% CI over seeds] "
+           "(goal rate):\n", science.return_goal_grid_markdown(table, 2)] if 2 in t["scenarios"] else []),
         f"\nValidity verdict (issue 14, item 1): {passed} of {len(verdict)} (algorithm, "
         "environment) pairs have a mean return and goal rate above every degenerate reference "
         f"({', '.join(science.DEGENERATE)}) with the 95% CI's lower end above the reference's "

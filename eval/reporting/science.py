@@ -522,6 +522,22 @@ def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = Non
     return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
 
 
+def return_goal_grid_markdown(table: pd.DataFrame, scenario: int) -> str:
+    """Algorithms x environments of one scenario, each cell 'return [95% CI over seeds] (goal
+    rate)' as the README writes them (one seed: 'return (goal rate; 1 seed)'); no reference rows
+    (they are measured under Scenario 1's conditions). Scenario 2's table: each algorithm alone."""
+    t = table[(table["scenario"] == scenario) & table["metric"].isin(["return", "goal"])]
+    envs = sorted(t["env"].unique())
+    r = t.set_index(["name", "env", "metric"])
+    cells = {}
+    for a, e in {(a, e) for a, e, _ in r.index}:
+        ret, goal = r.loc[(a, e, "return")], r.loc[(a, e, "goal")]
+        seeds = "" if ret["n"] > 1 else "; 1 seed"
+        cells[(a, e)] = f"{over_seeds(ret['mean'], ret['ci_low'], ret['ci_high'], ret['n'])} ({goal['mean']:.2f}{seeds})"
+    rows = [[algo_label(a)] + [cells.get((a, e), "") for e in envs] for a in algo_order(t["name"].unique())]
+    return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
+
+
 def iqm_markdown(t: pd.DataFrame) -> str:
     rows = []
     for _, r in t.iterrows():
@@ -533,4 +549,4 @@ def iqm_markdown(t: pd.DataFrame) -> str:
 
 __all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",
            "convergence_figure", "iqm_table", "normalise", "reference_table", "seed_means", "seed_table", "verdict",
-           "verdict_grid_markdown", "over_seeds"]
+           "verdict_grid_markdown", "over_seeds", "return_goal_grid_markdown"]

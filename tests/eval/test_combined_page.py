@@ -51,6 +51,12 @@ def test_each_section_is_the_first_table_after_its_heading(cp):
     assert s["budget"].splitlines()[-1] == "| ppo | 55,000 |"
 
 
+def test_the_alone_table_is_shown_where_summary_md_has_one(cp):
+    assert "alone" not in cp.sections(SUMMARY) and "alone" not in cp.sections(SEEDS01.read_text())
+    alone = SUMMARY + "\nAlone (Scenario 2, each algorithm's `ac_0` ...):\n\n| algorithm | Straight |\n|---|---|\n| DQN | 1.0 (1.00) |\n"
+    assert cp.sections(alone)["alone"].splitlines()[-1] == "| DQN | 1.0 (1.00) |"
+
+
 def test_a_summary_without_a_section_names_it(cp):
     with pytest.raises(SystemExit, match="Did the budgets suffice"):
         cp.sections(SUMMARY.split("Did the budgets")[0])

@@ -164,6 +164,19 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
 
+def test_scenario_2_grid_gives_each_algorithm_alone_its_return_interval_and_goal_rate():
+    two = pd.concat([_seeds({"return": [100.0, 200.0, 300.0], "goal": [1.0, 0.5, 0.0]}, "dqn").assign(scenario=2),
+                     _seeds({"return": [-50.0], "goal": [0.0]}, "ppo", env="env_2").assign(scenario=2),
+                     _seeds({"return": [9e9, 9e9, 9e9], "goal": [1.0, 1.0, 1.0]}, "td3")])  # Scenario 1: not shown
+    table = science.seed_table(two)
+    dqn = table.query("scenario == 2 and name == 'dqn' and metric == 'return'").iloc[0]
+    grid = science.return_goal_grid_markdown(table, 2)
+    assert grid.splitlines()[0] == "| algorithm | Straight | Three-way |"
+    assert (f"| DQN | {dqn['mean']:,.1f} [{dqn['ci_low']:,.1f}, {dqn['ci_high']:,.1f}] (0.50) |  |" in grid
+            and dqn["ci_low"] < 200.0 < dqn["ci_high"])
+    assert "| PPO |  | -50.0 (0.00; 1 seed) |" in grid and "TD3" not in grid and "9" * 6 not in grid
+
+
 def test_returns_are_normalised_between_random_and_the_autopilot():
     refs = pd.concat([_refs("env_1", {"random": (-100, 0), "autopilot": (300, 1)}),
                       _refs("env_2", {"random": (50, 0), "autopilot": (50, 1)})])
@@ -273,6 +286,7 @@ def test_smoke_study_writes_every_result_and_resumes(smoke):
         assert (out / name).stat().st_size > 0, name
     summary = (out / "summary.md").read_text()
     assert "| algorithm | environment | seeds |" in summary and summary.strip() in done.stdout
+    assert "Alone (Scenario 2" not in summary  # the smoke study tests Scenario 1 only
 
     # rerun: nothing is trained or tested again
     cached = {p: p.stat().st_mtime_ns for p in (out / "test").glob("*.parquet")}
@@ -367,6 +381,20 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
         bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x"),
                               "--combine", *extra], capture_output=True, text=True, cwd=ROOT)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
+
+
+def test_a_study_tested_alone_too_has_the_alone_table(tmp_path):
+    """A part of the 6x5 study in git (tested in Scenarios 1 and 2), combined on its own: its
+    summary.md has the Scenario 2 table, each algorithm's cell its one seed's mean and goal rate."""
+    export = ROOT / "docs/results/2026-11-28-science-v3-straight-s2/study"
+    done = subprocess.run([sys.executable, str(SCRIPT), "--combine", str(export), "--out", str(tmp_path / "c")],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = (tmp_path / "c" / "summary.md").read_text()
+    alone = summary.split("Alone (Scenario 2, each algorithm's `ac_0` with no other AC)")[1].split("\n\n")[1]
+    means = pd.read_csv(export / "seeds.csv").query("scenario == 2").set_index("algorithm")
+    for algo, r in means.iterrows():
+        assert f"| {algo.upper()} | {r['return']:,.1f} ({r['goal']:.2f}; 1 seed) |" in alone
 
 
 def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
