@@ -35,7 +35,8 @@ all of them; each environment keeps its own number of training seeds, and the ve
 asks for 3 (eval.reporting.science.MIN_SEEDS) whatever the intervals say.
 
 ``--export DEST`` copies a finished study's portable part (``science.json``, the held-out
-records, the references, each run's ``config.yaml`` and ``episodes.csv``, and the tested
+records, the references, each run's ``config.yaml``, ``episodes.csv``, ``manifest.json`` (commit,
+task version) and ``state.json`` (training time, validation history), and the tested
 checkpoints' provenance as ``checkpoints.json``: a few MB, no checkpoint) to ``DEST``, say
 a docs/results page, with ``contact.csv`` (``studies/stops.py``'s per-policy lines of the
 held-out records: each mean return without the contact charge, which stays in git where the
@@ -319,6 +320,10 @@ def checkpoints(plan: BenchmarkPlan, bench: Path, env: str, seed: int) -> dict[s
 
 EXPORTED = "checkpoints.json"
 """An exported study's provenance of every checkpoint it tested (the files stayed behind)."""
+RUN_RECORDS = ("manifest.json", "state.json")
+"""Of a run folder, beside config.yaml and episodes.csv, what an export keeps where the run has
+it: the commit, task version, package versions and scenario files' SHA-256 it trained with
+(manifest.json), and its training time, validation history and best scores per AC (state.json)."""
 
 
 def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, list[int]]) -> list[dict]:
@@ -343,7 +348,8 @@ def tested_checkpoints(plan: BenchmarkPlan, out: Path, seeds_of: dict[str, list[
 def export(out: Path, dest: Path, say) -> None:
     """Copy the finished study at ``out`` to ``dest`` without its checkpoints: science.json,
     seeds.csv, test/ and references/, each run's config.yaml and episodes.csv (what stage 4
-    reads of a run) and the tested checkpoints' provenance (:data:`EXPORTED`)."""
+    reads of a run) and its :data:`RUN_RECORDS`, and the tested checkpoints' provenance
+    (:data:`EXPORTED`)."""
     import shutil
 
     from eval.reporting.report import checkpoint_provenance
@@ -368,6 +374,7 @@ def export(out: Path, dest: Path, say) -> None:
     for cfg in plan.cells():
         run = out / "bench" / "runs" / cell_name(cfg)
         files += [run / "config.yaml", run / "episodes.csv"]
+        files += [run / name for name in RUN_RECORDS if (run / name).is_file()]
     for f in files:
         target = dest / f.relative_to(out)
         target.parent.mkdir(parents=True, exist_ok=True)

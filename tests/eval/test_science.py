@@ -408,8 +408,10 @@ def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     copied = [p for p in exp.rglob("*") if p.is_file()]
     assert not [p for p in copied if p.suffix == ".pt"] and not [p for p in exp.rglob("*") if p.is_symlink()]
-    assert {p.name for p in (exp / "bench" / "runs" / "env_1__dqn__1__bench").iterdir()} == {
-        "config.yaml", "episodes.csv"}
+    exported_run = exp / "bench" / "runs" / "env_1__dqn__1__bench"
+    assert {p.name for p in exported_run.iterdir()} == {"config.yaml", "episodes.csv", "manifest.json", "state.json"}
+    manifest = json.loads((exported_run / "manifest.json").read_text())  # which commit and task trained it
+    assert manifest["task_version"] >= 3 and len(manifest["git"]["commit"]) == 40
     original = json.loads((study / "report" / "provenance.json").read_text())["checkpoints"]
     recorded = json.loads((exp / "checkpoints.json").read_text())
     assert [(c["env"], c["seed"], c["algorithm"], c["sha256"]) for c in recorded] == [
