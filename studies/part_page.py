@@ -22,7 +22,7 @@ from stops import contact_runs, episode_rows, load_records
 
 from eval.labels import algo_label, algo_order
 from eval.reporting.page import md_table
-from eval.reporting.science import over_seeds
+from eval.reporting.science import over_seeds, shows_reference
 from eval.scale.gridstatus import grid_status
 from eval.testing.validity import DEGENERATE
 
@@ -103,7 +103,7 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
         lines.append(cells)
     for name, label in REFERENCES.items():
         x = refs[refs.name == name].set_index("metric")
-        if x.empty or (name == "safe-non-turner" and not turning):  # no turn: the autopilot
+        if x.empty or not shows_reference(name, turning):
             continue
         r = x.loc["return"]
         cells = [f"*{label}*", "", "", over_seeds(r["mean"], r.ci_low, r.ci_high, r.n),

@@ -490,6 +490,12 @@ def _verdict_word(r) -> str:
     return "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"] else "FAIL")
 
 
+def shows_reference(name: str, route_turns: bool) -> bool:
+    """Whether a table shows the reference row ``name`` for an environment: the safe non-turner
+    only where some slot's route turns (elsewhere it drives as the autopilot does)."""
+    return name != "safe-non-turner" or route_turns
+
+
 def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = None) -> str:
     """The :func:`verdict` as one algorithms x environments grid: each cell 'return [95% CI]
     (goal rate), verdict' ('return (goal rate; 1 seed)' with one seed), a pass in bold; with
@@ -511,7 +517,7 @@ def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = Non
         turns = v.groupby("env")["turning_goal_mean"].apply(lambda x: x.notna().any())
         for name, label in (("autopilot", "autopilot"), ("safe-non-turner", "safe non-turner")):
             row = [f"{r[(name, e, 'return')]:,.1f} ({r[(name, e, 'goal')]:.2f})"
-                   if (name, e, "return") in r.index and (name == "autopilot" or turns[e]) else ""
+                   if (name, e, "return") in r.index and shows_reference(name, turns[e]) else ""
                    for e in envs]
             if any(row):
                 rows.append([f"*{label}*", *row])
