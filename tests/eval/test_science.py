@@ -48,6 +48,17 @@ def _seeds(values: dict[str, list[float]], algo="ppo", env="env_1") -> pd.DataFr
     return pd.DataFrame({"scenario": 1, "env": env, "algorithm": algo, "train_seed": range(n), **base})
 
 
+def test_with_three_seeds_the_interval_runs_from_the_lowest_to_the_highest_seed():
+    """What the README says a pass with 3 seeds means (every seed cleared the reference): each
+    all-one-seed resample has probability 1/27 > 2.5%, so the percentile ends are the extremes."""
+    from eval.reporting.stats import bootstrap_ci
+
+    rng = np.random.default_rng(0)
+    for values in [[740.9, 805.5, 1474.4], *rng.normal(0, 1000, (20, 3)).tolist()]:
+        _, lo, hi, n = bootstrap_ci(values)
+        assert n == 3 and (lo, hi) == pytest.approx((min(values), max(values)))
+
+
 def test_seed_table_bootstraps_over_seeds():
     seeds = _seeds({"return": [0, 0, 0, 10], "CP": [np.nan] * 4, "TTFC": [np.nan, 2, 4, np.nan]})
     t = science.seed_table(seeds).set_index("metric")
