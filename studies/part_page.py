@@ -156,6 +156,11 @@ def alone_bullet(episodes: pd.DataFrame) -> str:
     return "- **Alone (Scenario 2, `ac_0` with no other AC)**: " + "; ".join(parts) + "."
 
 
+def _a(noun: str) -> str:
+    """'a car', 'an object'."""
+    return f"{'an' if noun[:1] in 'aeiou' else 'a'} {noun}"
+
+
 def contact_bullet(episodes: pd.DataFrame, runs: pd.DataFrame, records: str, long: int = LONG) -> str:
     """The contact bullet of a part page from Scenario 1's AC-episodes (stops.episode_rows) and
     their contact runs of ``long``+ steps (stops.contact_runs): how many contact steps, how many in
@@ -166,8 +171,7 @@ def contact_bullet(episodes: pd.DataFrame, runs: pd.DataFrame, records: str, lon
     if not len(runs):
         return text + "."
     kinds = runs.groupby("with").steps.agg(["count", "sum"]).sort_values("sum", ascending=False)
-    plural = {"car": "cars", "object": "objects", "pedestrian": "pedestrians"}
-    text += ": " + ", ".join(f"{int(k['count'])} against {plural.get(w, w) if k['count'] > 1 else w} "
+    text += ": " + ", ".join(f"{int(k['count'])} against {f'{w}s' if k['count'] > 1 else _a(w)} "
                              f"({int(k['sum']):,} steps)" for w, k in kinds.iterrows()) + "."
     ends = runs[runs.ended == "end"]
     text += (f" {len(ends)} last to the episode's end ({int(ends.steps.sum()):,} steps)." if len(ends) else
@@ -177,7 +181,7 @@ def contact_bullet(episodes: pd.DataFrame, runs: pd.DataFrame, records: str, lon
                                           for a, k in per.iterrows()) + "."
     top = runs.sort_values("steps", ascending=False).iloc[0]
     held = f" against {algo_label(str(top['partner policy']))}'s `{top.partner}`" if isinstance(top.partner, str) else \
-        f" against a{'n' if str(top['with'])[0] in 'aeiou' else ''} {top['with']}"
+        f" against {_a(str(top['with']))}"
     text += (f" The longest: {algo_label(top.policy)}'s `{top.agent}`{held} from step {int(top['first step'])} of "
              f"episode {int(top['episode seed'])}, {int(top.steps)} steps"
              f"{' (to the end)' if top.ended == 'end' else ''}.")

@@ -542,7 +542,7 @@ def test_part_page_contact_bullet_counts_the_long_runs_by_kind_end_and_algorithm
          "with": "object", "partner": np.nan, "partner policy": np.nan}])
     text = page.contact_bullet(episodes, runs, "env_1__seed2.parquet")
     assert "680 contact steps in Scenario 1's 4 AC-episodes, 555 of them in 3 runs of 50 steps or more" in text
-    assert ": 1 against car (425 steps), 2 against objects (130 steps). 2 last to the episode's end (500 steps)." in text
+    assert ": 1 against a car (425 steps), 2 against objects (130 steps). 2 last to the episode's end (500 steps)." in text
     assert "By algorithm: DQN 1 (425 steps), A3C 2 (130 steps)." in text
     assert text.endswith("The longest: DQN's `ac_0` against A3C's `ac_4` from step 176 of episode 10003, 425 steps (to the end).")
     alone = page.contact_bullet(episodes, runs.iloc[1:], "x.parquet")
