@@ -119,6 +119,12 @@ def over_seeds(mean: float, lo: float, hi: float, n: int) -> str:
     return f"{mean:,.1f}" if n == 1 else f"{mean:,.1f} [{lo:,.1f}, {hi:,.1f}]"
 
 
+def return_goal_cell(mean: float, lo: float, hi: float, n: int, goal: float) -> str:
+    """'return [95% CI] (goal rate)' as the README's grids write a cell; one seed:
+    'return (goal rate; 1 seed)'."""
+    return f"{over_seeds(mean, lo, hi, n)} ({goal:.2f}{'' if n > 1 else '; 1 seed'})"
+
+
 def _row(scenario, env, kind, name, metric, values) -> dict:
     mean, lo, hi, n = bootstrap_ci(values)
     cell = fmt(metric, mean, lo, hi, n, len(values))
@@ -507,10 +513,8 @@ def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = Non
     cells = {}
     for _, r in v.iterrows():
         word = _verdict_word(r)
-        ret = over_seeds(r["return_mean"], r["return_ci_low"], r["return_ci_high"], r["n"])
-        goal = f"{r['goal_mean']:.2f}" + ("" if r["n"] > 1 else "; 1 seed")
-        cells[(r["algorithm"], r["env"])] = f"{ret} ({goal}), " + (
-            f"**{word}**" if word == "pass" else word)
+        cell = return_goal_cell(r["return_mean"], r["return_ci_low"], r["return_ci_high"], r["n"], r["goal_mean"])
+        cells[(r["algorithm"], r["env"])] = f"{cell}, " + (f"**{word}**" if word == "pass" else word)
     rows = [[algo_label(a)] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
     if references is not None:
         r = references.set_index(["name", "env", "metric"])["mean"]
@@ -537,9 +541,8 @@ def return_goal_grid_markdown(table: pd.DataFrame, scenario: int) -> str:
     r = t.set_index(["name", "env", "metric"])
     cells = {}
     for a, e in {(a, e) for a, e, _ in r.index}:
-        ret, goal = r.loc[(a, e, "return")], r.loc[(a, e, "goal")]
-        seeds = "" if ret["n"] > 1 else "; 1 seed"
-        cells[(a, e)] = f"{over_seeds(ret['mean'], ret['ci_low'], ret['ci_high'], ret['n'])} ({goal['mean']:.2f}{seeds})"
+        ret = r.loc[(a, e, "return")]
+        cells[(a, e)] = return_goal_cell(ret["mean"], ret["ci_low"], ret["ci_high"], ret["n"], r.loc[(a, e, "goal"), "mean"])
     rows = [[algo_label(a)] + [cells.get((a, e), "") for e in envs] for a in algo_order(t["name"].unique())]
     return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
 
