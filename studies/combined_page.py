@@ -1,7 +1,7 @@
 """The docs/results page of a `studies/science.py --combine` folder (the 6x5 study's exported
 parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv and
-convergence.png into the page folder and writes README.md around them: the training seeds per
-environment, the command, the verdict grid (summary.md's, the README's results table), issue
+convergence.png and verdict.png into the page folder and writes README.md around them: the training
+seeds per environment, the command, the verdict grid (summary.md's, the README's results table) and its figure, issue
 27's target per environment, the convergence figure, the IQM, the return with and without the
 contact charge (studies/contact_table.py over the same parts) and the budgets.
 
@@ -25,7 +25,7 @@ from contact_table import caption, load, markdown, table
 from eval.labels import env_title
 from eval.reporting.science import MIN_SEEDS
 
-COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "convergence.png")
+COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "convergence.png", "verdict.png")
 HEADINGS = {"grid": "verdict per pair:", "target": "Issue 27's target per environment",
             "iqm": "IQM across environments", "budget": "Did the budgets suffice?"}
 """summary.md's sections the page shows: each is the first table after its heading's line."""
@@ -104,6 +104,12 @@ degenerate row is what a pair's lower CI ends must clear (the safe non-turner br
 turning slot and is not a degenerate reference).
 
 {s["grid"]}
+
+The same drawn: each training seed's mean (dots) and the mean with its 95% CI over seeds, against the
+autopilot (solid), the best degenerate reference (dashed red: what a lower CI end must clear) and,
+where a route turns, the safe non-turner (dotted); return axis linear within ±1,000, logarithmic beyond:
+
+![Scenario 1 return and goal rate per algorithm and environment with the reference lines](verdict.png)
 
 Issue 27's target per environment:
 

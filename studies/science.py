@@ -23,7 +23,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
 3. references: the autopilot, uniform random and degenerate suite (eval/testing/validity.py) on the
    same episode seeds, AC count and steps, saved as ``OUT/references/<env>.csv``;
 4. results (eval/reporting/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
-   seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``,
+   seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``/``verdict.png``,
    ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``), ``budget.csv``
    (did each run's training return still rise at the end of its budget?),
    ``summary.md`` (printed: a study's results section, as in docs/results/*/README.md), ``report/`` (the `cosim test`
@@ -610,6 +610,7 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     curves.to_csv(out / "convergence.csv", index=False)
     budgets.to_csv(out / "budget.csv", index=False)
     science.convergence_figure(curves, out)
+    science.verdict_figure(verdict, seeds, ref_table[ref_table["scenario"] == 1], out)
 
     t = study["test"]
     b = plan.to_dict()
@@ -657,6 +658,9 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
         f"value, over at least {science.MIN_SEEDS} training seeds ('not shown': above with "
         "fewer seeds). Return [95% CI over seeds] (goal rate) and verdict per pair:\n",
         science.verdict_grid_markdown(verdict, ref_table[ref_table.scenario == 1]),
+        "\nThe same drawn (`verdict.png` / `verdict.pdf`): per environment each algorithm's "
+        "seed means (dots) and mean with its 95% CI over seeds, against the autopilot, the best "
+        "degenerate reference and, where a route turns, the safe non-turner.\n",
         "\nEach pair with what failed:\n", science.verdict_markdown(verdict),
         "\nIQM across environments (Scenario 1 return normalised per environment: uniform "
         "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "

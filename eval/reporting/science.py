@@ -434,6 +434,94 @@ def convergence_figure(curves: pd.DataFrame, out: Path, stem: str = "convergence
     return _save(fig, Path(out), stem)
 
 
+# -- the verdict as a figure -----------------------------------------------------------------
+SYMLOG_RETURN = 1_000.0
+"""The verdict figure's return axis is linear within +-1,000 and logarithmic beyond: a run sunk by
+contact reaches -10,000 where the references sit near -550 and the autopilot at 1,300-3,100."""
+RETURN_TICKS = (-20_000, -10_000, -5_000, -2_000, -1_000, -500, 0, 500, 1_000, 2_000, 5_000, 10_000)
+
+
+def verdict_lines(v: pd.DataFrame, references: pd.DataFrame, env: str, metric: str) -> list[tuple[str, float, str]]:
+    """The reference lines of one :func:`verdict_figure` panel, (label, value, line style): the
+    autopilot, the strongest degenerate reference (what a CI's lower end must clear, named) and,
+    where a slot's route turns, the safe non-turner (:func:`shows_reference`)."""
+    first = v[v["env"] == env].iloc[0]
+    turns = bool(v.loc[v["env"] == env, "turning_goal_mean"].notna().any())
+    r = references[(references["env"] == env) & (references["metric"] == metric)].set_index("name")["mean"]
+    lines = [("autopilot", float(r["autopilot"]), "-")] if "autopilot" in r.index else []
+    lines.append((f"best degenerate ({first[f'{metric}_best_reference']})", float(first[f"{metric}_reference"]), "--"))
+    if "safe-non-turner" in r.index and shows_reference("safe-non-turner", turns):
+        lines.append(("safe non-turner", float(r["safe-non-turner"]), ":"))
+    return lines
+
+
+def verdict_figure(v: pd.DataFrame, seeds: pd.DataFrame, references: pd.DataFrame, out: Path,
+                   stem: str = "verdict") -> list[Path]:
+    """The :func:`verdict` grid drawn: one column per environment, Scenario 1's return (top, axis
+    :data:`SYMLOG_RETURN`) and goal rate (bottom); per algorithm each training seed's mean (dots) and
+    the mean with its 95% CI over seeds (bar), "pass" above a pair that clears every degenerate
+    reference; the :func:`verdict_lines` across. PDF and PNG."""
+    from eval.labels import colour
+    from eval.reporting.figures import PAGE_IN, _plt, _save
+
+    plt = _plt()
+    envs = sorted(v["env"].unique())
+    algos = algo_order(v["algorithm"].unique())
+    s1 = seeds[seeds["scenario"] == VERDICT_SCENARIO]
+    fig, axes = plt.subplots(2, len(envs), figsize=(PAGE_IN, 3.6), squeeze=False)
+    styles = {}
+    for col, env in enumerate(envs):
+        for row, metric in enumerate(("return", "goal")):
+            ax = axes[row][col]
+            for label, value, style in verdict_lines(v, references, env, metric):
+                kind = label.split(" (")[0]
+                ax.axhline(value, color="#444444" if kind != "best degenerate" else "#C00000",
+                           ls=style, lw=0.8, zorder=1)
+                styles.setdefault(kind, style)
+            for x, algo in enumerate(algos):
+                r = v[(v["env"] == env) & (v["algorithm"] == algo)]
+                if r.empty:
+                    continue
+                r = r.iloc[0]
+                c = colour(algo)
+                pts = s1.loc[(s1["env"] == env) & (s1["algorithm"] == algo), metric].to_numpy(float)
+                ax.scatter(x + np.linspace(-0.15, 0.15, len(pts)) if len(pts) > 1 else [x] * len(pts),
+                           pts, s=6, color=c, alpha=0.6, lw=0, zorder=2)
+                lo, hi, mean = r[f"{metric}_ci_low"], r[f"{metric}_ci_high"], r[f"{metric}_mean"]
+                ax.errorbar([x], [mean], yerr=[[mean - lo], [hi - mean]], fmt="_", color=c, ms=8,
+                            mew=1.4, elinewidth=1.2, capsize=0, zorder=3)
+                if row == 0 and r["passed"]:
+                    ax.annotate("pass", (x, hi), xytext=(0, 3), textcoords="offset points",
+                                ha="center", fontsize=5.5, fontweight="bold")
+            ax.set_xticks(range(len(algos)))
+            ax.set_xticklabels([algo_label(a) for a in algos] if row == 1 else [], rotation=90)
+            ax.set_xlim(-0.6, len(algos) - 0.4)
+            ax.grid(axis="y", lw=0.3)
+            if metric == "return":
+                ax.set_yscale("symlog", linthresh=SYMLOG_RETURN)
+                low, high = ax.get_ylim()
+                ax.set_ylim(low, high + 0.6 * abs(high))  # room for "pass" above the autopilot's line
+                ax.set_yticks([t for t in RETURN_TICKS if low <= t <= high])
+                ax.yaxis.set_major_formatter(lambda t, _: f"{t:,.0f}")
+                ax.yaxis.set_minor_locator(plt.NullLocator())
+                ax.set_title(env_title(env), loc="left")
+            else:
+                ax.set_ylim(-0.04, 1.08)
+        axes[0][col].tick_params(axis="y", labelsize=5)
+    axes[0][0].set_ylabel("Scenario 1 return")
+    axes[1][0].set_ylabel("goal rate")
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color="#C00000" if k == "best degenerate" else "#444444", ls=st, lw=0.8, label=k)
+               for k, st in styles.items()]
+    handles.append(Line2D([], [], color="#444444", marker="_", ms=8, mew=1.4, ls="none",
+                          label="mean, 95% CI over seeds (dots: seeds)"))
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False,
+               bbox_to_anchor=(0.5, -0.01))
+    return _save(fig, Path(out), stem)
+
+
 # -- Markdown -------------------------------------------------------------------------------
 def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCENARIO,
                   references: pd.DataFrame | None = None,
@@ -558,4 +646,4 @@ def iqm_markdown(t: pd.DataFrame) -> str:
 
 __all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",
            "convergence_figure", "iqm_table", "normalise", "reference_table", "seed_means", "seed_table", "verdict",
-           "verdict_grid_markdown", "over_seeds", "return_goal_grid_markdown"]
+           "verdict_figure", "verdict_grid_markdown", "verdict_lines", "over_seeds", "return_goal_grid_markdown"]

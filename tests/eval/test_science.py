@@ -175,6 +175,44 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
 
+def test_verdict_figure_draws_each_seed_the_interval_and_the_references_a_pair_must_clear(tmp_path, monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    refs = pd.concat([_refs("env_1", {"autopilot": (1000, 1.0), "always-forward": (300, 0.1),
+                                      "safe-non-turner": (700, 0.5)}),
+                      _refs("env_2", {"autopilot": (900, 0.9), "always-brake": (-500, 0.0),
+                                      "always-forward": (-900, 0.05), "safe-non-turner": (100, 0.2)})])
+    seeds = pd.concat([_seeds({"return": [400, 500, 600], "goal": [0.2, 0.4, 0.6]}, "ppo"),
+                       _seeds({"return": [-9000, -800, 50], "goal": [0.0, 0.0, 0.1], "goal_turning": [np.nan] * 3},
+                              "dqn", env="env_2")])
+    seeds.loc[seeds["env"] == "env_1", "goal_turning"] = np.nan  # no route turns in env_1
+    v = science.verdict(science.seed_table(seeds), refs)
+    assert science.verdict_lines(v, refs, "env_1", "return") == [
+        ("autopilot", 1000.0, "-"), ("best degenerate (always-forward)", 300.0, "--")]  # no turns: no safe non-turner
+    v2 = v.assign(turning_goal_mean=np.where(v["env"] == "env_2", 0.0, np.nan))
+    assert science.verdict_lines(v2, refs, "env_2", "goal") == [
+        ("autopilot", 0.9, "-"), ("best degenerate (always-forward)", 0.05, "--"), ("safe non-turner", 0.2, ":")]
+
+    from eval.reporting import figures
+
+    kept = []
+    monkeypatch.setattr(figures, "_save", lambda fig, out, stem: kept.append(fig) or [out / f"{stem}.png"])
+    assert science.verdict_figure(v2, seeds, refs, tmp_path) == [tmp_path / "verdict.png"]
+    (fig,) = kept
+    ret1, ret2, goal1, goal2 = (fig.axes[i] for i in (0, 1, 2, 3))  # rows: return, goal; columns: env_1, env_2
+    assert ret1.get_title(loc="left") == "Straight" and ret1.get_yscale() == "symlog"
+    # the seed means as dots, each at its value
+    assert sorted(ret2.collections[0].get_offsets()[:, 1]) == [-9000, -800, 50]
+    assert sorted(goal1.collections[0].get_offsets()[:, 1]) == pytest.approx([0.2, 0.4, 0.6])
+    # the reference lines across, at their values
+    assert sorted(line.get_ydata()[0] for line in ret2.lines if len(line.get_ydata()) == 2
+                  and line.get_ydata()[0] == line.get_ydata()[1]) == [0, 100, 900]  # random's 0 beats always-brake's -500
+    # "pass" above PPO in env_1 (its CI clears always-forward), nothing above DQN in env_2
+    assert [t.get_text() for t in ret1.texts] == ["pass"] and len(ret2.texts) == 0
+    assert ret2.get_ylim()[0] <= -9000 and "-5,000" in [t.get_text() for t in ret2.get_yticklabels()]
+
+
 def test_scenario_2_grid_gives_each_algorithm_alone_its_return_interval_and_goal_rate():
     two = pd.concat([_seeds({"return": [100.0, 200.0, 300.0], "goal": [1.0, 0.5, 0.0]}, "dqn").assign(scenario=2),
                      _seeds({"return": [-50.0], "goal": [0.0]}, "ppo", env="env_2").assign(scenario=2),
@@ -293,7 +331,7 @@ def test_smoke_study_writes_every_result_and_resumes(smoke):
         assert iqm.loc[a, "runs"] == seeds * len(envs)
     curves = pd.read_csv(out / "convergence.csv")
     assert curves.groupby(["algorithm", "env"])["seed"].nunique().eq(seeds).all()
-    for name in ("convergence.pdf", "convergence.png", "report/index.md", "results.md"):
+    for name in ("convergence.pdf", "convergence.png", "verdict.png", "report/index.md", "results.md"):
         assert (out / name).stat().st_size > 0, name
     summary = (out / "summary.md").read_text()
     assert "| algorithm | environment | seeds |" in summary and summary.strip() in done.stdout
