@@ -180,8 +180,10 @@ def contact_bullet(episodes: pd.DataFrame, runs: pd.DataFrame, records: str, lon
     text += " By algorithm: " + ", ".join(f"{algo_label(a)} {int(k['count'])} ({int(k['sum']):,} steps)"
                                           for a, k in per.iterrows()) + "."
     top = runs.sort_values("steps", ascending=False).iloc[0]
-    held = f" against {algo_label(str(top['partner policy']))}'s `{top.partner}`" if isinstance(top.partner, str) else \
-        f" against {_a(str(top['with']))}"
+    if isinstance(top.partner, str) and top.partner:  # stops.contact_runs: "" where no AC is the partner
+        held = f" against {algo_label(str(top['partner policy']))}'s `{top.partner}`"
+    else:
+        held = f" against {_a('background car' if top['with'] == 'car' else str(top['with']))}"
     text += (f" The longest: {algo_label(top.policy)}'s `{top.agent}`{held} from step {int(top['first step'])} of "
              f"episode {int(top['episode seed'])}, {int(top.steps)} steps"
              f"{' (to the end)' if top.ended == 'end' else ''}.")

@@ -583,6 +583,9 @@ def test_part_page_contact_bullet_counts_the_long_runs_by_kind_end_and_algorithm
     assert ": 1 against a car (425 steps), 2 against objects (130 steps). 2 last to the episode's end (500 steps)." in text
     assert "By algorithm: DQN 1 (425 steps), A3C 2 (130 steps)." in text
     assert text.endswith("The longest: DQN's `ac_0` against A3C's `ac_4` from step 176 of episode 10003, 425 steps (to the end).")
+    unseen = runs.assign(partner=["", "", ""], **{"partner policy": ["", "", ""]})  # as stops.contact_runs writes it
+    assert page.contact_bullet(episodes, unseen, "x.parquet").endswith(
+        "The longest: DQN's `ac_0` against a background car from step 176 of episode 10003, 425 steps (to the end).")
     alone = page.contact_bullet(episodes, runs.iloc[1:], "x.parquet")
     assert alone.endswith("The longest: A3C's `ac_5` against an object from step 35 of episode 10004, 75 steps (to the end).")
     assert page.contact_bullet(episodes, runs.iloc[:0], "x.parquet").endswith("0 of them in 0 runs of 50 steps or more "
