@@ -468,7 +468,8 @@ def verdict_figure(v: pd.DataFrame, seeds: pd.DataFrame, references: pd.DataFram
     envs = sorted(v["env"].unique())
     algos = algo_order(v["algorithm"].unique())
     s1 = seeds[seeds["scenario"] == VERDICT_SCENARIO]
-    fig, axes = plt.subplots(2, len(envs), figsize=(PAGE_IN, 3.6), squeeze=False)
+    width = min(PAGE_IN, 1.0 + 1.25 * len(envs))  # one environment: a column, not a stretched page
+    fig, axes = plt.subplots(2, len(envs), figsize=(width, 3.6), squeeze=False)
     styles = {}
     for col, env in enumerate(envs):
         for row, metric in enumerate(("return", "goal")):
@@ -516,9 +517,9 @@ def verdict_figure(v: pd.DataFrame, seeds: pd.DataFrame, references: pd.DataFram
                for k, st in styles.items()]
     handles.append(Line2D([], [], color="#444444", marker="_", ms=8, mew=1.4, ls="none",
                           label="mean, 95% CI over seeds (dots: seeds)"))
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
-    fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False,
-               bbox_to_anchor=(0.5, -0.01))
+    ncol = len(handles) if len(envs) >= 3 else 1
+    fig.tight_layout(rect=(0, 0.02 + 0.045 * -(-len(handles) // ncol), 1, 1))
+    fig.legend(handles=handles, loc="lower center", ncol=ncol, frameon=False, bbox_to_anchor=(0.5, -0.01))
     return _save(fig, Path(out), stem)
 
 
