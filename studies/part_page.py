@@ -4,7 +4,8 @@ each algorithm's budget, best validation return, Scenario 1 and 2 return and goa
 the same environment's other seeds (their exports' seeds.csv) and, with ``--combined``, the
 seeds together (a ``--combine`` folder: mean [95% CI over seeds]); the reference rows; which
 algorithms are above always-brake; the turning slots' goals; the contact (studies/stops.py: its
-long runs by kind, to the episode's end, per algorithm, the longest); each ``ac_0`` alone (Scenario 2).
+long runs by kind, to the episode's end, per algorithm, the longest); each ``ac_0`` alone (Scenario 2);
+the commit each trial trained at (its manifest.json) and whether the training code differs between them.
 
     python studies/part_page.py sci_2s1 --earlier docs/results/2026-11-27-science-v3-threeway-2/study \\
         --combined comb_2 > page-tables.md
@@ -14,7 +15,10 @@ The page's prose (what moved a mean, what did not work) is written by hand aroun
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
@@ -30,6 +34,9 @@ REFERENCES = {"autopilot": "autopilot", "autopilot-discrete": "discrete autopilo
               "safe-non-turner": "safe non-turner", "always-brake": "always-brake"}
 LONG = 50
 """Contact steps in one unbroken run that count as a long run (as on the contact-runs page)."""
+TRAINING_CODE = ("cosim", "agents", "sumo_nets", "eval/training", "eval/scale", "eval/cli")
+"""What a trial's training runs or reads: trials whose commits differ only outside these trained
+on the same code (reports, studies and docs change no trial)."""
 
 
 def _part(study: Path, env: str | None, seed: int | None) -> tuple[str, int]:
@@ -135,6 +142,9 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
                                       records.name))
         if (rows.scenario == 2).any():
             bullets.append(alone_bullet(rows[rows.scenario == 2]))
+    runs_dir = study / "bench" / "runs"
+    if list(runs_dir.glob(f"{env}__*__{seed}__*/manifest.json")):
+        bullets.append(commits_bullet(trial_commits(runs_dir, env, seed)))
     return md_table(head, lines) + "\n" + "\n".join(bullets) + "\n"
 
 
@@ -188,6 +198,56 @@ def contact_bullet(episodes: pd.DataFrame, runs: pd.DataFrame, records: str, lon
              f"episode {int(top['episode seed'])}, {int(top.steps)} steps"
              f"{' (to the end)' if top.ended == 'end' else ''}.")
     return text
+
+
+def trial_commits(runs: Path, env: str, seed: int) -> list[tuple[str, list[str], str]]:
+    """(short commit, its algorithms, when the first of them started) per commit the part's trials
+    started at, in that order, from each run's manifest.json (``git`` and ``created``)."""
+    by_commit: dict[str, tuple[list[str], str]] = {}
+    for path in sorted(runs.glob(f"{env}__*__{seed}__*/manifest.json")):
+        m = json.loads(path.read_text())
+        commit = ((m.get("git") or {}).get("commit") or "unknown")[:7]
+        algos, first = by_commit.get(commit, ([], m.get("created", "")))
+        by_commit[commit] = (algos + [path.parent.name.split("__")[1]], min(first, m.get("created", "")))
+    rows = [(c, algo_order(a), t) for c, (a, t) in by_commit.items()]
+    return sorted(rows, key=lambda r: r[2])
+
+
+def git_changed(first: str, last: str, paths=TRAINING_CODE) -> list[str] | None:
+    """The files under ``paths`` that differ between two commits; None where git cannot tell (a
+    commit not in this checkout, no git)."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(["git", "-C", str(root), "diff", "--name-only", first, last, "--", *paths],
+                             capture_output=True, text=True, timeout=30)
+    except OSError:
+        return None
+    return out.stdout.split() if out.returncode == 0 else None
+
+
+def commits_bullet(commits: list[tuple[str, list[str], str]],
+                   changed: Callable[[str, str], list[str] | None] = git_changed) -> str:
+    """Which commit each trial trained at and, where they differ, whether the training code
+    (:data:`TRAINING_CODE`) differs between the first and the last: the page's claim that its
+    trials trained alike, checked instead of written by hand."""
+    def names(algos):
+        labels = [algo_label(a) for a in algos]
+        return labels[0] if len(labels) == 1 else f"{', '.join(labels[:-1])} and {labels[-1]}"
+
+    start = commits[0][2][:16].replace("T", " ") if commits and commits[0][2] else "?"
+    text = (f"- **Commits** (each trial's manifest.json; the first started {start} UTC): "
+            + ", ".join(f"{names(a)} {c}" for c, a, _ in commits))
+    if len(commits) < 2:
+        return text + ": every trial trained on the same code."
+    first, last = commits[0][0], commits[-1][0]
+    diff = changed(first, last)
+    where = " ".join(TRAINING_CODE)
+    if diff is None:
+        return text + f"; `git diff {first} {last}` cannot be read in this checkout."
+    if not diff:
+        return text + f"; `git diff {first} {last} -- {where}` is empty: every trial trained on the same code."
+    return (text + f"; `git diff {first} {last} -- {where}` changes {', '.join(diff)}: "
+            "read it before comparing the trials.")
 
 
 def main(argv=None) -> int:

@@ -592,6 +592,41 @@ def test_part_page_contact_bullet_counts_the_long_runs_by_kind_end_and_algorithm
                                                                                 "(`python studies/stops.py x.parquet --long 50`).")
 
 
+def test_part_page_commits_bullet_reads_each_trials_manifest_and_checks_the_training_code(load_study, tmp_path):
+    """Which commit each trial trained at, from the manifests, and whether the training code differs
+    between the first and the last commit (the page's claim, checked instead of written by hand)."""
+    page = load_study("part_page")
+    runs = tmp_path / "bench" / "runs"
+    for algo, commit, created in (("dqn", "aaaaaaa1", "2026-11-28T11:31:45"), ("ppo", "aaaaaaa1", "2026-11-28T11:31:44"),
+                                  ("td3", "bbbbbbb2", "2026-11-28T12:22:43"), ("impala", "ccccccc3", "2026-11-28T13:59:30"),
+                                  ("ddpg", "bbbbbbb2", "2026-11-28T12:20:46")):
+        run = runs / f"env_2__{algo}__2__bench"
+        run.mkdir(parents=True)
+        (run / "manifest.json").write_text(json.dumps({"created": created, "git": {"commit": commit, "dirty": False}}))
+    other = runs / "env_2__a3c__1__bench"  # another seed's run: not this part's
+    other.mkdir()
+    (other / "manifest.json").write_text(json.dumps({"created": "2026-11-27T01:00:00", "git": {"commit": "ddddddd4"}}))
+    commits = page.trial_commits(runs, "env_2", 2)
+    assert [(c, a) for c, a, _ in commits] == [("aaaaaaa", ["ppo", "dqn"]), ("bbbbbbb", ["ddpg", "td3"]), ("ccccccc", ["impala"])]
+    asked = []
+    same = page.commits_bullet(commits, changed=lambda a, b: asked.append((a, b)) or [])
+    assert asked == [("aaaaaaa", "ccccccc")]  # the first and the last commit the trials started at
+    assert same.startswith("- **Commits** (each trial's manifest.json; the first started 2026-11-28 11:31 UTC): "
+                           "PPO and DQN aaaaaaa, DDPG and TD3 bbbbbbb, IMPALA ccccccc; `git diff aaaaaaa ccccccc -- cosim")
+    assert same.endswith("is empty: every trial trained on the same code.")
+    moved = page.commits_bullet(commits, changed=lambda a, b: ["agents/dqn.py"])
+    assert "changes agents/dqn.py: read it before comparing the trials." in moved and "same code" not in moved
+    assert "cannot be read" in page.commits_bullet(commits, changed=lambda a, b: None)
+    assert page.commits_bullet(commits[:1], changed=None).endswith("PPO and DQN aaaaaaa: every trial trained on the same code.")
+    # the real history (where this checkout has it): Three-way seed 2's commits differ in reports only,
+    # Straight seed 2's in how `cosim benchmark` counts finished trials
+    known = subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", "905e3b2^{commit}"], capture_output=True)
+    if known.returncode == 0:
+        assert page.git_changed("4125f67", "e4bef89") == []
+        assert page.git_changed("905e3b2", "4125f67") == ["eval/cli/learn.py", "eval/scale/benchmark.py"]
+    assert page.git_changed("0000000", "e4bef89") is None  # no such commit
+
+
 def test_part_page_alone_bullet_gives_goals_or_how_far_short_each_algorithm_stood(load_study):
     page = load_study("part_page")
     episodes = pd.DataFrame([
