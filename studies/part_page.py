@@ -5,7 +5,7 @@ the same environment's other seeds (their exports' seeds.csv) and, with ``--comb
 seeds together (a ``--combine`` folder: mean [95% CI over seeds]); the reference rows; which
 algorithms are above always-brake; the turning slots' goals; the contact (studies/stops.py: its
 long runs by kind, to the episode's end, per algorithm, the longest); each ``ac_0`` alone (Scenario 2);
-the commit each trial trained at (its manifest.json) and whether the training code differs between them.
+the commit each trial started at (its manifest.json) and whether the training code differs between them.
 
     python studies/part_page.py sci_2s1 --earlier docs/results/2026-11-27-science-v3-threeway-2/study \\
         --combined comb_2 > page-tables.md
@@ -220,14 +220,14 @@ def git_changed(first: str, last: str, paths=TRAINING_CODE) -> list[str] | None:
     try:
         out = subprocess.run(["git", "-C", str(root), "diff", "--name-only", first, last, "--", *paths],
                              capture_output=True, text=True, timeout=30)
-    except OSError:
+    except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.split() if out.returncode == 0 else None
 
 
 def commits_bullet(commits: list[tuple[str, list[str], str]],
                    changed: Callable[[str, str], list[str] | None] = git_changed) -> str:
-    """Which commit each trial trained at and, where they differ, whether the training code
+    """Which commit each trial started at and, where they differ, whether the training code
     (:data:`TRAINING_CODE`) differs between the first and the last: the page's claim that its
     trials trained alike, checked instead of written by hand."""
     def names(algos):
@@ -235,7 +235,8 @@ def commits_bullet(commits: list[tuple[str, list[str], str]],
         return labels[0] if len(labels) == 1 else f"{', '.join(labels[:-1])} and {labels[-1]}"
 
     start = commits[0][2][:16].replace("T", " ") if commits and commits[0][2] else "?"
-    text = (f"- **Commits** (each trial's manifest.json; the first started {start} UTC): "
+    text = (f"- **Commits** each trial started at (its manifest.json; a trial resumed after a cut ran on "
+            f"at the commit of the resume, which the loop's log names; the first started {start} UTC): "
             + ", ".join(f"{names(a)} {c}" for c, a, _ in commits))
     if len(commits) < 2:
         return text + ": every trial trained on the same code."

@@ -611,8 +611,9 @@ def test_part_page_commits_bullet_reads_each_trials_manifest_and_checks_the_trai
     asked = []
     same = page.commits_bullet(commits, changed=lambda a, b: asked.append((a, b)) or [])
     assert asked == [("aaaaaaa", "ccccccc")]  # the first and the last commit the trials started at
-    assert same.startswith("- **Commits** (each trial's manifest.json; the first started 2026-11-28 11:31 UTC): "
-                           "PPO and DQN aaaaaaa, DDPG and TD3 bbbbbbb, IMPALA ccccccc; `git diff aaaaaaa ccccccc -- cosim")
+    assert same.startswith("- **Commits** each trial started at (its manifest.json; ")
+    assert ("the first started 2026-11-28 11:31 UTC): PPO and DQN aaaaaaa, DDPG and TD3 bbbbbbb, IMPALA ccccccc; "
+            "`git diff aaaaaaa ccccccc -- cosim") in same
     assert same.endswith("is empty: every trial trained on the same code.")
     moved = page.commits_bullet(commits, changed=lambda a, b: ["agents/dqn.py"])
     assert "changes agents/dqn.py: read it before comparing the trials." in moved and "same code" not in moved
