@@ -1,8 +1,8 @@
 """The docs/results page of a `studies/science.py --combine` folder (the 6x5 study's exported
-parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv and
-convergence.png and verdict.png into the page folder and writes README.md around them: the training
-seeds per environment, the command, the verdict grid (summary.md's, the README's results table) and its figure, issue
-27's target per environment, the convergence figure, the IQM, the return with and without the
+parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv, convergence.png
+and verdict.png into the page folder and writes README.md around them: the training seeds per
+environment, the command, the verdict grid (summary.md's, the README's results table) and its
+figure, issue 27's target per environment, the convergence figure, the IQM, the return with and without the
 contact charge (studies/contact_table.py over the same parts) and the budgets.
 
     python studies/science.py --combine <the parts' study/ exports> --out comb
