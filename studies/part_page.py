@@ -142,9 +142,9 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
                                       records.name))
         if (rows.scenario == 2).any():
             bullets.append(alone_bullet(rows[rows.scenario == 2]))
-    runs_dir = study / "bench" / "runs"
-    if list(runs_dir.glob(f"{env}__*__{seed}__*/manifest.json")):
-        bullets.append(commits_bullet(trial_commits(runs_dir, env, seed)))
+    commits = trial_commits(study / "bench" / "runs", env, seed)
+    if commits:
+        bullets.append(commits_bullet(commits))
     return md_table(head, lines) + "\n" + "\n".join(bullets) + "\n"
 
 
