@@ -7,7 +7,7 @@ folder as a Tune checkpoint every ``--pbt-interval`` environment steps. At each
 interval ``ray.tune.schedulers.PopulationBasedTraining`` (synchronous: all trials
 at the same step) lets the bottom quarter of the population continue from a
 checkpoint of the top quarter (exploit) with hyperparameters perturbed (explore:
-x0.8/x1.2 or a neighbouring value of :data:`MUTATIONS`, sometimes resampled). A
+a neighbouring value of :data:`MUTATIONS`, sometimes resampled; at least one changed). A
 trial restored from a checkpoint gets its new hyperparameters written into the
 run's config.yaml and into every agent checkpoint (config and optimizer learning
 rates) before ``train(resume=...)`` reloads them; a donor's replay buffer is not

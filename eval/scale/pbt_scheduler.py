@@ -19,6 +19,12 @@ latest checkpoint (its time, score and result), holds the trials that are ahead
 as PAUSED until the laggards reach them (so the next barrier compares trials at the
 same step, as an uninterrupted run does), and never lets the next barrier fall on
 or before the slowest live trial.
+
+It also makes every exploit explore: Ray's explore step can hand a clone its donor's
+hyperparameters unchanged (a list value at an end shifted outward stays, a resample can draw
+the same value; with four hyperparameters that happens in a few exploits per hundred), which is
+a copy, not PBT's explore. :meth:`ResumablePBT._get_new_config` draws again until at least one
+mutated hyperparameter differs from the donor's.
 """
 
 from __future__ import annotations
@@ -59,6 +65,14 @@ class ResumablePBT(PopulationBasedTraining):
             # every live trial at or past the barrier: none could ever be started again
             self._next_perturbation_sync = self._slowest() + self._perturbation_interval
         return decision
+
+    def _get_new_config(self, trial: Trial, trial_to_clone: Trial):
+        donor = trial_to_clone.config
+        for _ in range(100):  # each draw changes something with probability >= 1/2 per list
+            new_config, operations = super()._get_new_config(trial, trial_to_clone)
+            if any(new_config[k] != donor[k] for k in self._hyperparam_mutations):
+                break
+        return new_config, operations
 
     def _slowest(self) -> float:
         times = [s.last_train_time for t, s in self._trial_state.items() if not t.is_finished()]

@@ -167,3 +167,23 @@ def test_resumable_pbt_runs_a_fresh_population_like_ray_pbt(tmp_path):
         assert ctl.run() is True
         runs[cls] = ctl.reports
     assert runs[PopulationBasedTraining] == runs[ResumablePBT]
+
+
+def test_every_exploit_changes_a_hyperparameter():
+    # two-value lists: Ray's explore leaves a value at an end shifted outward, or resamples the
+    # same one; with both hyperparameters unchanged the clone is a copy of its donor
+    import random
+
+    space = {"lr": [0.1, 0.2], "clip": [0.1, 0.3]}
+    donor = Trial("pbt_trial", stub=True, config={"lr": 0.1, "clip": 0.3}, trial_id="donor")
+    clone = Trial("pbt_trial", stub=True, config={"lr": 0.2, "clip": 0.1}, trial_id="clone")
+    unchanged = {}
+    for cls in (PopulationBasedTraining, ResumablePBT):
+        pbt = cls(time_attr="env_steps", metric="mean_return", mode="max", perturbation_interval=INTERVAL,
+                  hyperparam_mutations=space, resample_probability=0.25, synch=True)
+        random.seed(0)
+        draws = [pbt._get_new_config(clone, donor)[0] for _ in range(200)]
+        assert all(set(d) == {"lr", "clip"} and d["lr"] in space["lr"] for d in draws)
+        unchanged[cls] = sum(d == donor.config for d in draws)
+    assert unchanged[PopulationBasedTraining] > 10  # Ray's own: a copy in about a fifth
+    assert unchanged[ResumablePBT] == 0
