@@ -22,8 +22,8 @@ or before the slowest live trial.
 
 It also makes every exploit explore: Ray's explore step can hand a clone its donor's
 hyperparameters unchanged (a list value at an end shifted outward stays, a resample can draw
-the same value; with four hyperparameters that happens in a few exploits per hundred), which is
-a copy, not PBT's explore. :meth:`ResumablePBT._get_new_config` draws again until at least one
+the same value; with two two-valued hyperparameters about a fifth of the draws, tests/eval/test_pbt_scheduler.py),
+which is a copy, not PBT's explore. :meth:`ResumablePBT._get_new_config` draws again until at least one
 mutated hyperparameter differs from the donor's.
 """
 
