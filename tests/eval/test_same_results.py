@@ -22,8 +22,8 @@ vector math, and MKL's COMPATIBLE branch rounds only ~80% of square roots correc
 results that differ between CPUs (this Xeon and qemu's emulated Haswell disagree; gradients,
 clipping and every other op of an update agree). MKL's AVX2 branch rounds every square root
 correctly, so the pin is now ``MKL_CBWR=AVX2`` (x86-64 CPUs with AVX2, every machine this
-project runs on): the Xeon and the emulated Haswell then give the same checkpoints
-(docs/design.md, "Same seeds, same results"), and the fixture was rewritten under it by
+project runs on): the Xeon and the emulated Haswell then give the same PPO checkpoints
+(docs/design.md, beside the layout of eval/), and the fixture was rewritten under it by
 commit 5bb2a4a, whose code had matched the previous fixture in CI on the previous machine.
 Regenerate, only on purpose: ``COSIM_WRITE_SAME_RESULTS=1 pytest tests/eval/test_same_results.py``.
 """
