@@ -238,7 +238,7 @@ def provenance_markdown(prov: Mapping) -> list[str]:
             ["git commit", git.get("commit", "unknown")],
             ["uncommitted changes", "yes" if git.get("dirty") else "no" if git else "unknown"],
             ["policy", prov.get("policy", "trained")], ["Python", prov.get("python", "-")],
-            ["platform", prov.get("platform", "-")]]
+            ["platform", prov.get("platform", "-")], ["CPU", prov.get("cpu") or "-"]]
     rows += [[f"{pkg} version", v or "not installed"] for pkg, v in (prov.get("versions") or {}).items()]
     md.append(md_table(["what", "value"], rows))
     if prov.get("benchmark"):

@@ -225,7 +225,7 @@ PACKAGES = ("cosim", "torch", "numpy", "eclipse-sumo", "libsumo", "pybullet", "g
 
 def software(command: str | None = None) -> dict[str, Any]:
     """What ran: the command line (default: this process's), the task's version
-    (``cosim.TASK_VERSION``), Python, the platform, the
+    (``cosim.TASK_VERSION``), Python, the platform, the CPU (:func:`cpu_model`), the
     versions of :data:`PACKAGES` (None: not installed) and :func:`git_commit`. The one
     builder of this part of a run's ``manifest.json`` and a report's ``provenance.json``."""
     from importlib import metadata
@@ -243,9 +243,24 @@ def software(command: str | None = None) -> dict[str, Any]:
         "task_version": TASK_VERSION,
         "python": platform.python_version(),
         "platform": platform.platform(),
+        "cpu": cpu_model(),
         "versions": versions,
         "git": git_commit(),
     }
+
+
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str | None:
+    """The CPU's model name (Linux's ``cpuinfo``, else ``platform.processor()``; None when
+    neither says): torch's float results differ between CPUs (MKL's vector math, docs/design.md),
+    so a run's weights repeat bit for bit only on a CPU of the same kind."""
+    try:
+        for line in cpuinfo.read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and value.strip():
+                return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or None
 
 
 def git_commit() -> dict[str, Any] | None:

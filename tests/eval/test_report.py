@@ -304,7 +304,7 @@ def test_provenance_and_a_run_manifest_record_what_ran_alike():
                       command=["test", "--agents", "1"])
     manifest = runfolder.manifest(TrainConfig(algo="ppo", agents=1))
     ran = set(runfolder.software())
-    assert ran == {"command", "task_version", "python", "platform", "versions", "git"}
+    assert ran == {"command", "task_version", "python", "platform", "cpu", "versions", "git"}
     assert ran <= set(prov) and ran <= set(manifest)
     import cosim
 
@@ -314,3 +314,19 @@ def test_provenance_and_a_run_manifest_record_what_ran_alike():
     assert set(prov["versions"]) == set(manifest["versions"]) == set(runfolder.PACKAGES)
     git = runfolder.git_commit()
     assert git is None or (set(git) == {"commit", "dirty"} and isinstance(git["dirty"], bool))
+
+
+def test_the_cpu_model_comes_from_cpuinfo_else_the_platform(tmp_path, monkeypatch):
+    """A run's manifest names its CPU: torch's float results differ between CPUs (docs/design.md)."""
+    from eval.training import runfolder
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: Intel(R) Xeon(R) Platinum 8480C\n"
+                    "processor\t: 1\nmodel name\t: Intel(R) Xeon(R) Platinum 8480C\n")
+    assert runfolder.cpu_model(info) == "Intel(R) Xeon(R) Platinum 8480C"
+    monkeypatch.setattr(runfolder.platform, "processor", lambda: "arm")
+    assert runfolder.cpu_model(tmp_path / "absent") == "arm"
+    info.write_text("processor\t: 0\nmodel name\t:\n")
+    monkeypatch.setattr(runfolder.platform, "processor", lambda: "")
+    assert runfolder.cpu_model(info) is None
+    assert runfolder.software()["cpu"] == runfolder.cpu_model()
