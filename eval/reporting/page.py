@@ -236,8 +236,12 @@ def provenance_markdown(prov: Mapping) -> list[str]:
     git = prov.get("git") or {}
     rows = [["command", f"`{prov.get('command', '')}`"], ["date", prov.get("date", "-")],
             ["git commit", git.get("commit", "unknown")],
-            ["uncommitted changes", "yes" if git.get("dirty") else "no" if git else "unknown"],
-            ["policy", prov.get("policy", "trained")], ["Python", prov.get("python", "-")],
+            ["uncommitted changes", "yes" if git.get("dirty") else "no" if git else "unknown"]]
+    started = prov.get("git_at_start") or {}
+    if started.get("commit") and started.get("commit") != git.get("commit"):
+        rows.append(["git commit of the code that ran (at the process's start)", started["commit"]
+                     + (" (uncommitted changes)" if started.get("dirty") else "")])
+    rows += [["policy", prov.get("policy", "trained")], ["Python", prov.get("python", "-")],
             ["platform", prov.get("platform", "-")], ["CPU", prov.get("cpu") or "-"]]
     rows += [[f"{pkg} version", v or "not installed"] for pkg, v in (prov.get("versions") or {}).items()]
     md.append(md_table(["what", "value"], rows))

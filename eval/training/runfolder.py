@@ -226,7 +226,8 @@ PACKAGES = ("cosim", "torch", "numpy", "eclipse-sumo", "libsumo", "pybullet", "g
 def software(command: str | None = None) -> dict[str, Any]:
     """What ran: the command line (default: this process's), the task's version
     (``cosim.TASK_VERSION``), Python, the platform, the CPU (:func:`cpu_model`), the
-    versions of :data:`PACKAGES` (None: not installed) and :func:`git_commit`. The one
+    versions of :data:`PACKAGES` (None: not installed), :func:`git_commit` now and
+    :data:`GIT_AT_START` (the code this process loaded; a study's process can outlive a commit). The one
     builder of this part of a run's ``manifest.json`` and a report's ``provenance.json``."""
     from importlib import metadata
 
@@ -246,6 +247,7 @@ def software(command: str | None = None) -> dict[str, Any]:
         "cpu": cpu_model(),
         "versions": versions,
         "git": git_commit(),
+        "git_at_start": GIT_AT_START,
     }
 
 
@@ -275,6 +277,12 @@ def git_commit() -> dict[str, Any] | None:
         return {"commit": commit, "dirty": bool(dirty)}
     except (OSError, subprocess.SubprocessError):
         return None
+
+
+GIT_AT_START = git_commit()
+"""The checkout's commit when this process imported this module: the code it runs. A process
+that lives across commits (a study's driver, for hours) writes provenance naming the commit of
+the moment (``git``) and this one (``git_at_start``)."""
 
 
 def atomic_write(path: Path, text: str) -> None:

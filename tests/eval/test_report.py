@@ -304,7 +304,7 @@ def test_provenance_and_a_run_manifest_record_what_ran_alike():
                       command=["test", "--agents", "1"])
     manifest = runfolder.manifest(TrainConfig(algo="ppo", agents=1))
     ran = set(runfolder.software())
-    assert ran == {"command", "task_version", "python", "platform", "cpu", "versions", "git"}
+    assert ran == {"command", "task_version", "python", "platform", "cpu", "versions", "git", "git_at_start"}
     assert ran <= set(prov) and ran <= set(manifest)
     import cosim
 
@@ -330,3 +330,18 @@ def test_the_cpu_model_comes_from_cpuinfo_else_the_platform(tmp_path, monkeypatc
     monkeypatch.setattr(runfolder.platform, "processor", lambda: "")
     assert runfolder.cpu_model(info) is None
     assert runfolder.software()["cpu"] == runfolder.cpu_model()
+
+
+def test_provenance_names_the_code_that_ran_when_the_checkout_moved_on(monkeypatch):
+    """A process started at one commit and writing provenance after a later one says both."""
+    from eval.reporting.page import provenance_markdown
+    from eval.training import runfolder
+
+    monkeypatch.setattr(runfolder, "GIT_AT_START", {"commit": "a" * 40, "dirty": False})
+    monkeypatch.setattr(runfolder, "git_commit", lambda: {"commit": "b" * 40, "dirty": False})
+    prov = runfolder.software()
+    assert prov["git_at_start"]["commit"] == "a" * 40 and prov["git"]["commit"] == "b" * 40
+    text = "\n".join(provenance_markdown(prov))
+    assert "| git commit of the code that ran (at the process's start) | " + "a" * 40 in text
+    prov["git_at_start"] = prov["git"]
+    assert "code that ran" not in "\n".join(provenance_markdown(prov))
