@@ -5,16 +5,20 @@ the same environment's other seeds (their exports' seeds.csv) and, with ``--comb
 seeds together (a ``--combine`` folder: mean [95% CI over seeds]); the reference rows; which
 algorithms are above always-brake; the turning slots' goals; the contact (studies/stops.py: its
 long runs by kind, to the episode's end, per algorithm, the longest); each ``ac_0`` alone (Scenario 2);
-the commit each trial started at (its manifest.json) and whether the training code differs between them.
+the commit each trial started at (its manifest.json) and whether the training code differs between them;
+with ``--combined``, the verdict over the seeds and the environment's target (its verdict.csv and
+targets.csv); with ``--contact``, the seeds' return without the contact charge (their contact.csv).
 
     python studies/part_page.py sci_2s1 --earlier docs/results/2026-11-27-science-v3-threeway-2/study \\
-        --combined comb_2 > page-tables.md
+        --combined comb_2 --contact docs/results/2026-11-27-science-v3-threeway-2/study \\
+        docs/results/<this part's page>/study > page-tables.md
 
 The page's prose (what moved a mean, what did not work) is written by hand around it.
 """
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import subprocess
 import sys
@@ -22,9 +26,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
+from contact_table import load as load_contact
+from contact_table import table as contact_table
 from stops import contact_runs, episode_rows, load_records
 
-from eval.labels import algo_label, algo_order
+from eval.labels import algo_label, algo_order, env_title
 from eval.reporting.page import md_table
 from eval.reporting.science import over_seeds, shows_reference
 from eval.scale.gridstatus import grid_status
@@ -67,8 +73,9 @@ def _num(x: float, digits: int = 1) -> str:
 
 
 def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | None = None,
-           seed: int | None = None) -> str:
-    """The page's tables and bullets, as markdown (`env` and `seed`: see :func:`_part`)."""
+           seed: int | None = None, contact: list[Path] | None = None) -> str:
+    """The page's tables and bullets, as markdown (`env` and `seed`: see :func:`_part`;
+    `contact`: the parts' contact.csv files or the study/ folders holding them)."""
     env, seed = _part(study, env, seed)
     seeds = pd.read_csv(study / "seeds.csv")
     seeds = seeds[(seeds.env == env) & (seeds.train_seed == seed)]
@@ -131,6 +138,8 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
         + (f"; in every seed so far: {', '.join(algo_label(a) for a in every) or 'none'}" if others else "")
         + ". Order: " + ", ".join(f"{algo_label(a)} {_num(v)}" for a, v in order.items())
         + f". Best degenerate goal rate: {_num(degen_goal, 2)}."]
+    if combined is not None and (combined / "verdict.csv").is_file() and (combined / "targets.csv").is_file():
+        bullets.append(verdict_bullet(pd.read_csv(combined / "verdict.csv"), pd.read_csv(combined / "targets.csv"), env))
     if turning:
         turners = [f"{algo_label(a)} {_num(s1.loc[a, 'goal_turning'], 2)}" for a in algo_order(s1.index) if s1.loc[a, "goal_turning"] > 0]
         bullets.append("- **Turning slots' goals** (Scenario 1): " + (", ".join(turners) or "none, in any algorithm") + ".")
@@ -140,12 +149,94 @@ def tables(study: Path, earlier: list[Path], combined: Path | None, env: str | N
         runs = contact_runs(load_records(records), LONG)
         bullets.append(contact_bullet(rows[rows.scenario == 1], runs[runs.scenario == 1] if len(runs) else runs,
                                       records.name))
-        if (rows.scenario == 2).any():
-            bullets.append(alone_bullet(rows[rows.scenario == 2]))
+    safe = refs[(refs.name == "safe-non-turner") & (refs.metric == "return")]["mean"]
+    if contact:
+        bullets.append(contact_charge_bullet(load_contact(contact), env, seed, brake,
+                                             float(safe.iloc[0]) if turning and len(safe) else None))
+    if records.is_file() and (rows.scenario == 2).any():
+        bullets.append(alone_bullet(rows[rows.scenario == 2]))
     commits = trial_commits(study / "bench" / "runs", env, seed)
     if commits:
         bullets.append(commits_bullet(commits))
     return md_table(head, lines) + "\n" + "\n".join(bullets) + "\n"
+
+
+def _names(labels: list[str]) -> str:
+    """'A', 'A and B', 'A, B and C'."""
+    return labels[0] if len(labels) == 1 else f"{', '.join(labels[:-1])} and {labels[-1]}"
+
+
+def verdict_bullet(verdict: pd.DataFrame, targets: pd.DataFrame, env: str) -> str:
+    """The verdict over the seeds together (a ``--combine`` folder's verdict.csv and targets.csv):
+    which pairs pass, whether the environment's target is met and what it lacks; where none
+    passes, the two nearest (highest mean return) with their intervals and goal rates."""
+    v = verdict[verdict.env == env].set_index("algorithm")
+    if v.empty:
+        raise SystemExit(f"part_page: the --combined folder's verdict.csv has no {env}; combine "
+                         f"{env}'s studies")
+    n, title = int(v.n.max()), env_title(env)
+    t = targets[targets.env == env]
+
+    def cell(a: str) -> str:
+        r = v.loc[a]
+        return (f"{algo_label(a)}, {over_seeds(r.return_mean, r.return_ci_low, r.return_ci_high, int(r.n))} "
+                f"(goal rate {r.goal_mean:.2f})")
+
+    passed = [a for a in algo_order(v.index) if bool(v.loc[a, "passed"])]
+    text = (f"- **The verdict with {n} seed{'s' if n != 1 else ''}: "
+            + (f"{_names([algo_label(a) for a in passed])} pass{'es' if len(passed) == 1 else ''}" if passed
+               else "no pair passes"))
+    if len(t):
+        row = t.iloc[0]
+        met = bool(row.met)
+        text += f"; {title}'s target is {'met' if met else 'not met'}.**"
+        if not met:
+            lacks = [f"no {kind} algorithm passes" for kind in ("discrete", "continuous")
+                     if not ast.literal_eval(str(row[kind]))]
+            if bool(row.has_turns) and not ast.literal_eval(str(row.turning)):
+                lacks.append("no turning slot reaches a goal")
+            text += " It lacks: " + "; ".join(lacks) + "."
+    else:
+        text += ".**"
+    if passed:
+        return text + " " + "; ".join(cell(a) for a in passed) + "."
+    nearest = v.sort_values("return_mean", ascending=False).index[:2]
+    return text + " Nearest: " + "; ".join(cell(a) for a in nearest) + "."
+
+
+def contact_charge_bullet(lines: pd.DataFrame, env: str, seed: int, brake: float,
+                          safe: float | None = None) -> str:
+    """Scenario 1's return without the contact charge (studies/contact_table.py's lines, one per
+    policy and training seed): which algorithms would be above always-brake in every seed and
+    which would not, each mean [95% CI over seeds]; against the safe non-turner where a route
+    turns; then the page's seed alone."""
+    lines = lines[(lines.env == env) & (lines.scenario == 1)]
+    if lines.empty or seed not in set(lines["train seed"]):
+        raise SystemExit(f"part_page: the --contact parts hold no Scenario 1 line of {env} seed {seed}; "
+                         "give this part's export (its study/ folder) among them")
+    t = contact_table(lines).set_index("policy").sort_values("without_contact_charge", ascending=False)
+    n = lines.groupby("policy")["train seed"].nunique().max()
+    every = [a for a in t.index if (lines[lines.policy == a].without_contact_charge > brake).all()]
+    rest = [a for a in t.index if a not in every]
+
+    def cell(a: str) -> str:
+        return f"{algo_label(a)} {t.loc[a, 'without_contact_charge_cell']}"
+
+    text = (f"- **Without its contact charge** (`studies/contact_table.py` on the {n} seeds' exports): "
+            + (f"{_names([cell(a) for a in every])} would be above always-brake ({_num(brake)}) in "
+               f"{'all ' + str(n) if n > 1 else 'its'} seed{'s' if n > 1 else ''}" if every
+               else f"no algorithm would be above always-brake ({_num(brake)}) in every seed"))
+    if every and safe is not None:
+        below = [a for a in every if t.loc[a, "without_contact_charge"] < safe]
+        if len(below) == len(every):
+            text += f", {'all ' if len(every) > 1 else ''}below the safe non-turner ({_num(safe)})"
+        elif below:
+            text += f"; {_names([algo_label(a) for a in below])} below the safe non-turner ({_num(safe)})"
+    if rest and every:
+        text += f"; {_names([cell(a) for a in rest])} would not"
+    alone = lines[lines["train seed"] == seed].set_index("policy").without_contact_charge.sort_values(ascending=False)
+    return (text + f". Seed {seed} alone: "
+            + ", ".join(f"{algo_label(a)} {_num(x)}" for a, x in alone.items()) + ".")
 
 
 def alone_bullet(episodes: pd.DataFrame) -> str:
@@ -230,14 +321,10 @@ def commits_bullet(commits: list[tuple[str, list[str], str]],
     """Which commit each trial started at and, where they differ, whether the training code
     (:data:`TRAINING_CODE`) differs between the first and the last: the page's claim that its
     trials trained alike, checked instead of written by hand."""
-    def names(algos):
-        labels = [algo_label(a) for a in algos]
-        return labels[0] if len(labels) == 1 else f"{', '.join(labels[:-1])} and {labels[-1]}"
-
     start = commits[0][2][:16].replace("T", " ") if commits and commits[0][2] else "?"
     text = (f"- **Commits** each trial started at (its manifest.json; a trial resumed after a cut ran on "
             f"at the commit of the resume, which the loop's log names; the first started {start} UTC): "
-            + ", ".join(f"{names(a)} {c}" for c, a, _ in commits))
+            + ", ".join(f"{_names([algo_label(x) for x in a])} {c}" for c, a, _ in commits))
     if len(commits) < 2:
         return text + ": every trial trained on the same code."
     first, last = commits[0][0], commits[-1][0]
@@ -260,8 +347,11 @@ def main(argv=None) -> int:
                    help="the same environment's other seeds: their studies or exports (for seeds.csv)")
     p.add_argument("--combined", type=Path, default=None, metavar="DIR",
                    help="a studies/science.py --combine folder of the seeds together (its results.csv)")
+    p.add_argument("--contact", nargs="*", type=Path, default=[], metavar="PART",
+                   help="the seeds' contact.csv files or the exports holding them, this part's among them "
+                        "(studies/contact_table.py): the bullet of the return without the contact charge")
     args = p.parse_args(argv)
-    print(tables(args.study, args.earlier, args.combined, args.env, args.seed))
+    print(tables(args.study, args.earlier, args.combined, args.env, args.seed, args.contact))
     return 0
 
 

@@ -537,10 +537,19 @@ def test_seed_parts_of_one_environment_combine_into_the_whole_study(smoke, tmp_p
     assert bad.returncode == 2 and "env_1 seed 1 is in two of the studies" in bad.stderr, bad.stderr
 
 
-def test_part_page_tables_one_seed_beside_the_other_seeds_and_the_combination(smoke, load_study):
+def _seed_only(contact: Path, tmp_path: Path, seed: int) -> Path:
+    """A copy of a contact.csv with one training seed's lines."""
+    out = tmp_path / f"contact_seed{seed}.csv"
+    pd.read_csv(contact).query("`train seed` == @seed").to_csv(out, index=False)
+    return out
+
+
+def test_part_page_tables_one_seed_beside_the_other_seeds_and_the_combination(smoke, load_study, tmp_path):
     """studies/part_page.py: seed 1's row of each algorithm holds its own seed means, seed 0's
     column the other seed's, the last column the study's mean [CI] over seeds; the contact
-    bullet counts seed 1's Scenario 1 records; a seed the study lacks is refused by name."""
+    bullet counts seed 1's Scenario 1 records; the verdict bullet comes with the combined folder,
+    the without-contact-charge bullet with the seeds' contact lines (seed 1's alone last), and
+    contact lines without this seed are refused; a seed the study lacks is refused by name."""
     study, done = smoke
     assert done.returncode == 0, done.stderr[-2000:]
     page, stops = load_study("part_page"), load_study("stops")
@@ -560,6 +569,16 @@ def test_part_page_tables_one_seed_beside_the_other_seeds_and_the_combination(sm
     episodes = stops.episode_rows(study / "test" / "env_1__seed1.parquet").query("scenario == 1")
     assert (f"{int(episodes['contact steps'].sum()):,} contact steps in Scenario 1's "
             f"{len(episodes)} AC-episodes") in text
+    assert "- **The verdict with 2 seeds: " in text  # the study is its own --combined folder
+    contact = tmp_path / "contact.csv"
+    load_study("science").contact(sorted((study / "test").glob("env_1__seed*.parquet")), contact)
+    with_charge = page.tables(study, [study], study, seed=1, contact=[contact])
+    lines = pd.read_csv(contact).query("scenario == 1 and `train seed` == 1")
+    alone = ", ".join(f"{a.upper()} {x:,.1f}" for a, x in lines.set_index("policy").without_contact_charge
+                      .sort_values(ascending=False).items())
+    assert "on the 2 seeds' exports): " in with_charge and f"Seed 1 alone: {alone}." in with_charge
+    with pytest.raises(SystemExit, match="hold no Scenario 1 line of env_1 seed 1"):
+        page.tables(study, [study], study, seed=1, contact=[_seed_only(contact, tmp_path, 0)])
     with pytest.raises(SystemExit, match="has no seed 7; it holds 0, 1"):
         page.tables(study, [], None, seed=7)
     with pytest.raises(SystemExit, match="choose one with --seed"):
@@ -590,6 +609,57 @@ def test_part_page_contact_bullet_counts_the_long_runs_by_kind_end_and_algorithm
     assert alone.endswith("The longest: A3C's `ac_5` against an object from step 35 of episode 10004, 75 steps (to the end).")
     assert page.contact_bullet(episodes, runs.iloc[:0], "x.parquet").endswith("0 of them in 0 runs of 50 steps or more "
                                                                                 "(`python studies/stops.py x.parquet --long 50`).")
+
+
+def _verdict_rows(**passed) -> pd.DataFrame:
+    """verdict.csv's rows of env_3 (3 seeds): each algorithm's return mean, interval, goal rate
+    and whether it passed."""
+    rows = []
+    for algo, (mean, ok) in passed.items():
+        rows.append({"algorithm": algo, "env": "env_3", "n": 3, "return_mean": mean, "return_ci_low": mean - 100,
+                     "return_ci_high": mean + 100, "goal_mean": 0.25, "passed": ok})
+    return pd.DataFrame(rows)
+
+
+def test_part_page_verdict_bullet_names_the_passes_the_target_and_what_it_lacks(load_study):
+    """The verdict bullet: the pairs that pass, the environment's target and what it lacks (no
+    discrete or continuous pass, no turning goal), or the two nearest where none passes."""
+    page = load_study("part_page")
+    targets = pd.DataFrame([{"env": "env_3", "discrete": "[]", "continuous": "['ddpg']", "has_turns": True,
+                             "turning": "[]", "met": False}])
+    none = page.verdict_bullet(_verdict_rows(ppo=(-900.0, False), dqn=(-300.0, False), td3=(-500.0, False)),
+                               targets, "env_3")
+    assert none.startswith("- **The verdict with 3 seeds: no pair passes; Four-way's target is not met.** "
+                           "It lacks: no discrete algorithm passes; no turning slot reaches a goal. Nearest: ")
+    assert none.endswith("Nearest: DQN, -300.0 [-400.0, -200.0] (goal rate 0.25); TD3, -500.0 [-600.0, -400.0] "
+                         "(goal rate 0.25).")
+    met = targets.assign(discrete="['dqn']", turning="['dqn']", met=True)
+    two = page.verdict_bullet(_verdict_rows(dqn=(800.0, True), ddpg=(600.0, True), ppo=(-900.0, False)), met, "env_3")
+    assert two == ("- **The verdict with 3 seeds: DQN and DDPG pass; Four-way's target is met.** "
+                   "DQN, 800.0 [700.0, 900.0] (goal rate 0.25); DDPG, 600.0 [500.0, 700.0] (goal rate 0.25).")
+    with pytest.raises(SystemExit, match="verdict.csv has no env_4"):
+        page.verdict_bullet(_verdict_rows(dqn=(0.0, False)), targets, "env_4")
+
+
+def test_part_page_contact_charge_bullet_splits_every_seed_above_always_brake_from_the_rest(load_study):
+    """Without the contact charge: an algorithm counts as above always-brake only when every seed
+    is (a mean above it with one seed below is not), the safe non-turner is named where given, and
+    the page's seed follows alone."""
+    page = load_study("part_page")
+    lines = pd.DataFrame([{"policy": p, "env": "env_3", "scenario": 1, "train seed": k, "mean_return": -2000.0,
+                           "without_contact_charge": x}
+                          for p, xs in (("dqn", (-100, -200, -300)), ("ppo", (200, 100, -600)),
+                                        ("td3", (-700, -650, -800))) for k, x in enumerate(xs)])
+    text = page.contact_charge_bullet(lines, "env_3", 2, -552.0, safe=402.5)
+    assert text.startswith("- **Without its contact charge** (`studies/contact_table.py` on the 3 seeds' exports): "
+                           "DQN -200.0 [")
+    assert "would be above always-brake (-552.0) in all 3 seeds, below the safe non-turner (402.5); PPO" in text
+    assert "TD3 -716.7 [" in text and text.endswith("would not. Seed 2 alone: DQN -300.0, PPO -600.0, TD3 -800.0.")
+    assert "safe non-turner" not in page.contact_charge_bullet(lines, "env_3", 2, -552.0)
+    nobody = page.contact_charge_bullet(lines, "env_3", 0, -50.0)
+    assert "no algorithm would be above always-brake (-50.0) in every seed. Seed 0 alone: PPO 200.0" in nobody
+    with pytest.raises(SystemExit, match="hold no Scenario 1 line of env_3 seed 5"):
+        page.contact_charge_bullet(lines, "env_3", 5, -552.0)
 
 
 def test_part_page_commits_bullet_reads_each_trials_manifest_and_checks_the_training_code(load_study, tmp_path):
