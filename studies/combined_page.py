@@ -2,8 +2,10 @@
 parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv, convergence.png
 and verdict.png into the page folder and writes README.md around them: the training seeds per
 environment, the command, the verdict grid (summary.md's, the README's results table) and its
-figure, issue 27's target per environment, the convergence figure, the IQM, the return with and without the
-contact charge (studies/contact_table.py over the same parts) and the budgets.
+figure, issue 27's target per environment, per environment the verdict (the passes, or what the
+target lacks and the nearest pairs) and the return without the contact charge (studies/part_page.py's
+bullets), the convergence figure, the IQM, the return with and without the contact charge
+(studies/contact_table.py over the same parts) and the budgets.
 
     python studies/science.py --combine <the parts' study/ exports> --out comb
     python studies/combined_page.py comb --page docs/results/<date>-science-v3-seeds012 \\
@@ -21,6 +23,7 @@ from pathlib import Path
 
 import pandas as pd
 from contact_table import caption, load, markdown, table
+from part_page import contact_charge_bullet, verdict_bullet
 
 from eval.labels import env_title
 from eval.reporting.science import MIN_SEEDS
@@ -66,7 +69,25 @@ def seeds_text(seeds: pd.DataFrame) -> str:
     return ", ".join(f"{env_title(e)} {listed(s)}" for e, s in per_env.items())
 
 
-def page(comb: Path, title: str, parts: list[str], commit: str, contact: str) -> str:
+def per_env(comb: Path, lines: pd.DataFrame) -> str:
+    """Per environment (the grid's order): its verdict bullet (the passes, or what its target lacks
+    and the nearest pairs) and, where ``lines`` (the parts' contact.csv) hold it, the return
+    without the contact charge against always-brake and, where a route turns, the safe non-turner."""
+    verdict, targets = pd.read_csv(comb / "verdict.csv"), pd.read_csv(comb / "targets.csv")
+    refs = pd.read_csv(comb / "results.csv").query("kind == 'reference' and scenario == 1 and metric == 'return'")
+    out = []
+    for env in targets.env:
+        ref = refs[refs.env == env].set_index("name")["mean"]
+        turns = bool(targets.set_index("env").loc[env, "has_turns"])
+        out += [f"**{env_title(env)}**", "", verdict_bullet(verdict, targets, env)]
+        if (lines.env == env).any():
+            out.append(contact_charge_bullet(lines, env, None, float(ref["always-brake"]),
+                                             float(ref["safe-non-turner"]) if turns and "safe-non-turner" in ref else None))
+        out.append("")
+    return "\n".join(out)
+
+
+def page(comb: Path, title: str, parts: list[str], commit: str, contact: str, envs: str = "") -> str:
     """README.md of the page for the --combine folder ``comb`` of ``parts`` (repository paths)."""
     s = sections((comb / "summary.md").read_text())
     test = json.loads((comb / "science.json").read_text())["test"]
@@ -114,7 +135,8 @@ where a route turns, the safe non-turner (dotted); return axis linear within ±1
 Issue 27's target per environment:
 
 {s["target"]}
-{alone}
+
+{envs}{alone}
 ## Convergence
 
 Training return against environment steps, mean over the seeds, band: min-max over them:
@@ -164,11 +186,11 @@ def main(argv=None) -> int:
         if name.endswith(".md"):  # the folder's own path -> its name (pages carry no machine paths)
             data = data.replace(str(a.comb.resolve()).encode(), a.comb.name.encode())
         (a.page / name).write_bytes(data)
-    contact = (f"{caption()} (`studies/contact_table.py`):\n\n"
-               + markdown(table(load([Path(x) for x in combined]))).strip())
+    lines = load([Path(x) for x in combined])
+    contact = f"{caption()} (`studies/contact_table.py`):\n\n" + markdown(table(lines)).strip()
     commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
                             capture_output=True, text=True).stdout.strip() or "unknown"
-    (a.page / "README.md").write_text(page(a.comb, a.title, parts, commit, contact))
+    (a.page / "README.md").write_text(page(a.comb, a.title, parts, commit, contact, per_env(a.comb, lines)))
     print(f"combined_page: {a.page / 'README.md'} ({len(parts)} parts)")
     return 0
 

@@ -32,7 +32,7 @@ from stops import contact_runs, episode_rows, load_records
 
 from eval.labels import algo_label, algo_order, env_title
 from eval.reporting.page import md_table
-from eval.reporting.science import over_seeds, shows_reference
+from eval.reporting.science import MIN_SEEDS, over_seeds, shows_reference
 from eval.scale.gridstatus import grid_status
 from eval.testing.validity import DEGENERATE
 
@@ -183,13 +183,19 @@ def verdict_bullet(verdict: pd.DataFrame, targets: pd.DataFrame, env: str) -> st
                 f"(goal rate {r.goal_mean:.2f})")
 
     passed = [a for a in algo_order(v.index) if bool(v.loc[a, "passed"])]
-    text = (f"- **The verdict with {n} seed{'s' if n != 1 else ''}: "
-            + (f"{_names([algo_label(a) for a in passed])} pass{'es' if len(passed) == 1 else ''}" if passed
-               else "no pair passes"))
+    if n < MIN_SEEDS:  # too few seeds: a pair above every reference is "not shown", none passes
+        above = [a for a in algo_order(v.index) if bool(v.loc[a, "return_ok"]) and bool(v.loc[a, "goal_ok"])]
+        text = (f"- **{n} seed{'s' if n != 1 else ''} so far, too few for a verdict ({MIN_SEEDS} needed): "
+                + (f"{_names([algo_label(a) for a in above])} above every degenerate reference (not shown)"
+                   if above else "no pair above every degenerate reference"))
+    else:
+        text = (f"- **The verdict with {n} seeds: "
+                + (f"{_names([algo_label(a) for a in passed])} pass{'es' if len(passed) == 1 else ''}" if passed
+                   else "no pair passes"))
     if len(t):
         row = t.iloc[0]
         met = bool(row.met)
-        text += f"; {title}'s target is {'met' if met else 'not met'}.**"
+        text += f"; {title}'s target is {'met' if met else 'not met'}{' so far' if n < MIN_SEEDS else ''}.**"
         if not met:
             lacks = [f"no {kind} algorithm passes" for kind in ("discrete", "continuous")
                      if not ast.literal_eval(str(row[kind]))]
@@ -204,14 +210,14 @@ def verdict_bullet(verdict: pd.DataFrame, targets: pd.DataFrame, env: str) -> st
     return text + " Nearest: " + "; ".join(cell(a) for a in nearest) + "."
 
 
-def contact_charge_bullet(lines: pd.DataFrame, env: str, seed: int, brake: float,
+def contact_charge_bullet(lines: pd.DataFrame, env: str, seed: int | None, brake: float,
                           safe: float | None = None) -> str:
     """Scenario 1's return without the contact charge (studies/contact_table.py's lines, one per
     policy and training seed): which algorithms would be above always-brake in every seed and
     which would not, each mean [95% CI over seeds]; against the safe non-turner where a route
-    turns; then the page's seed alone."""
+    turns; then the page's seed alone (none: the seeds together only)."""
     lines = lines[(lines.env == env) & (lines.scenario == 1)]
-    if lines.empty or seed not in set(lines["train seed"]):
+    if lines.empty or (seed is not None and seed not in set(lines["train seed"])):
         raise SystemExit(f"part_page: the --contact parts hold no Scenario 1 line of {env} seed {seed}; "
                          "give this part's export (its study/ folder) among them")
     t = contact_table(lines).set_index("policy").sort_values("without_contact_charge", ascending=False)
@@ -224,16 +230,18 @@ def contact_charge_bullet(lines: pd.DataFrame, env: str, seed: int, brake: float
 
     text = (f"- **Without its contact charge** (`studies/contact_table.py` on the {n} seeds' exports): "
             + (f"{_names([cell(a) for a in every])} would be above always-brake ({_num(brake)}) in "
-               f"{'all ' + str(n) if n > 1 else 'its'} seed{'s' if n > 1 else ''}" if every
+               f"{'its' if n == 1 else 'both' if n == 2 else f'all {n}'} seed{'s' if n > 1 else ''}" if every
                else f"no algorithm would be above always-brake ({_num(brake)}) in every seed"))
     if every and safe is not None:
         below = [a for a in every if t.loc[a, "without_contact_charge"] < safe]
         if len(below) == len(every):
             text += f", {'all ' if len(every) > 1 else ''}below the safe non-turner ({_num(safe)})"
         elif below:
-            text += f"; {_names([algo_label(a) for a in below])} below the safe non-turner ({_num(safe)})"
+            text += f"; of them {_names([algo_label(a) for a in below])} below the safe non-turner ({_num(safe)})"
     if rest and every:
         text += f"; {_names([cell(a) for a in rest])} would not"
+    if seed is None:
+        return text + "."
     alone = lines[lines["train seed"] == seed].set_index("policy").without_contact_charge.sort_values(ascending=False)
     return (text + f". Seed {seed} alone: "
             + ", ".join(f"{algo_label(a)} {_num(x)}" for a, x in alone.items()) + ".")

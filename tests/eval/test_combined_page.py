@@ -85,3 +85,29 @@ def test_a_combine_folder_missing_a_file_names_it(cp, tmp_path):
     with pytest.raises(SystemExit, match="lacks summary.md"):
         cp.main([str(tmp_path), "--page", str(tmp_path / "page"), "--title", "t"])
     assert not (tmp_path / "page").exists()  # nothing written
+
+
+def test_per_environment_verdict_and_contact_bullets_in_the_targets_order(cp, tmp_path):
+    """The per-environment section: each environment of targets.csv in its order with its verdict
+    bullet; the without-contact-charge bullet where the parts' contact lines hold the environment,
+    measured against that environment's always-brake and, where a route turns, its safe non-turner."""
+    pd.DataFrame([{"env": "env_1", "title": "Straight", "discrete": "['dqn']", "continuous": "['ddpg']",
+                   "has_turns": False, "turning": "[]", "met": True},
+                  {"env": "env_3", "title": "Four-way", "discrete": "[]", "continuous": "[]",
+                   "has_turns": True, "turning": "[]", "met": False}]).to_csv(tmp_path / "targets.csv", index=False)
+    pd.DataFrame([{"algorithm": a, "env": e, "n": 3, "return_mean": m, "return_ci_low": m - 10,
+                   "return_ci_high": m + 10, "goal_mean": 0.5, "return_ok": ok, "goal_ok": ok, "passed": ok}
+                  for e, a, m, ok in (("env_1", "dqn", 900.0, True), ("env_1", "ddpg", 800.0, True),
+                                      ("env_3", "dqn", -700.0, False), ("env_3", "ddpg", -900.0, False))]
+                 ).to_csv(tmp_path / "verdict.csv", index=False)
+    pd.DataFrame([{"kind": "reference", "scenario": 1, "metric": "return", "env": e, "name": n, "mean": v}
+                  for e, n, v in (("env_1", "always-brake", -545.5), ("env_3", "always-brake", -552.0),
+                                  ("env_3", "safe-non-turner", 402.5))]).to_csv(tmp_path / "results.csv", index=False)
+    lines = pd.DataFrame([{"policy": a, "env": "env_3", "scenario": 1, "train seed": k, "mean_return": -800.0,
+                           "without_contact_charge": -100.0 - k} for a in ("dqn", "ddpg") for k in range(3)])
+    text = cp.per_env(tmp_path, lines)
+    straight, fourway = text.split("**Four-way**")
+    assert "**Straight**" in straight and "DQN and DDPG pass; Straight's target is met." in straight
+    assert "contact charge" not in straight  # no contact lines of env_1
+    assert "no pair passes; Four-way's target is not met." in fourway
+    assert "would be above always-brake (-552.0) in all 3 seeds, all below the safe non-turner (402.5)." in fourway

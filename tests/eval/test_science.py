@@ -569,7 +569,7 @@ def test_part_page_tables_one_seed_beside_the_other_seeds_and_the_combination(sm
     episodes = stops.episode_rows(study / "test" / "env_1__seed1.parquet").query("scenario == 1")
     assert (f"{int(episodes['contact steps'].sum()):,} contact steps in Scenario 1's "
             f"{len(episodes)} AC-episodes") in text
-    assert "- **The verdict with 2 seeds: " in text  # the study is its own --combined folder
+    assert "- **2 seeds so far, too few for a verdict (3 needed): " in text  # the study: its own --combined folder
     contact = tmp_path / "contact.csv"
     load_study("science").contact(sorted((study / "test").glob("env_1__seed*.parquet")), contact)
     with_charge = page.tables(study, [study], study, seed=1, contact=[contact])
@@ -637,6 +637,10 @@ def test_part_page_verdict_bullet_names_the_passes_the_target_and_what_it_lacks(
     two = page.verdict_bullet(_verdict_rows(dqn=(800.0, True), ddpg=(600.0, True), ppo=(-900.0, False)), met, "env_3")
     assert two == ("- **The verdict with 3 seeds: DQN and DDPG pass; Four-way's target is met.** "
                    "DQN, 800.0 [700.0, 900.0] (goal rate 0.25); DDPG, 600.0 [500.0, 700.0] (goal rate 0.25).")
+    few = page.verdict_bullet(_verdict_rows(dqn=(800.0, False), ppo=(-900.0, False)).assign(
+        n=2, return_ok=[True, False], goal_ok=[True, True]), targets, "env_3")
+    assert few.startswith("- **2 seeds so far, too few for a verdict (3 needed): DQN above every degenerate "
+                          "reference (not shown); Four-way's target is not met so far.**")
     with pytest.raises(SystemExit, match="verdict.csv has no env_4"):
         page.verdict_bullet(_verdict_rows(dqn=(0.0, False)), targets, "env_4")
 
@@ -656,6 +660,11 @@ def test_part_page_contact_charge_bullet_splits_every_seed_above_always_brake_fr
     assert "would be above always-brake (-552.0) in all 3 seeds, below the safe non-turner (402.5); PPO" in text
     assert "TD3 -716.7 [" in text and text.endswith("would not. Seed 2 alone: DQN -300.0, PPO -600.0, TD3 -800.0.")
     assert "safe non-turner" not in page.contact_charge_bullet(lines, "env_3", 2, -552.0)
+    some = page.contact_charge_bullet(lines.assign(without_contact_charge=lines.without_contact_charge.abs()),
+                                      "env_3", None, -552.0, safe=500.0)  # TD3 716.7 above it, PPO 300 and DQN 200 below
+    assert "in all 3 seeds; of them PPO and DQN below the safe non-turner (500.0)." in some and "alone" not in some
+    two = page.contact_charge_bullet(lines[lines["train seed"] < 2], "env_3", 1, -552.0)
+    assert "on the 2 seeds' exports" in two and "in both seeds" in two
     nobody = page.contact_charge_bullet(lines, "env_3", 0, -50.0)
     assert "no algorithm would be above always-brake (-50.0) in every seed. Seed 0 alone: PPO 200.0" in nobody
     with pytest.raises(SystemExit, match="hold no Scenario 1 line of env_3 seed 5"):
