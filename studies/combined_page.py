@@ -1,10 +1,10 @@
 """The docs/results page of a `studies/science.py --combine` folder (the 6x5 study's exported
-parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv, convergence.png
-and verdict.png into the page folder and writes README.md around them: the training seeds per
+parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv, convergence.png,
+verdict.png and iqm.png into the page folder and writes README.md around them: the training seeds per
 environment, the command, the verdict grid (summary.md's, the README's results table) and its
 figure, issue 27's target per environment, per environment the verdict (the passes, or what the
 target lacks and the nearest pairs) and the return without the contact charge (studies/part_page.py's
-bullets), the convergence figure, the IQM, the return with and without the contact charge
+bullets), the convergence figure, the IQM (and its figure), the return with and without the contact charge
 (studies/contact_table.py over the same parts) and the budgets.
 
     python studies/science.py --combine <the parts' study/ exports> --out comb
@@ -28,7 +28,7 @@ from part_page import contact_charge_bullet, verdict_bullet
 from eval.labels import env_title
 from eval.reporting.science import MIN_SEEDS
 
-COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "convergence.png", "verdict.png")
+COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "convergence.png", "verdict.png", "iqm.png")
 HEADINGS = {"grid": "verdict per pair:", "target": "Issue 27's target per environment",
             "iqm": "IQM across environments", "budget": "Did the budgets suffice?"}
 """summary.md's sections the page shows: each is the first table after its heading's line."""
@@ -149,6 +149,8 @@ Scenario 1 return normalised per environment (uniform random = 0, autopilot = 1)
 mean over the (environment, seed) scores, 95% stratified bootstrap CI:
 
 {s["iqm"]}
+
+![The IQM of each algorithm with its 95% CI against the autopilot, the best degenerate reference and the safe non-turner](iqm.png)
 
 ## Contact
 

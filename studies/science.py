@@ -611,6 +611,7 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     budgets.to_csv(out / "budget.csv", index=False)
     science.convergence_figure(curves, out)
     science.verdict_figure(verdict, seeds, ref_table[ref_table["scenario"] == 1], out)
+    science.iqm_figure(iqm, out)
 
     t = study["test"]
     b = plan.to_dict()
@@ -666,6 +667,7 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
         "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "
         "95% stratified bootstrap CI resampling seeds within environments):\n",
         science.iqm_markdown(iqm),
+        "\nThe same drawn: `iqm.png` / `iqm.pdf`.\n",
         f"\nIssue 27's target per environment: {int(goals['met'].sum())} of {len(goals)} met (a "
         "discrete and a continuous algorithm pass the verdict; where a route turns, some "
         "algorithm's turning slots reach goals):\n", science.targets_markdown(goals),

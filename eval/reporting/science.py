@@ -18,7 +18,7 @@ over *training seeds*:
 - :func:`iqm_table`: the interquartile mean across environments per algorithm
   (rliable-style: returns normalised per environment between uniform random (0) and
   the autopilot (1), IQM over every (environment, seed) score, stratified bootstrap
-  CI resampling seeds within each environment);
+  CI resampling seeds within each environment), drawn by :func:`iqm_figure`;
 - :func:`convergence_curves` / :func:`convergence_figure`: training return against
   environment steps, one panel per algorithm, one curve per environment, mean over
   seeds with a min-max band.
@@ -523,6 +523,48 @@ def verdict_figure(v: pd.DataFrame, seeds: pd.DataFrame, references: pd.DataFram
     return _save(fig, Path(out), stem)
 
 
+def iqm_lines(t: pd.DataFrame) -> list[tuple[str, float, str]]:
+    """The reference lines of :func:`iqm_figure`, (label, value, line style): the autopilot (1 by
+    construction), the strongest degenerate reference (named) and the safe non-turner."""
+    ref = t[t["kind"] == "reference"].set_index("name")["iqm"]
+    degenerate = ref[[n for n in DEGENERATE if n in ref.index]]
+    lines = [("autopilot", float(ref["autopilot"]), "-")] if "autopilot" in ref.index else []
+    if len(degenerate):
+        lines.append((f"best degenerate ({degenerate.idxmax()})", float(degenerate.max()), "--"))
+    if "safe-non-turner" in ref.index:
+        lines.append(("safe non-turner", float(ref["safe-non-turner"]), ":"))
+    return lines
+
+
+def iqm_figure(t: pd.DataFrame, out: Path, stem: str = "iqm") -> list[Path]:
+    """The :func:`iqm_table` drawn: one row per algorithm (the paper's order, top down), its IQM of
+    normalised Scenario 1 return with the 95% stratified bootstrap CI, against :func:`iqm_lines`.
+    A column wide; PDF and PNG."""
+    from eval.labels import colour
+    from eval.reporting.figures import COLUMN_IN, _plt, _save
+
+    plt = _plt()
+    algos = t[t["kind"] == "algorithm"].set_index("name")
+    order = algo_order(algos.index)
+    fig, ax = plt.subplots(figsize=(COLUMN_IN, 0.75 + 0.24 * len(order)))
+    for label, value, style in iqm_lines(t):
+        ax.axvline(value, color="#C00000" if label.startswith("best degenerate") else "#444444",
+                   ls=style, lw=0.8, zorder=1, label=label)
+    for y, algo in enumerate(order):
+        r = algos.loc[algo]
+        ax.errorbar([r["iqm"]], [y], xerr=[[r["iqm"] - r["ci_low"]], [r["ci_high"] - r["iqm"]]], fmt="o",
+                    color=colour(algo), ms=3.5, elinewidth=1.4, capsize=0, zorder=3)
+    ax.set_yticks(range(len(order)), [algo_label(a) for a in order])
+    ax.invert_yaxis()
+    ax.grid(axis="x", lw=0.3)
+    envs = int(algos["envs"].max()) if len(algos) else 0
+    ax.set_xlabel(f"IQM of Scenario 1 return over {envs} environment{'s' if envs != 1 else ''} "
+                  "(random 0, autopilot 1)")
+    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)
+    fig.tight_layout()
+    return _save(fig, Path(out), stem)
+
+
 # -- Markdown -------------------------------------------------------------------------------
 def grid_markdown(table: pd.DataFrame, metric: str, scenario: int = VERDICT_SCENARIO,
                   references: pd.DataFrame | None = None,
@@ -646,5 +688,6 @@ def iqm_markdown(t: pd.DataFrame) -> str:
 
 
 __all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",
-           "convergence_figure", "iqm_table", "normalise", "reference_table", "seed_means", "seed_table", "verdict",
+           "convergence_figure", "iqm_figure", "iqm_lines", "iqm_table", "normalise", "reference_table", "seed_means",
+           "seed_table", "verdict",
            "verdict_figure", "verdict_grid_markdown", "verdict_lines", "over_seeds", "return_goal_grid_markdown"]

@@ -175,6 +175,36 @@ def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
 
 
+def test_iqm_figure_draws_each_algorithm_its_interval_and_the_reference_lines(tmp_path, monkeypatch):
+    """The IQM table drawn: a point and interval per algorithm in the paper's order (top down) at its
+    values, lines at the autopilot, the strongest degenerate reference (named) and the safe non-turner."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    t = pd.DataFrame([
+        {"kind": "algorithm", "name": "dqn", "iqm": 0.7, "ci_low": 0.6, "ci_high": 0.8, "envs": 5, "runs": 15},
+        {"kind": "algorithm", "name": "ppo", "iqm": 0.5, "ci_low": 0.45, "ci_high": 0.55, "envs": 5, "runs": 15},
+        *({"kind": "reference", "name": n, "iqm": v, "ci_low": np.nan, "ci_high": np.nan, "envs": 5, "runs": 5}
+          for n, v in (("autopilot", 1.0), ("safe-non-turner", 0.9), ("random", 0.0), ("always-brake", 0.78),
+                       ("always-coast", 0.3)))])
+    assert science.iqm_lines(t) == [("autopilot", 1.0, "-"), ("best degenerate (always-brake)", 0.78, "--"),
+                                    ("safe non-turner", 0.9, ":")]
+    from eval.reporting import figures
+
+    kept = []
+    monkeypatch.setattr(figures, "_save", lambda fig, out, stem: kept.append(fig) or [out / f"{stem}.png"])
+    assert science.iqm_figure(t, tmp_path) == [tmp_path / "iqm.png"]
+    (ax,) = kept[0].axes
+    assert [x.get_text() for x in ax.get_yticklabels()] == ["PPO", "DQN"]  # the paper's order, top down
+    points = sorted((float(line.get_ydata()[0]), float(line.get_xdata()[0])) for line in ax.lines
+                    if line.get_marker() == "o")
+    assert points == [(0.0, 0.5), (1.0, 0.7)]
+    bars = sorted(tuple(seg[:, 0]) for c in ax.collections for seg in c.get_segments())
+    assert bars == [pytest.approx((0.45, 0.55)), pytest.approx((0.6, 0.8))]
+    assert sorted(float(line.get_xdata()[0]) for line in ax.lines if line.get_marker() != "o") == [0.78, 0.9, 1.0]
+    assert "5 environments" in ax.get_xlabel()
+
+
 def test_verdict_figure_draws_each_seed_the_interval_and_the_references_a_pair_must_clear(tmp_path, monkeypatch):
     import matplotlib
 
