@@ -24,7 +24,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
    same episode seeds, AC count and steps, saved as ``OUT/references/<env>.csv``;
 4. results (eval/reporting/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
    seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``/``verdict.png``,
-   ``iqm.csv``/``iqm.md``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``), ``budget.csv``
+   ``iqm.csv``/``iqm.md``/``iqm.png``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``), ``budget.csv``
    (did each run's training return still rise at the end of its budget?),
    ``summary.md`` (printed: a study's results section, as in docs/results/*/README.md), ``report/`` (the `cosim test`
    report of the held-out records, seeds pooled) and ``science.json`` (plan, checkpoints).
