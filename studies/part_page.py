@@ -259,10 +259,16 @@ def alone_bullet(episodes: pd.DataFrame) -> str:
         if goals:
             what = f"reaches its goal in {goals} of {n} episodes"
         else:
-            what = (f"reaches none: drives {e['driven m'].min():,.0f}-{e['driven m'].max():,.0f} m and stands "
-                    f"{e['route m left'].min():,.0f}-{e['route m left'].max():,.0f} m short")
+            what = (f"reaches none: drives {_span(e['driven m'])} m and stands "
+                    f"{_span(e['route m left'])} m short")
         parts.append(f"{algo_label(algo)} {what}, off the road in {off:.0%} of its steps ({e['return'].mean():,.1f})")
     return "- **Alone (Scenario 2, `ac_0` with no other AC)**: " + "; ".join(parts) + "."
+
+
+def _span(values: pd.Series) -> str:
+    """'72-75', or '72' where both ends round alike."""
+    low, high = f"{values.min():,.0f}", f"{values.max():,.0f}"
+    return low if low == high else f"{low}-{high}"
 
 
 def _a(noun: str) -> str:

@@ -743,10 +743,13 @@ def test_part_page_alone_bullet_gives_goals_or_how_far_short_each_algorithm_stoo
         {"policy": "td3", "goal": False, "steps": 600, "steps off road": 540, "driven m": 30.0, "route m left": 170.0, "return": -400.0},
         {"policy": "td3", "goal": False, "steps": 600, "steps off road": 420, "driven m": 63.0, "route m left": 141.0, "return": -500.0},
         {"policy": "dqn", "goal": True, "steps": 150, "steps off road": 0, "driven m": 202.0, "route m left": 2.0, "return": 3100.0},
-        {"policy": "dqn", "goal": False, "steps": 600, "steps off road": 75, "driven m": 90.0, "route m left": 110.0, "return": 1000.0}])
+        {"policy": "dqn", "goal": False, "steps": 600, "steps off road": 75, "driven m": 90.0, "route m left": 110.0, "return": 1000.0},
+        {"policy": "ddpg", "goal": False, "steps": 600, "steps off road": 0, "driven m": 71.9, "route m left": 61.7, "return": -90.0},
+        {"policy": "ddpg", "goal": False, "steps": 600, "steps off road": 0, "driven m": 72.1, "route m left": 61.8, "return": -86.0}])
     text = page.alone_bullet(episodes)
     assert text == ("- **Alone (Scenario 2, `ac_0` with no other AC)**: DQN reaches its goal in 1 of 2 episodes, off the road "
-                    "in 10% of its steps (2,050.0); TD3 reaches none: drives 30-63 m and stands 141-170 m short, off the "
+                    "in 10% of its steps (2,050.0); DDPG reaches none: drives 72 m and stands 62 m short, off the road "
+                    "in 0% of its steps (-88.0); TD3 reaches none: drives 30-63 m and stands 141-170 m short, off the "
                     "road in 80% of its steps (-450.0).")
 
 
