@@ -295,6 +295,7 @@ class SumoBridge:
         _libsumo()  # sets SUMO_HOME from the wheel, reports a missing install
         import sumo
         import traci
+        import traci.connection
         from traci.exceptions import FatalTraCIError, TraCIException
 
         global _warned_traci
@@ -307,7 +308,9 @@ class SumoBridge:
         gui = self.backend == "gui"
         binary = str(Path(sumo.__file__).parent / "bin" / ("sumo-gui" if gui else "sumo"))
         label = f"cosim-{id(self)}-{next(_labels)}"
-        self._errors = (TraCIException, FatalTraCIError)
+        # libsumo's import replaces traci.exceptions.TraCIException with its own class, while
+        # traci.connection raises the one it imported first: catch both
+        self._errors = (TraCIException, traci.connection.TraCIException, FatalTraCIError)
         self._running = True
         extra = ["--start", "--quit-on-end", "--delay", "50"] if gui else []
         # traci prints " Retrying in 1 seconds" while SUMO opens its port: not for the console

@@ -335,3 +335,20 @@ def test_spawn_jitter_is_seeded_bounded_and_can_be_switched_off():
         side = -math.sin(route.spawn_heading) * (x - sx) + math.cos(route.spawn_heading) * (y - sy)
         assert abs(along) < 1e-9 and 0 < abs(side) <= 0.5
         assert 0 < abs(h - route.spawn_heading) <= math.radians(10.0)
+
+
+def test_a_traci_simulation_catches_what_traci_raises_after_libsumo_was_imported():
+    """libsumo's import replaces traci.exceptions.TraCIException with libsumo's class, but
+    traci.connection raises its own: a TraCI bridge (a second simulation in one process, such as
+    a training run's validation env) must still catch a vehicle that has left the simulation, as
+    cars_see_acs asks for every car of the last step's subscription (a crash at 2026-11-29's
+    cars-see pilot: "Vehicle 'ac_2' is not known")."""
+    import libsumo  # noqa: F401  (the import that replaces the class)
+
+    from cosim.sumo_bridge import SumoBridge
+
+    with SumoBridge(load_scenario("env_1"), backend="traci") as bridge:
+        bridge.start(0)
+        assert bridge._car_half("nobody") is None
+        with pytest.raises(bridge._errors):
+            bridge._ls.vehicle.getWidth("nobody")
