@@ -9,7 +9,8 @@ against a background car (the runs SUMO's cars cannot see: studies/stops.contact
 Scenario 2's return and goal rate where the arm has it:
 
     python studies/variant_table.py plain=sci_3s2/test/env_3__seed2.parquet \\
-        see=rep_grid_see/20261129-060435 trained-see=rep_pilot_see/20261129-071500
+        see=rep_grid_see/20261129-060435 trained-see=rep_pilot_see/20261129-070657 \\
+        --figure docs/results/<page> --reference always-brake=-552.0
 
 Results: docs/results/2026-11-29-cars-see-trained.
 """
@@ -76,6 +77,46 @@ def table(lines: pd.DataFrame, long: int = LONG) -> str:
     return md_table(head, body)
 
 
+def figure(lines: pd.DataFrame, out: Path, reference: float | None = None,
+           reference_name: str = "reference") -> list[Path]:
+    """The arms drawn: per algorithm (rows, the study's order) one marker per arm at its Scenario 1
+    return (filled) and the same without the contact charge (hollow, joined to it: the gap is the
+    contact), against ``reference`` (dashed red: what a mean must clear); the return axis linear
+    within +-1,000 and logarithmic beyond, as the verdict figure's. PDF and PNG, stem ``arms``."""
+    from eval.reporting.figures import COLUMN_IN, _plt, _save
+    from eval.reporting.science import SYMLOG_RETURN
+
+    plt = _plt()
+    Path(out).mkdir(parents=True, exist_ok=True)
+    algos = algo_order(lines.algorithm.unique())
+    arms = list(dict.fromkeys(lines.arm))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, ax = plt.subplots(figsize=(2 * COLUMN_IN, 0.9 + 0.42 * len(algos)))
+    step = 0.7 / max(len(arms), 1)
+    for k, arm in enumerate(arms):
+        mine = lines[lines.arm == arm].set_index("algorithm")
+        ys, got, without = [], [], []
+        for y, algo in enumerate(algos):
+            if algo in mine.index:
+                ys.append(y - 0.35 + step * (k + 0.5))
+                got.append(mine.loc[algo, "return"])
+                without.append(mine.loc[algo, "without contact charge"])
+        c = colours[k % len(colours)]
+        ax.hlines(ys, got, without, color=c, lw=0.8, zorder=2)
+        ax.plot(got, ys, "o", color=c, ms=4, zorder=3, label=arm)
+        ax.plot(without, ys, "o", mfc="white", mec=c, ms=4, zorder=3)
+    if reference is not None:
+        ax.axvline(reference, color="#C00000", ls="--", lw=0.8, zorder=1, label=reference_name)
+    ax.set_xscale("symlog", linthresh=SYMLOG_RETURN)
+    ax.set_yticks(range(len(algos)), [algo_label(a) for a in algos])
+    ax.invert_yaxis()
+    ax.grid(axis="x", lw=0.3)
+    ax.set_xlabel("Scenario 1 return per AC-episode (filled) and without the contact charge (hollow)")
+    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False, fontsize="small")
+    fig.tight_layout()
+    return _save(fig, Path(out), "arms")
+
+
 def parse_arm(text: str) -> tuple[str, Path]:
     label, sep, path = text.partition("=")
     if not sep or not label or not path:
@@ -92,12 +133,28 @@ def main(argv=None) -> int:
     p.add_argument("--long", type=int, default=LONG, metavar="N",
                    help=f"contact runs of N steps or more count in the off-lane column (default {LONG})")
     p.add_argument("--csv", type=Path, default=None, help="also write the lines as CSV")
+    p.add_argument("--figure", type=Path, default=None, metavar="DIR",
+                   help="also draw the arms into DIR/arms.png and .pdf")
+    p.add_argument("--reference", default=None, metavar="NAME=RETURN",
+                   help="with --figure: a reference line, e.g. always-brake=-552.0")
     args = p.parse_args(argv)
+    ref_name, ref = "reference", None
+    if args.reference is not None:
+        ref_name, _, value = args.reference.rpartition("=")
+        try:
+            ref = float(value)
+        except ValueError:
+            raise SystemExit(f"variant_table: --reference {args.reference!r} is not NAME=RETURN; "
+                             "give e.g. always-brake=-552.0") from None
+        ref_name = ref_name or "reference"
     lines = pd.concat([arm_lines(label, path, args.long) for label, path in map(parse_arm, args.arms)],
                       ignore_index=True)
     if args.csv:
         lines.to_csv(args.csv, index=False)
     print(table(lines, args.long))
+    if args.figure:
+        for path in figure(lines, args.figure, ref, ref_name):
+            print(f"wrote {path}")
     return 0
 
 

@@ -76,3 +76,43 @@ def test_an_arm_without_a_label_or_records_is_refused_naming_it(variant, tmp_pat
         variant.main(["reports/x"])
     with pytest.raises(SystemExit, match=r"nowhere \(arm see\) does not exist"):
         variant.main([f"see={tmp_path / 'nowhere'}"])
+
+
+def test_the_figure_draws_each_arm_and_a_reference_line(variant, tmp_path, capsys):
+    plain = _report(tmp_path / "plain", [_ac("ac_2", 100, car_from=41, off_lane=True)])
+    see = _report(tmp_path / "see", [_ac("ac_2", 100)])
+    assert variant.main([f"see={see}", f"plain={plain}", "--figure", str(tmp_path / "fig"),
+                         "--reference", "always-brake=-552.0"]) == 0
+    assert (tmp_path / "fig" / "arms.png").stat().st_size > 0 and (tmp_path / "fig" / "arms.pdf").is_file()
+    assert "wrote" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match=r"--reference 'brake' is not NAME=RETURN"):
+        variant.main([f"see={see}", "--figure", str(tmp_path / "fig"), "--reference", "brake"])
+
+
+def test_the_figure_puts_each_arm_at_its_return_and_without_its_charge(variant, tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    lines = pd.DataFrame([
+        {"arm": "plain", "algorithm": "dqn", "return": -3100.0, "without contact charge": -100.0},
+        {"arm": "see", "algorithm": "dqn", "return": -100.0, "without contact charge": -100.0},
+        {"arm": "plain", "algorithm": "ppo", "return": -500.0, "without contact charge": -400.0}])
+    captured = {}
+
+    def keep(fig, out, stem):  # look at the axes before they are closed
+        captured["ax"] = fig.axes[0]
+        return []
+
+    import eval.reporting.figures as figures
+
+    saved, figures._save = figures._save, keep  # figure() imports _save when it draws
+    try:
+        variant.figure(lines, tmp_path, -552.0, "always-brake")
+    finally:
+        figures._save = saved
+    ax = captured["ax"]
+    filled = [ln for ln in ax.lines if ln.get_marker() == "o" and ln.get_markerfacecolor() != "white"]
+    xs = sorted(x for ln in filled for x in ln.get_xdata())
+    assert xs == [-3100.0, -500.0, -100.0]  # each arm's return, PPO in one arm only
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["PPO", "DQN"]  # the study's order
+    assert any(list(ln.get_xdata()) == [-552.0, -552.0] for ln in ax.lines)  # the reference
