@@ -28,7 +28,7 @@ from pathlib import Path
 import pandas as pd
 from contact_table import load as load_contact
 from contact_table import table as contact_table
-from stops import contact_runs, episode_rows, load_records
+from stops import LONG, contact_runs, episode_rows, load_records
 
 from eval.labels import algo_label, algo_order, env_title
 from eval.reporting.page import md_table
@@ -38,8 +38,6 @@ from eval.testing.validity import DEGENERATE
 
 REFERENCES = {"autopilot": "autopilot", "autopilot-discrete": "discrete autopilot",
               "safe-non-turner": "safe non-turner", "always-brake": "always-brake"}
-LONG = 50
-"""Contact steps in one unbroken run that count as a long run (as on the contact-runs page)."""
 TRAINING_CODE = ("cosim", "agents", "sumo_nets", "eval/training", "eval/scale", "eval/cli")
 """What a trial's training runs or reads: trials whose commits differ only outside these trained
 on the same code (reports, studies and docs change no trial)."""

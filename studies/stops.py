@@ -41,6 +41,10 @@ from eval.testing.metrics import distance_driven
 MOVING = 0.1
 """m/s: a step at this speed or more counts as moving."""
 
+LONG = 50
+"""Contact steps in one unbroken run that make a long run (the contact-runs page's ``--long 50``;
+part pages and studies/variant_table.py count with it)."""
+
 AC_CONTACT_M = 5.0
 """m between two ACs' centres within which a vehicle contact is counted as one with an AC: two
 4.5 m x 1.8 m footprints (cosim/dynamics.py) can touch only closer than their diagonal, 4.85 m."""

@@ -21,21 +21,17 @@ import sys
 from pathlib import Path
 
 import pandas as pd
-from stops import contact_runs, episode_rows, load_records
+from stops import LONG, contact_runs, episode_rows, load_records
 
 from eval.labels import algo_label, algo_order
 from eval.reporting.page import md_table
 from eval.reporting.science import with_turning
 
-LONG = 50
-"""Contact steps in one unbroken run that count as a long run (as on the contact-runs page)."""
-
 
 def arm_lines(label: str, report: Path, long: int = LONG) -> pd.DataFrame:
     """One line per algorithm of one arm's records (a `cosim test` report folder or a records
     parquet): Scenario 1 means over its AC-episodes and Scenario 2's where present."""
-    rows = episode_rows(report)
-    rows = with_turning(rows)
+    rows = with_turning(episode_rows(report))
     runs = contact_runs(load_records(report), long)
     unseen = (runs[(runs["with"] == "car") & (runs["partner"] == "") & runs["off lane at first"]]
               if len(runs) else runs)

@@ -89,7 +89,7 @@ def test_the_figure_draws_each_arm_and_a_reference_line(variant, tmp_path, capsy
         variant.main([f"see={see}", "--figure", str(tmp_path / "fig"), "--reference", "brake"])
 
 
-def test_the_figure_puts_each_arm_at_its_return_and_without_its_charge(variant, tmp_path):
+def test_the_figure_puts_each_arm_at_its_return_and_without_its_charge(variant, tmp_path, monkeypatch):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -105,11 +105,8 @@ def test_the_figure_puts_each_arm_at_its_return_and_without_its_charge(variant, 
 
     import eval.reporting.figures as figures
 
-    saved, figures._save = figures._save, keep  # figure() imports _save when it draws
-    try:
-        variant.figure(lines, tmp_path, -552.0, "always-brake")
-    finally:
-        figures._save = saved
+    monkeypatch.setattr(figures, "_save", keep)  # figure() imports _save when it draws
+    variant.figure(lines, tmp_path, -552.0, "always-brake")
     ax = captured["ax"]
     filled = [ln for ln in ax.lines if ln.get_marker() == "o" and ln.get_markerfacecolor() != "white"]
     xs = sorted(x for ln in filled for x in ln.get_xdata())
