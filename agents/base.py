@@ -105,29 +105,39 @@ def _dims(space_or_array) -> str:
     return _shape(shape)
 
 
+def observation_variant(space_or_obs) -> str:
+    """Which of cosim's ``--obs`` variants an observation space (or one observation) is: "nav"
+    for ``Dict(image, measurements)``, "image" for an (H, W, C) image, "state" for a flat
+    vector (the state track, cosim.state; any vector observation reads so)."""
+    if is_nav_space(space_or_obs) or isinstance(space_or_obs, Mapping):
+        return "nav"
+    shape = space_or_obs.shape if hasattr(space_or_obs, "shape") else np.shape(space_or_obs)
+    return "image" if len(shape) == 3 else "state"
+
+
 def describe_observation(space_or_obs) -> str:
     """The variant of an observation space (or of one observation) in words, as the refusals
-    name it: ``nav observations (84x84x12 image + 7 measurements)`` or ``image observations
-    (84x84x12)``."""
-    if is_nav_space(space_or_obs) or isinstance(space_or_obs, Mapping):
+    name it: ``nav observations (84x84x12 image + 7 measurements)``, ``image observations
+    (84x84x12)`` or ``state observations (65)``."""
+    variant = observation_variant(space_or_obs)
+    if variant == "nav":
         return (f"nav observations ({_dims(space_or_obs['image'])} image + "
                 f"{_dims(space_or_obs['measurements'])} measurements)")
-    return f"image observations ({_dims(space_or_obs)})"
+    return f"{variant} observations ({_dims(space_or_obs)})"
 
 
 def check_variant(trained: gymnasium.Space, given, what: str) -> None:
-    """Refuse observations (a space or one observation) of the other variant than ``trained``:
-    the camera image alone or with the nav measurements (cosim's ``--obs image|nav``), in one
-    line naming both and the fix (every checkpoint records its space, Box or Dict).
+    """Refuse observations (a space or one observation) of another variant than ``trained``:
+    the camera image alone, with the nav measurements, or a state vector (cosim's ``--obs
+    image|nav|state``, :func:`observation_variant`), in one line naming both and the fix (every
+    checkpoint records its space, Box or Dict).
 
     Raises:
-        ObservationError: one is a nav observation and the other is not.
+        ObservationError: the variants differ.
     """
-    trained_nav = is_nav_space(trained)
-    given_nav = is_nav_space(given) or isinstance(given, Mapping)
-    if trained_nav == given_nav:
+    variant = observation_variant(trained)
+    if variant == observation_variant(given):
         return
-    variant = "nav" if trained_nav else "image"
     raise ObservationError(
         f"{what} was trained on {describe_observation(trained)} but is given "
         f"{describe_observation(given)}; use --obs {variant} (the run's obs) with it")

@@ -16,6 +16,13 @@ Spaces are plain dicts, not pickled objects, and every value is a tensor or a
 plain Python value, so loading uses ``torch.load(weights_only=True)``: a
 checkpoint cannot run code on the machine that loads it.
 
+Every file carries ``"checksum"``: the SHA-256 of its contents (every tensor's bytes, every
+value; :func:`content_digest`), checked at load, so a file changed after it was saved (a
+flipped byte on disk, a partial copy) is refused as corrupt rather than loaded with altered
+weights (files written before the checksum load unchecked). A save is atomic: the bytes go to
+``<name>.tmp`` (fsync'ed), then renamed; a failed write (a full disk) removes the ``.tmp``,
+leaves any previous file under the name as it was and raises :class:`CheckpointError`.
+
 Two kinds (``"kind"`` in the payload): a *full* checkpoint holds every network,
 optimizer state and counter, all that resuming training needs; a *policy*
 checkpoint (``save_checkpoint(..., policy_only=True)``) holds only the networks
@@ -32,9 +39,13 @@ float32.
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import importlib.metadata
+import io
 import logging
 import os
+import shutil
 import zlib
 from pathlib import Path
 from typing import Any
@@ -50,6 +61,7 @@ __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     "CheckpointError",
+    "content_digest",
     "load_checkpoint",
     "POLICY_DTYPES",
     "policy_state",
@@ -68,6 +80,69 @@ FORMAT_VERSION = 1
 
 class CheckpointError(AgentError):
     """A checkpoint file is missing, unreadable, of another format or another algorithm."""
+
+
+def _feed(h, obj) -> None:
+    """Feed ``obj`` (a checkpoint payload's value) into the hash ``h``, type-tagged."""
+    if isinstance(obj, torch.Tensor):
+        t = obj.detach().cpu().contiguous()
+        h.update(f"T{t.dtype}{tuple(t.shape)};".encode())
+        if t.numel():
+            h.update(memoryview(t.reshape(-1).view(torch.uint8).numpy()))
+    elif isinstance(obj, dict):
+        h.update(f"D{len(obj)};".encode())
+        for key in sorted(obj, key=repr):
+            _feed(h, key)
+            _feed(h, obj[key])
+    elif isinstance(obj, (list, tuple)):  # a tuple may come back a list: the same digest
+        h.update(f"L{len(obj)};".encode())
+        for item in obj:
+            _feed(h, item)
+    elif isinstance(obj, (bytes, bytearray)):
+        h.update(f"B{len(obj)};".encode())
+        h.update(obj)
+    else:  # str, bool, int, float, None: their repr is what they load back as
+        text = repr(obj).encode()
+        h.update(f"{type(obj).__name__}{len(text)};".encode())
+        h.update(text)
+
+
+def content_digest(payload: dict[str, Any]) -> str:
+    """The SHA-256 (hex) of a checkpoint payload's contents without its ``"checksum"``: what
+    :func:`save_checkpoint` stores and :func:`load_checkpoint` checks (module docstring)."""
+    h = hashlib.sha256()
+    _feed(h, {k: v for k, v in payload.items() if k != "checksum"})
+    return h.hexdigest()
+
+
+def _write(payload: dict[str, Any], path: Path) -> None:
+    """``payload`` with its checksum, to ``path`` atomically (module docstring).
+
+    Raises:
+        CheckpointError: the file could not be written (a full disk, a read-only folder),
+            naming the file, the reason and the free space.
+    """
+    payload = {**payload, "checksum": content_digest(payload)}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)  # in memory: a full disk is an OSError of the write below
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(buffer.getbuffer())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        try:
+            free = f"{shutil.disk_usage(path.parent).free / 1e6:.1f} MB free there"
+        except OSError:
+            free = "free space unknown"
+        hint = "the disk is full: free space" if err.errno in (errno.ENOSPC, errno.EDQUOT) else "fix the folder"
+        raise CheckpointError(
+            f"cannot write checkpoint {path} ({err.strerror or err}; {len(buffer.getbuffer()) / 1e6:.1f} MB "
+            f"needed, {free}); {hint}, then save again (a training run: `cosim train --resume RUN`)"
+        ) from err
 
 
 def _library_version() -> str:
@@ -207,9 +282,7 @@ def save_checkpoint(path, agent, policy_only: bool = False, policy_dtype: str = 
             "cosim-agents": _library_version(),
         },
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    _write(payload, path)
     logger.info("saved %s checkpoint to %s", agent.algo, path)
 
 
@@ -236,6 +309,18 @@ def _read(path: Path) -> dict[str, Any]:
             f"{FORMAT_VERSION}; load it with the cosim version that wrote it "
             f"({payload.get('versions', {}).get('cosim-agents', 'unknown')})"
         )
+    stored = payload.pop("checksum", None)  # None: written before checksums, loaded unchecked
+    if stored is not None:
+        try:
+            actual = content_digest(payload)
+        except Exception as err:  # a value no save writes (a corrupt file can unpickle to anything)
+            actual = f"unhashable ({type(err).__name__})"
+        if actual != stored:
+            raise CheckpointError(
+                f"checkpoint {path} is corrupt: its contents do not match the checksum saved with "
+                "them (the file changed on disk after it was written); use another copy or an "
+                "earlier checkpoint, or train again"
+            )
     return payload
 
 
@@ -262,9 +347,7 @@ def retune_checkpoint(path, config) -> None:
         rate = float(getattr(config, cls.optimizer_learning_rates[name]))
         for group in state.get("param_groups", []):
             group["lr"] = rate
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    _write(payload, path)
 
 
 def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None,
@@ -330,10 +413,12 @@ def load_checkpoint(path, device: str = "cpu", expected_algo: str | None = None,
         else:
             agent.load_state_dict(payload["state"])
         agent.policy_only = policy_only
-    except (KeyError, ValueError, TypeError, RuntimeError) as err:
+    except CheckpointError:
+        raise
+    except Exception as err:  # KeyError, ValueError, TypeError, RuntimeError, zlib.error, ...
         raise CheckpointError(
             f"checkpoint {path} ({algo}) does not match this library's {cls.__name__}: "
-            f"{type(err).__name__}: {str(err)[:300]}; it was written by versions "
+            f"{type(err).__name__}: {' '.join(str(err).split())[:300]}; it was written by versions "
             f"{payload.get('versions')}"
         ) from err
     logger.info("loaded %s checkpoint from %s", algo, path)

@@ -136,7 +136,16 @@ def worker_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
 
 
-def _die_with_owner(owner_pid: int, poll_s: float = 0.5) -> None:
+def die_with_owner(owner_pid: int, poll_s: float = 0.5, sig: int = signal.SIGKILL) -> None:
+    """Make this process (a worker any pool started, a child command) get ``sig`` when
+    ``owner_pid`` dies, even by SIGKILL: :func:`_die_with_owner`'s two guards. Call it first
+    thing in the child (a pool's initializer): ``cosim test --workers N``'s processes do
+    (eval/testing/protocol.py) with SIGKILL, ``cosim train --algo all``'s per-algorithm
+    commands with SIGTERM (handled as Ctrl-C: the run stops resumable, eval/cli/learn.py)."""
+    _die_with_owner(owner_pid, poll_s, sig)
+
+
+def _die_with_owner(owner_pid: int, poll_s: float = 0.5, sig: int = signal.SIGKILL) -> None:
     """Make sure this worker dies when its owner dies, even by SIGKILL.
 
     Nothing in the owner runs on SIGKILL, and a worker stuck in a simulator
@@ -150,14 +159,17 @@ def _die_with_owner(owner_pid: int, poll_s: float = 0.5) -> None:
         import ctypes
 
         pr_set_pdeathsig = 1
-        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(sig), 0, 0, 0)
     except (OSError, AttributeError):  # not Linux: the watchdog alone
         pass
 
     def watch() -> None:
         while live_pids([owner_pid]):
             time.sleep(poll_s)
-        os.kill(os.getpid(), signal.SIGKILL)
+        os.kill(os.getpid(), sig)
+        if sig != signal.SIGKILL:  # a signal the process handles (its cleanup): 30 s for it
+            time.sleep(30)
+            os.kill(os.getpid(), signal.SIGKILL)
 
     threading.Thread(target=watch, name="owner-watchdog", daemon=True).start()
 

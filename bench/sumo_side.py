@@ -6,8 +6,10 @@ policy itself costs nothing), resetting whenever every AC is done; resets are no
 timed. Prints steps/s (median of repeats) and the time split per phase; then, with 6 ACs, the
 cost of the junction gate (``SumoBridge.gate_entries``: SUMO's cars and people wait for
 an AC on their path): the same runs with the gate switched off, interleaved on/off.
+With ``--cars-see``, only the cost of ``Scenario.cars_see_acs`` (SUMO's cars and people stop
+for an AC's body anywhere on their path; on by default): 6 ACs with it on and off, interleaved.
 
-    python bench/sumo_side.py [--steps 3000] [--repeats 3]
+    python bench/sumo_side.py [--steps 3000] [--repeats 3] [--cars-see]
 """
 
 from __future__ import annotations
@@ -18,14 +20,19 @@ import time
 
 import numpy as np
 
+from cosim.scenario import load_scenario
 from cosim.sumo_bridge import SumoBridge
 from cosim.world import World
 
 
-def run(num_acs: int, steps: int, seed: int) -> tuple[float, dict[str, float]]:
+def run(num_acs: int, steps: int, seed: int,
+        cars_see_acs: bool | None = None) -> tuple[float, dict[str, float]]:
     rng = np.random.default_rng(seed)
     phases = {"dynamics": 0.0, "sumo": 0.0, "snapshot": 0.0, "events": 0.0}
-    with World("env_3", num_acs) as w:
+    scenario = load_scenario("env_3")
+    if cars_see_acs is not None:  # else the scenario's own (on)
+        scenario = scenario.with_overrides(cars_see_acs=cars_see_acs)
+    with World(scenario, num_acs) as w:
         w.reset(seed=seed)
         done = 0
         elapsed = 0.0
@@ -48,7 +55,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--cars-see", action="store_true",
+                        help="only 6 ACs with Scenario.cars_see_acs on and off, interleaved")
     args = parser.parse_args()
+    if args.cars_see:
+        cars_see_cost(args.steps, args.repeats)
+        return
     print("| ACs | steps/s (median) | dynamics ms | SUMO ms | snapshot ms | events+reward ms |")
     print("|---|---|---|---|---|---|")
     for n in (1, 3, 6):
@@ -75,6 +87,19 @@ def gate_cost(steps: int, repeats: int) -> None:
     on, off = statistics.median(rates["on"]), statistics.median(rates["off"])
     print("\n| 6 ACs | steps/s (median) |\n|---|---|")
     print(f"| gate on | {on:.0f} |\n| gate off | {off:.0f} |\n| on / off | {on / off:.2f} |")
+
+
+def cars_see_cost(steps: int, repeats: int) -> None:
+    """6 ACs with Scenario.cars_see_acs on and off, interleaved; medians and their ratio."""
+    rates: dict[bool, list[float]] = {True: [], False: []}
+    for r in range(repeats):
+        for see in (True, False):
+            rates[see].append(run(6, steps, seed=10 + r, cars_see_acs=see)[0])
+    on, off = statistics.median(rates[True]), statistics.median(rates[False])
+    print("| 6 ACs | steps/s (median) |\n|---|---|")
+    print(f"| cars_see_acs on | {on:.0f} |\n| cars_see_acs off | {off:.0f} |\n| on / off | {on / off:.2f} |")
+    print("runs (on):", " ".join(f"{x:.0f}" for x in rates[True]))
+    print("runs (off):", " ".join(f"{x:.0f}" for x in rates[False]))
 
 
 if __name__ == "__main__":

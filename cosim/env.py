@@ -1,4 +1,4 @@
-"""cosim_v0: the multi-agent urban driving environment (PettingZoo ParallelEnv).
+"""cosim_v4: the multi-agent urban driving environment (PettingZoo ParallelEnv).
 
 Agents
     ``ac_0`` .. ``ac_{N-1}``: learning cars (ACs), N = 1..6 (``num_agents``), fixed
@@ -9,33 +9,43 @@ Observation (per agent)
     windshield, ~90 degree field of view, S = ``image_size`` (default 84),
     rendered by the PyBullet mirror of the SUMO world. ``parallel_env(frame_stack=K)``
     stacks the last K (``cosim train`` trains on K = 4; docs/task.md, "Observation").
+    ``camera=False`` (``parallel_env(obs="state")``): the state track, ``Box((65,), float32)``
+    per agent (cosim.state: speed, route geometry, goal, previous control, next signal,
+    nearest vehicles and pedestrians), and no PyBullet mirror is built or rendered.
 Action (per agent, mixed in one env)
     ``Discrete(9)``: the paper's (throttle/brake, steer) table (SPEC §2), or
     ``Box(-1, 1, (2,), float32)``: (throttle(+)/brake(-), steer). No reverse.
 Reward (per agent, per step; weights from the scenario YAML)
-    collision (-50 per step in collision with a car, object or pedestrian)
+    collision (-50 once per collision event with a car, object or pedestrian: one event per
+    other actor, the same one again within 5 s being the same event; ``collision_charge="step"``
+    charges every contact step, task version 3; docs/task.md, "Collision rule")
     + efficiency (10 * (metres gained towards the goal + speed / speed limit))
     + lane (-0.5 per step off the road or outside its lanes) + step (-1).
     Each weighted term is in ``infos[agent]["reward_terms"]``.
 Termination
     goal reached, leaving the region; truncation at ``horizon`` steps. A collision
     does not end the episode (the test's rule, the default for training too: each
-    contact step is charged); ``terminate_on_collision=True`` is the paper's training
-    rule (docs/task.md, "Training rule").
+    collision event is charged once, and a car or object the AC drives into stops it where it
+    was); ``terminate_on_collision=True`` is the paper's training rule.
 Infos
-    every event (collision_vehicle / _pedestrian / _object, off_road, wrong_lane,
-    goal_reached, out_of_region), distance_to_goal, progress, speed, x, y,
+    every event (collision_vehicle / _pedestrian / _object: in contact this step;
+    event_vehicle / _pedestrian / _object: a new collision event this step; off_road,
+    wrong_lane, red_light, goal_reached, out_of_region), route_completion (0..1 so far),
+    distance_to_goal, progress, speed, x, y,
     heading, reward_terms, n_vehicles and n_pedestrians (others in the region),
     spawn_x/y, goal_x/y, time (simulated seconds); on an agent's last step also
     ``cosim_episode`` (not ``episode``, which Gymnasium's RecordEpisodeStatistics,
     ``gym.make_vec`` and SB3's Monitor write): its unscaled return, length, sum of
     each reward term (r_*), count of steps with each event (n_*), mean speed,
-    DISTANCE and whether it reached the goal.
+    DISTANCE, whether it reached the goal, route_completion, infraction_penalty,
+    driving_score and success (goal with no infraction; cosim/score.py).
 Arguments
     scenario (name like ``env_3`` or a YAML path), num_agents, action_types
     ("discrete", "continuous", or one per agent), seed, image_size, background,
     pedestrians, terminate_on_collision, horizon, renderer ("tiny", "egl",
     "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci"),
+    collision_charge ("event" or "step": overrides the scenario's Contact.charge),
+    camera (default True; False: the state track, no PyBullet mirror; see Observation),
     reward_scale (> 0, default 1.0: multiplies the returned rewards; reward_terms
     and ``cosim_episode`` stay unscaled), stall_truncate (a training option: truncate
     every AC's episode once all have stood still that many steps; Termination.stall_truncate).
@@ -43,7 +53,9 @@ Pickling
     ``pickle`` and ``copy.deepcopy`` rebuild the environment from its constructor
     arguments (SUMO and PyBullet state cannot be copied): the copy starts un-reset.
 Version history
-    v0: first release.
+    The id's suffix is ``cosim.TASK_VERSION``: v4 (2026-12-01) charges a contact once per
+    collision event, makes cars ahead solid, has traffic see ACs off their lanes and adds the
+    driving score; v0 was the name of task versions 1-3 (see ``cosim.TASK_VERSION``).
 """
 
 from __future__ import annotations
@@ -61,7 +73,10 @@ from pettingzoo import ParallelEnv
 from cosim.dynamics import action_to_control
 from cosim.errors import ActionError, EnvStateError, OptionError, ScenarioError
 from cosim.events import EVENT_FLAGS
-from cosim.scenario import Scenario, load_scenario
+from cosim.scenario import CONTACT_CHARGES, Scenario, load_scenario
+from cosim.score import driving_score, infraction_penalty
+from cosim.state import state_space as _state_space
+from cosim.state import state_vectors
 from cosim.world import World
 
 log = logging.getLogger(__name__)
@@ -76,7 +91,7 @@ EPISODE_EVENTS = (*(e for e in EVENT_FLAGS if e not in ("goal_reached", "out_of_
 class CosimParallelEnv(ParallelEnv):
     """See the module docstring (the spec card)."""
 
-    metadata = {"name": "cosim_v0", "render_modes": ["rgb_array"], "render_fps": 10,
+    metadata = {"name": "cosim_v4", "render_modes": ["rgb_array"], "render_fps": 10,
                 "is_parallelizable": True}
 
     def __init__(
@@ -95,6 +110,8 @@ class CosimParallelEnv(ParallelEnv):
         backend: str = "auto",
         reward_scale: float = 1.0,
         stall_truncate: int | None = None,
+        collision_charge: str | None = None,
+        camera: bool = True,
     ):
         # everything pickle / deepcopy need to rebuild this env (see __getstate__)
         self._init_kwargs = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
@@ -107,6 +124,11 @@ class CosimParallelEnv(ParallelEnv):
             )
         if horizon is not None:
             sc = sc.with_overrides(horizon=int(horizon))
+        if collision_charge is not None:  # Contact.charge: "event" (the default) or "step"
+            if collision_charge not in CONTACT_CHARGES:
+                raise ValueError(f"collision_charge must be one of {', '.join(CONTACT_CHARGES)}, "
+                                 f"got {collision_charge!r}")
+            sc = sc.with_overrides(contact=dataclasses.replace(sc.contact, charge=collision_charge))
         if stall_truncate is not None:  # a training option (Termination.stall_truncate)
             sc = sc.with_overrides(
                 termination=dataclasses.replace(sc.termination, stall_truncate=stall_truncate)
@@ -127,7 +149,10 @@ class CosimParallelEnv(ParallelEnv):
         self.possible_agents = list(self._world.ac_ids)
         self.agents: list[str] = []
         self.action_types = _resolve_action_types(action_types, self.possible_agents)
-        self._obs_space = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
+        self._camera = bool(camera)
+        self._obs_space = (spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
+                           if self._camera else _state_space())
+        self._last_controls: dict[str, tuple[float, float]] = {}
         self._action_spaces = {
             a: spaces.Discrete(9) if t == "discrete" else spaces.Box(-1.0, 1.0, (2,), np.float32)
             for a, t in self.action_types.items()
@@ -167,8 +192,9 @@ class CosimParallelEnv(ParallelEnv):
                 self._action_spaces[a].seed(int(seed) + i)
         sumo_seed = int(seed) if seed is not None else int(self._rng.integers(0, 2**31 - 1))
         results = self._world.reset(seed=sumo_seed)
-        if self._mirror is None:
+        if self._mirror is None and self._camera:
             self._mirror = self._make_mirror()
+        self._last_controls = {}
         self.agents = list(self._world.active)
         self._episode: dict[str, dict] = {}
         self._needs_reset = False
@@ -185,6 +211,7 @@ class CosimParallelEnv(ParallelEnv):
         if not self.agents:
             raise EnvStateError("every agent is done; call env.reset() to start a new episode")
         controls = self._controls(actions)
+        self._last_controls.update(controls)
         t0 = time.perf_counter()
         results = self._world.step(controls)
         t1 = time.perf_counter()
@@ -207,8 +234,12 @@ class CosimParallelEnv(ParallelEnv):
         if self.render_mode is None:
             log.warning("render() called with render_mode=None; pass render_mode='rgb_array'")
             return None
-        if self._mirror is None:
+        if self._needs_reset or self._world.snapshot is None:
             raise EnvStateError("render() called before reset()")
+        if not self._camera:  # the state track: a mirror only for this overview, built on demand
+            if self._mirror is None:
+                self._mirror = self._make_mirror()
+            self._mirror.sync(self._world.snapshot)
         return self._mirror.overview()
 
     def close(self) -> None:
@@ -245,6 +276,29 @@ class CosimParallelEnv(ParallelEnv):
         return self._last_infos
 
     @property
+    def last_controls(self) -> dict[str, tuple[float, float]]:
+        """Each AC's (throttle/brake, steer) of the last step it took this episode (none after a
+        reset): the previous control in the state vector (cosim.state.agent_state)."""
+        return self._last_controls
+
+    @property
+    def camera(self) -> bool:
+        """Whether the ACs observe their cameras (else their state vectors, cosim.state)."""
+        return self._camera
+
+    def cameras_off(self) -> None:
+        """Switch to the state track: each AC observes its state vector (cosim.state) and no
+        PyBullet mirror is built (one already built is closed). Call it before the spaces are
+        read and before a reset (cosim.wrappers.observation_wrappers does, for ``obs="state"``,
+        on an env built with the camera's default)."""
+        self._camera = False
+        self._init_kwargs["camera"] = False
+        self._obs_space = _state_space()
+        if self._mirror is not None:
+            self._mirror.close()
+            self._mirror = None
+
+    @property
     def mirror(self):
         return self._mirror
 
@@ -257,6 +311,11 @@ class CosimParallelEnv(ParallelEnv):
     def _observe(self, agents: list[str]) -> dict[str, np.ndarray]:
         if not agents:
             return {}
+        if not self._camera:
+            t0 = time.perf_counter()
+            states = state_vectors(self._world, agents, self._last_controls)
+            self.timings["state"] = self.timings.get("state", 0.0) + time.perf_counter() - t0
+            return {a: states[i] for i, a in enumerate(agents)}
         t0 = time.perf_counter()
         self._mirror.sync(self._world.snapshot)
         t1 = time.perf_counter()
@@ -321,6 +380,13 @@ class CosimParallelEnv(ParallelEnv):
             ep["distance_to_goal"] = info["distance_to_goal"]
             gx, gy, sx, sy = info["goal_x"], info["goal_y"], info["spawn_x"], info["spawn_y"]
             ep["DISTANCE"] = float(np.hypot(gx - sx, gy - sy) - np.hypot(gx - info["x"], gy - info["y"]))
+            # the driving score (cosim/score.py; docs/task.md, "Driving score")
+            ep["route_completion"] = float(info["route_completion"])
+            ep["infraction_penalty"] = infraction_penalty(
+                ep["n_event_vehicle"], ep["n_event_pedestrian"], ep["n_event_object"], ep["n_red_light"]
+            )
+            ep["driving_score"] = driving_score(ep["route_completion"], ep["infraction_penalty"])
+            ep["success"] = ep["goal_reached"] and ep["infraction_penalty"] == 1.0
             info[EPISODE_INFO] = ep
 
     def _check_agent(self, agent: str) -> None:
@@ -378,10 +444,19 @@ def parallel_env(scenario: str | Scenario = "env_3", frame_stack: int = 1, obs: 
     ``frame_stack`` K > 1 gives each AC its last K camera frames (cosim.wrappers.FrameStack),
     the observation ``cosim train`` uses by default (K = 4); ``obs="nav"`` adds the
     measurements vector beside them in a Dict (cosim.wrappers.NavObservation; docs/task.md,
-    "Observation").
+    "Observation"); ``obs="state"`` is the state track: a 65-number vector per AC and the
+    cameras off (``CosimParallelEnv(camera=False)``, cosim.state; frame_stack must be 1).
     """
-    from cosim.wrappers import check_frame_stack, check_obs_variant, observation_wrappers
+    from cosim.wrappers import (
+        check_frame_stack,
+        check_obs_variant,
+        check_state_stack,
+        observation_wrappers,
+    )
 
     check_frame_stack(frame_stack)  # before SUMO and PyBullet are set up
     check_obs_variant(obs)
+    check_state_stack(obs, frame_stack)
+    if obs == "state":
+        kwargs.setdefault("camera", False)
     return observation_wrappers(CosimParallelEnv(scenario, **kwargs), frame_stack=frame_stack, obs=obs)

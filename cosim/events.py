@@ -21,7 +21,7 @@ What the world measures, so that only driving pays (docs/scenarios.md):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -33,9 +33,14 @@ from cosim.sumo_bridge import PERSON_RADIUS, Snapshot
 REWARD_TERMS = ("collision", "efficiency", "lane", "step", "red_light")
 EVENT_FLAGS = (
     "collision_vehicle", "collision_pedestrian", "collision_object", "off_road", "wrong_lane",
-    "red_light", "goal_reached", "out_of_region",
+    "red_light", "goal_reached", "out_of_region", "event_vehicle", "event_pedestrian",
+    "event_object",
 )
-"""The per-step boolean events of one AC, in report order (records, CSV counts, CLI)."""
+"""The per-step boolean events of one AC, in report order (records, CSV counts, CLI).
+``collision_*``: in contact this step (the paper's CV/CO/CP count these steps); ``event_*``:
+a new collision event starts this step (what the collision weight charges by default and the
+driving score's infraction penalty counts; docs/task.md, "Collision rule")."""
+COLLISION_KINDS = ("vehicle", "pedestrian", "object")
 RED = "rR"  # SUMO signal states that forbid entering the junction
 # A footprint corner may overhang the drivable surface by this much (metres) before the car
 # counts as off-road: the kerb and the raster's 0.25 m cells make a harder test flag clean turns.
@@ -68,10 +73,23 @@ class Events:
     """Velocity along the route's direction at the car, m/s (negative when driving against it)."""
     hit: str = ""
     """Id of what it collided with this step (first found), for people reading logs."""
+    event_vehicle: bool = False
+    """A new collision event with a vehicle starts this step (World's per-actor count)."""
+    event_pedestrian: bool = False
+    event_object: bool = False
+    route_completion: float = 0.0
+    """The AC-episode's route completion so far, 0..1 (cosim/score.py)."""
+    touching: list = field(default_factory=list)
+    """(kind, id) of every actor in contact this step, kind in COLLISION_KINDS (not in infos)."""
 
     @property
     def collision(self) -> bool:
         return self.collision_vehicle or self.collision_pedestrian or self.collision_object
+
+    @property
+    def collision_event(self) -> bool:
+        """A new collision event of any kind starts this step."""
+        return self.event_vehicle or self.event_pedestrian or self.event_object
 
     @property
     def lane_violation(self) -> bool:
@@ -86,7 +104,7 @@ class Events:
         return d
 
 
-_EVENT_FIELDS = tuple(f.name for f in fields(Events))
+_EVENT_FIELDS = tuple(f.name for f in fields(Events) if f.name != "touching")
 
 
 def detect_all(
@@ -117,15 +135,16 @@ def detect_all(
         d = np.hypot(xy[:, None, 0] - vxy[None, :, 0], xy[:, None, 1] - vxy[None, :, 1])
         for i, j in zip(*np.nonzero(d <= reach + other_reach[None, :]), strict=True):
             ev = events[i]
-            if ev.collision_vehicle or snapshot.vehicle_ids[j] == ac_ids[i]:
+            if snapshot.vehicle_ids[j] == ac_ids[i]:
                 continue
             other = rect_corners(
                 vxy[j, 0], vxy[j, 1], snapshot.vehicle_heading[j],
                 snapshot.vehicle_length[j], snapshot.vehicle_width[j],
             )
             if convex_overlap(corners[i], other):
+                ev.hit = ev.hit if ev.collision_vehicle else snapshot.vehicle_ids[j]
                 ev.collision_vehicle = True
-                ev.hit = snapshot.vehicle_ids[j]
+                ev.touching.append(("vehicle", snapshot.vehicle_ids[j]))
     pxy = snapshot.person_xy
     if len(pxy):
         # SUMO's pedestrians do not avoid cars: one that walks into a standing car is not
@@ -135,17 +154,17 @@ def detect_all(
             ev = events[i]
             if speed[i] < PEDESTRIAN_MIN_SPEED:
                 continue
-            if not ev.collision_pedestrian and rect_circle_overlap(
-                corners[i], pxy[j, 0], pxy[j, 1], PERSON_RADIUS
-            ):
+            if rect_circle_overlap(corners[i], pxy[j, 0], pxy[j, 1], PERSON_RADIUS):
                 ev.collision_pedestrian = True
                 ev.hit = ev.hit or snapshot.person_ids[j]
+                ev.touching.append(("pedestrian", snapshot.person_ids[j]))
     for i, k in roadmap.objects_near_many(xy, reach):
         ev = events[i]
         obj = roadmap.objects[k]
-        if not ev.collision_object and convex_overlap(corners[i], obj.polygon):
+        if convex_overlap(corners[i], obj.polygon):
             ev.collision_object = True
             ev.hit = ev.hit or obj.id
+            ev.touching.append(("object", obj.id))
 
     inner = rect_corners_many(
         xy, heading, length - 2 * OFFROAD_TOLERANCE, width - 2 * OFFROAD_TOLERANCE
@@ -183,14 +202,18 @@ def is_red(signals: dict[str, str], tls: str, link: int) -> bool:
     return link < len(state) and state[link] in RED
 
 
-def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float) -> dict[str, float]:
-    """The weighted reward terms of SPEC §3; the reward is their sum."""
+def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float,
+                 per_step: bool = False) -> dict[str, float]:
+    """The weighted reward terms (docs/task.md, "Collision rule"); the reward is their sum.
+
+    The collision weight charges each new collision event (``ev.collision_event``), or, with
+    ``per_step`` (``Contact.charge == "step"``, task version 3), every step in contact."""
     # F: speed along the route, not along the car's heading, and negative when driving
     # against it, so that circling at speed averages to nothing (policies exploited both
     # the heading version and a [0, 1] clip; see docs/design.md, "F, the speed term")
     forward = min(max(ev.route_speed / speed_limit, -1.0), 1.0)
     return {
-        "collision": weights.collision * float(ev.collision),
+        "collision": weights.collision * float(ev.collision if per_step else ev.collision_event),
         "efficiency": weights.efficiency * (ev.progress + forward),
         "lane": weights.lane * float(ev.lane_violation),
         "step": weights.step,

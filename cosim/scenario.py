@@ -58,7 +58,7 @@ class RewardWeights:
     """Weights of the named reward terms (SPEC §3): R = sum of weight * term."""
 
     collision: float = -50.0
-    """Per step in collision with a vehicle, road object or pedestrian."""
+    """Per collision event with a vehicle, road object or pedestrian (``Contact.charge``)."""
     efficiency: float = 10.0
     """Multiplies (progress towards the goal in metres + forward speed / speed limit)."""
     lane: float = -0.5
@@ -75,9 +75,10 @@ class Termination:
     """When an AC's episode ends early."""
 
     on_collision: bool = False
-    """End the AC's episode at its first collision. Off (the default): the test's rule, used in
-    training too, the episode goes on and each contact step is charged; on: the paper's
-    training rule (``cosim train --collisions end``). Why: docs/task.md, "Training rule"."""
+    """End the AC's episode at its first collision (charged once). Off (the default): the test's
+    rule, used in training too, the episode goes on and each collision event is charged once
+    (``Contact``); on: the paper's training rule (``cosim train --collisions end``). Why:
+    docs/task.md, "Collision rule"."""
     on_goal: bool = True
     """End the AC's episode when it reaches its goal."""
     on_offroad: bool = False
@@ -92,13 +93,44 @@ class Termination:
     yellow signal within 30 m ahead) for this many consecutive steps. Truncated, not
     terminated: the learners bootstrap from the standing state's value, as at the horizon, so
     the return the test charges is unchanged and the next episode starts instead of the
-    steps left of standing (``cosim train --stall-truncate N``; docs/task.md, Training rule)."""
+    steps left of standing (``cosim train --stall-truncate N``; docs/task.md, Collision rule)."""
 
     def __post_init__(self) -> None:
         if not self.goal_radius > 0:
             raise ValueError(f"goal_radius must be > 0 metres, got {self.goal_radius}")
         if isinstance(self.stall_truncate, bool) or not isinstance(self.stall_truncate, int) or self.stall_truncate < 0:
             raise ValueError(f"stall_truncate must be a whole number of steps >= 0 (0: off), got {self.stall_truncate!r}")
+
+
+CONTACT_CHARGES = ("event", "step")
+"""``Contact.charge``: once per collision event (the default) or every step in contact."""
+CONTACT_FAULTS = ("both", "at_fault")
+"""``Contact.fault``: who of a vehicle contact is charged (docs/task.md, "Collision rule")."""
+
+
+@dataclass(frozen=True)
+class Contact:
+    """How a contact is charged (docs/task.md, "Collision rule")."""
+
+    charge: str = "event"
+    """``event`` (the default since task version 4): the collision weight once per collision
+    event, one event per other actor, the same actor again within ``window`` seconds of its last
+    charged event being the same event (the CARLA Leaderboard's count); ``step``: every step in
+    contact (task version 3, ``cosim train --collisions step``)."""
+    window: float = 5.0
+    """Seconds after a charged event with one actor during which contact with it is that event."""
+    fault: str = "both"
+    """``both`` (the default): every AC in a contact is charged; ``at_fault``: an AC is charged
+    for a vehicle contact only when it drove into the other (it moved at >= 0.5 m/s and the
+    other's centre lies ahead of its own), as nuPlan counts at-fault collisions."""
+
+    def __post_init__(self) -> None:
+        if self.charge not in CONTACT_CHARGES:
+            raise ValueError(f"charge must be one of {', '.join(CONTACT_CHARGES)}, got {self.charge!r}")
+        if self.fault not in CONTACT_FAULTS:
+            raise ValueError(f"fault must be one of {', '.join(CONTACT_FAULTS)}, got {self.fault!r}")
+        if not 0.0 < self.window < float("inf"):
+            raise ValueError(f"window must be a finite number of seconds > 0, got {self.window!r}")
 
 
 @dataclass(frozen=True)
@@ -221,20 +253,25 @@ class Scenario:
     background: Background = field(default_factory=Background)
     pedestrians: bool = False
     """Whether the pedestrian demand runs (env_2 and env_3)."""
-    solid_cars: bool = False
-    """Whether cars are solid for an AC, as road objects are: an AC whose step ends in contact
-    with a vehicle ahead of it (the first one found, its centre in front of the AC's) is put
-    back where it was before the step, standing; that step is charged as any contact step. Off
-    in every bundled scenario (task version 3: an AC can drive through a car, charged each
-    contact step). A candidate for the next task version: docs/task.md, "Solid cars"."""
-    cars_see_acs: bool = False
-    """Whether SUMO's background cars brake for an AC anywhere on their lane ahead, not only for
-    one SUMO has mapped onto that lane as their leader: a car on a lane is held (speed 0) while
-    an AC's body, its centre ahead of the car's front, lies on the car's path ahead within its
-    stopping distance + SEE_BUFFER m (cosim/sumo_bridge.py ``SumoBridge._cars_seeing``). Off in
-    every bundled scenario (task version 3: an AC standing across or beside a lane is invisible
-    to the cars on it). docs/task.md, "Cars that see an AC anywhere"."""
+    solid_cars: bool = True
+    """Whether cars are solid for an AC, as road objects are: an AC whose move brings it into
+    contact with a vehicle ahead of it (its centre in front of the AC's; one the AC did not
+    already touch before the move) is put back where it was before the step, standing, with no
+    progress credited for that step. On by default since task version 4, so that no AC drives
+    through a car for one charge (docs/task.md, "Collision rule"); off: an AC can drive through
+    a car (task version 3)."""
+    cars_see_acs: bool = True
+    """Whether SUMO's background cars and people stop for an AC's body in their path wherever it
+    is, not only for one SUMO has mapped onto their lane as their leader: a car on a lane is held
+    (speed 0) while an AC's body, its centre ahead of the car's front, lies on the car's path
+    ahead within its stopping distance + SEE_BUFFER m (cosim/sumo_bridge.py
+    ``SumoBridge._cars_seeing``); a walking person is held while an AC's body lies on its next
+    PERSON_AHEAD m of walk (``SumoBridge._people_seeing``). On by default since task version 4
+    (false: task version 3, where an AC standing across or beside a lane is invisible to the
+    cars on it). docs/task.md, "Cars that see an AC anywhere"."""
     reward: RewardWeights = field(default_factory=RewardWeights)
+    contact: Contact = field(default_factory=Contact)
+    """How a contact is charged (once per event by default) and who is charged."""
     termination: Termination = field(default_factory=Termination)
     spawn_jitter: SpawnJitter = field(default_factory=SpawnJitter)
     """Random spawn-pose offsets per reset (none by default)."""
@@ -365,6 +402,7 @@ def _scenario_from_dict(data: dict[str, Any], path: Path) -> Scenario:
         "region": Region,
         "background": Background,
         "reward": RewardWeights,
+        "contact": Contact,
         "termination": Termination,
         "spawn_jitter": SpawnJitter,
     }

@@ -12,11 +12,11 @@ from cosim.env import CosimParallelEnv
 from cosim.scenario import Scenario
 
 GYM_IDS = {
-    "cosim/Straight-v0": "env_1",
-    "cosim/ThreeWay-v0": "env_2",
-    "cosim/FourWay-v0": "env_3",
-    "cosim/Roundabout-v0": "env_4",
-    "cosim/Merge-v0": "env_5",
+    "cosim/Straight-v4": "env_1",
+    "cosim/ThreeWay-v4": "env_2",
+    "cosim/FourWay-v4": "env_3",
+    "cosim/Roundabout-v4": "env_4",
+    "cosim/Merge-v4": "env_5",
 }
 
 
@@ -26,17 +26,26 @@ class SingleAgentEnv(gym.Env):
     ``frame_stack`` K > 1 observes the last K camera frames, as ``cosim train`` does by
     default (K = 4; docs/task.md, "Observation"); 1 (the default here) the camera itself.
     ``obs="nav"``: a Dict of those frames and the measurements vector
-    (cosim.wrappers.NavObservation).
+    (cosim.wrappers.NavObservation); ``obs="state"``: the state track, a 65-number vector with
+    the camera off (cosim.state; frame_stack 1).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, scenario: str | Scenario = "env_1", action_type: str = "discrete",
                  render_mode: str | None = None, frame_stack: int = 1, obs: str = "image", **kwargs):
-        from cosim.wrappers import check_frame_stack, check_obs_variant, observation_wrappers
+        from cosim.wrappers import (
+            check_frame_stack,
+            check_obs_variant,
+            check_state_stack,
+            observation_wrappers,
+        )
 
         check_frame_stack(frame_stack)
         check_obs_variant(obs)
+        check_state_stack(obs, frame_stack)
+        if obs == "state":
+            kwargs.setdefault("camera", False)
         self._env = observation_wrappers(CosimParallelEnv(
             scenario, num_agents=1, action_types=action_type, render_mode=render_mode, **kwargs
         ), frame_stack=frame_stack, obs=obs)
@@ -73,7 +82,7 @@ def single_env(scenario: str | Scenario = "env_1", **kwargs) -> SingleAgentEnv:
 
 
 def register_envs() -> None:
-    """Register the five environments with Gymnasium (``gym.make("cosim/FourWay-v0")``)."""
+    """Register the five environments with Gymnasium (``gym.make("cosim/FourWay-v4")``)."""
     for env_id, name in GYM_IDS.items():
         if env_id not in gym.registry:
             gym.register(env_id, entry_point="cosim.single:SingleAgentEnv",

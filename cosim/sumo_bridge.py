@@ -55,6 +55,10 @@ GATE_AHEAD = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # seconds: where an AC will be, for
 # margin for a car that brakes at its own rate from one step later): see _cars_seeing
 SEE_BUFFER = 8.0
 SEE_NEAR = 45.0  # metres: the cars checked for it (a car at 16 m/s, the bundled cars' top speed, needs 40)
+# and a person (anywhere: sidewalk, walking area, crossing) waits while an AC's body, grown by
+# its radius + GATE_MARGIN, lies on its next PERSON_AHEAD m of walk: see _people_seeing
+PERSON_AHEAD = 1.5
+PERSON_STEP = 0.25  # metres between the points of that walk checked
 _CMD_GET_VEHICLE_VARIABLE, _CMD_GET_PERSON_VARIABLE = 0xA4, 0xAE
 
 
@@ -553,7 +557,8 @@ class SumoBridge:
         junction does not stop the cross traffic for good.
         Cars already in a junction are left to SUMO (holding them there would park them in
         the AC's way). With Scenario.cars_see_acs, cars on a lane are also held for an AC
-        anywhere on their lane ahead (:meth:`_cars_seeing`).
+        anywhere on their lane ahead (:meth:`_cars_seeing`), and people anywhere for an AC
+        on their next steps (:meth:`_people_seeing`).
 
         People get the same at zebra crossings, which SUMO lets them step onto in front of
         an AC for the same reason: one on the walking area before a crossing waits while a
@@ -610,6 +615,8 @@ class SumoBridge:
                                if var[_VAR_ROAD_ID].startswith(":") and "_w" in var[_VAR_ROAD_ID]]
             walkers = {pid for pid, var in _near(on_walking_area, pxy)
                        if self._blocked_crossing(pid, pxy, prad)}
+            if self.scenario.cars_see_acs:
+                walkers |= self._people_seeing(people, corners)
         self._release(hold, walkers)
 
     def _to_go(self, var: dict) -> float:
@@ -729,6 +736,43 @@ class SumoBridge:
             if np.isfinite(dist[other]).any():
                 seeing.add(vid)
         return seeing
+
+    def _people_seeing(self, people: dict, corners: np.ndarray) -> set[str]:
+        """With Scenario.cars_see_acs: the people (subscription results `people`) that an AC's
+        body lies in front of, on their next PERSON_AHEAD m of walk.
+
+        SUMO's people do not avoid vehicles: they walk into an AC standing or driving across a
+        sidewalk or a crossing wherever it is (the junction gate holds them only before a
+        crossing a moving AC is on). So a person is held (speed 0; released the step its way
+        is clear) while a point of its walk straight ahead along its heading, PERSON_STEP m
+        apart from its position to PERSON_AHEAD m on, lies inside an AC's body (`corners`,
+        (n, 4, 2)) grown by PERSON_RADIUS + GATE_MARGIN, counting only ACs it does not touch
+        already (one that ran into it, or that it walked into unseen: held, it would stand in
+        the contact). Pinned people (:meth:`place_person`) are left alone.
+        """
+        front, rear = (corners[:, 0] + corners[:, 1]) / 2, (corners[:, 2] + corners[:, 3]) / 2
+        centre, axis = (front + rear) / 2, front - rear
+        half_l = np.linalg.norm(axis, axis=1) / 2
+        u = axis / np.maximum(2 * half_l, 1e-9)[:, None]  # (n, 2) unit heading of each AC
+        v = np.stack([-u[:, 1], u[:, 0]], axis=1)
+        half_w = np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1) / 2
+        grow = PERSON_RADIUS + GATE_MARGIN
+        radius = PERSON_AHEAD + grow + float(np.hypot(half_l, half_w).max())
+        near = [(pid, var) for pid, var in _near(list(people.items()), centre, radius)
+                if pid not in self._pinned]
+        if not near:
+            return set()
+        at = np.array([var[_VAR_POSITION] for _, var in near], dtype=float)  # (m, 2)
+        h = sumo_to_heading(np.array([var[_VAR_ANGLE] for _, var in near], dtype=float))
+        d = np.arange(0.0, PERSON_AHEAD + 1e-9, PERSON_STEP)  # (k,)
+        walk = at[:, None, :] + d[None, :, None] * np.stack([np.cos(h), np.sin(h)], axis=1)[:, None, :]
+        rel = walk[:, :, None, :] - centre[None, None, :, :]  # (m, k, n, 2)
+        lon = np.abs((rel * u[None, None]).sum(axis=3))
+        lat = np.abs((rel * v[None, None]).sum(axis=3))
+        inside = (lon <= half_l + grow) & (lat <= half_w + grow)  # (m, k, n)
+        touching = (lon[:, 0] <= half_l + PERSON_RADIUS) & (lat[:, 0] <= half_w + PERSON_RADIUS)
+        hold = (inside[:, 1:].any(axis=1) & ~touching).any(axis=1)
+        return {pid for (pid, _), held in zip(near, hold, strict=True) if held}
 
     def _on_path_ahead(self, vid: str, var: dict, pts: np.ndarray, side: np.ndarray,
                        reach: float) -> np.ndarray:

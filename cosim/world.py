@@ -13,9 +13,11 @@ The order of one step (docs/guide.md#the-order-of-one-step), done in :meth:`Worl
 5. SUMO: snapshot of every actor through the context subscriptions
 6. events: collisions (vehicle / pedestrian / object), off-road, wrong lane, goal
 7. reward: named terms + weighted sum
-8. termination / truncation; finished ACs leave SUMO. Static road objects are solid:
-   an AC that hit one is put back where it was before the step, standing (no reverse);
-   with Scenario.solid_cars so is an AC that drove into a car ahead
+   (before the reward: each contact with another actor is a collision event once per
+   Contact.window; static road objects, and with Scenario.solid_cars (the default) a car
+   ahead that the move drove into, are solid: the AC is put back where it was before the
+   step, standing, and that step credits no progress; docs/task.md, "Collision rule")
+8. termination / truncation; finished ACs leave SUMO
 (the env then syncs the PyBullet mirror to the snapshot and renders one camera per AC)
 """
 
@@ -31,9 +33,10 @@ import numpy as np
 from cosim.dynamics import VehicleParams, bicycle_step
 from cosim.errors import EnvStateError, ScenarioError
 from cosim.events import PEDESTRIAN_MIN_SPEED, Events, detect_all, reward_terms
-from cosim.geometry import rect_corners_many
+from cosim.geometry import convex_overlap, rect_corners, rect_corners_many
 from cosim.roadmap import RoadMap, road_map
 from cosim.scenario import Scenario, load_scenario
+from cosim.score import RouteCompletion
 from cosim.sumo_bridge import GATE_AHEAD, Snapshot, SumoBridge
 
 log = logging.getLogger(__name__)
@@ -144,6 +147,9 @@ class World:
             )
         self.active = list(self.ac_ids)
         self.step_count = 0
+        self._charged: list[dict[tuple[str, str], float]] = [{} for _ in self.ac_ids]
+        """Per AC: (kind, actor id) -> simulated time of its last charged collision event."""
+        self._completion = [RouteCompletion(max(r.goal_s - r.spawn_s, 1e-6)) for r in self.routes]
         self._still = np.zeros(self.num_acs, dtype=int)  # consecutive standing steps (_stalled)
         self.times = StepTimes()
         # one SUMO step so the ACs are inserted and every actor has a pose
@@ -205,13 +211,7 @@ class World:
         t3 = time.perf_counter()
         # 6-8. events, reward, termination
         self.step_count += 1
-        results = self._results(idx, stalled=self._stalled(idx, nv))
-        for k, i in enumerate(idx):
-            ev = results[self.ac_ids[i]].events
-            if ev.collision_object or (ev.collision_vehicle and self._solid_ahead(i, ev.hit)):
-                # static objects (and, with Scenario.solid_cars, cars ahead) are solid: the car
-                # stops where it was before it hit
-                self._state[i] = (*s[k, :3], 0.0)
+        results = self._results(idx, stalled=self._stalled(idx, nv), before=s)
         for ac, res in results.items():
             if res.terminated or res.truncated:
                 self.active.remove(ac)
@@ -225,20 +225,57 @@ class World:
         tm.steps += 1
         return results
 
-    def _solid_ahead(self, i: int, hit: str) -> bool:
-        """With Scenario.solid_cars: whether vehicle `hit`, which AC `i` touches after its move,
-        is ahead of it (its centre in front of the AC's), so the AC drove into it; a car that
-        runs into an AC from behind does not put the AC back. False when the option is off."""
-        if not self.scenario.solid_cars:
-            return False
+    def _ahead(self, i: int, vehicle: str) -> int | None:
+        """The snapshot row of `vehicle` when its centre lies in front of AC `i`'s (after its
+        move), else None: the AC drove into it, or it into the AC's side or front."""
         snap = self.snapshot
         try:
-            j = snap.vehicle_ids.index(hit)
+            j = snap.vehicle_ids.index(vehicle)
         except ValueError:
-            return False
+            return None
         x, y, h, _ = self._state[i]
         dx, dy = snap.vehicle_xy[j] - (x, y)
-        return dx * math.cos(h) + dy * math.sin(h) > 0.0
+        return j if dx * math.cos(h) + dy * math.sin(h) > 0.0 else None
+
+    def _count_events(self, i: int, ev: Events) -> None:
+        """Mark the collision events that start this step (``ev.event_*``): a contact with an
+        actor is a new event unless that actor's last charged event with this AC is less than
+        Contact.window seconds old. With Contact.fault "at_fault", a vehicle contact is this
+        AC's event only when it drove into the other (moving, the other's centre ahead)."""
+        contact = self.scenario.contact
+        now = float(self.snapshot.time)
+        memory = self._charged[i]
+        for kind, other in ev.touching:
+            if kind == "vehicle" and contact.fault == "at_fault" and not (
+                self._state[i, 3] >= PEDESTRIAN_MIN_SPEED and self._ahead(i, other) is not None
+            ):
+                continue
+            last = memory.get((kind, other))
+            if last is None or now - last >= contact.window - 1e-9:
+                memory[(kind, other)] = now
+                setattr(ev, f"event_{kind}", True)
+
+    def _blocked(self, i: int, ev: Events, before: np.ndarray) -> bool:
+        """Whether AC `i`'s move is undone: it touches a static road object or a pedestrian
+        (counted only while the AC moves), or (with Scenario.solid_cars) a vehicle ahead of it
+        that its pose before the move did not touch (so an AC that another car drove into can
+        still move out of the contact)."""
+        if ev.collision_object or ev.collision_pedestrian:
+            return True
+        if not (self.scenario.solid_cars and ev.collision_vehicle):
+            return False
+        snap = self.snapshot
+        mine = rect_corners(before[0], before[1], before[2], self.vehicle.length, self.vehicle.width)
+        for kind, other in ev.touching:
+            j = self._ahead(i, other) if kind == "vehicle" else None
+            if j is None:
+                continue
+            theirs = rect_corners(snap.vehicle_xy[j, 0], snap.vehicle_xy[j, 1],
+                                  snap.vehicle_heading[j], snap.vehicle_length[j],
+                                  snap.vehicle_width[j])
+            if not convex_overlap(mine, theirs):
+                return True
+        return False
 
     def _stalled(self, idx: np.ndarray, speed: np.ndarray) -> bool:
         """Termination.stall_truncate: count each active AC's consecutive steps standing (below
@@ -277,7 +314,10 @@ class World:
             signals=self.bridge.signal_states(self.signal_ids) if self.signal_ids else {},
         )
 
-    def _results(self, idx: np.ndarray, initial: bool = False, stalled: bool = False) -> dict[str, ACResult]:
+    def _results(self, idx: np.ndarray, initial: bool = False, stalled: bool = False,
+                 before: np.ndarray | None = None) -> dict[str, ACResult]:
+        """Events, reward and termination of the ACs `idx` at their poses after the move;
+        `before` (rows of (x, y, heading, speed) before it) lets a blocked move be undone."""
         sc = self.scenario
         events = detect_all(
             [self.ac_ids[i] for i in idx], self._state[idx], self.vehicle.length,
@@ -286,11 +326,20 @@ class World:
         )
         term = sc.termination
         out = {}
-        for i, ev in zip(idx, events, strict=True):
-            self._distance[i] = ev.distance_to_goal
+        for k, (i, ev) in enumerate(zip(idx, events, strict=True)):
             if initial:
                 ev.progress = 0.0
-            terms = reward_terms(ev, sc.reward, sc.speed_limit)
+            else:
+                self._count_events(i, ev)
+                if before is not None and self._blocked(i, ev, before[k]):
+                    # solid: the car stops where it was before the step, which gains nothing
+                    self._state[i] = (*before[k, :3], 0.0)
+                    ev.progress = ev.route_speed = ev.speed = 0.0
+                    ev.distance_to_goal = float(self._distance[i])
+                    ev.goal_reached = ev.red_light = False
+            self._distance[i] = ev.distance_to_goal
+            ev.route_completion = self._completion[i].update(ev.progress, ev.goal_reached)
+            terms = reward_terms(ev, sc.reward, sc.speed_limit, per_step=sc.contact.charge == "step")
             terminated = not initial and bool(
                 (term.on_collision and ev.collision)
                 or (term.on_goal and ev.goal_reached)

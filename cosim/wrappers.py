@@ -1,5 +1,6 @@
 """ParallelEnv wrappers: frame stacking (:class:`FrameStack`, :class:`FrameHistory`), the
-``nav`` observation (:class:`NavObservation`: image and measurements), action repeat
+``nav`` observation (:class:`NavObservation`: image and measurements), the ``state`` track
+(cameras off, cosim.state), action repeat
 (:class:`ActionRepeat`), and :class:`BlackDeath` for libraries that need every agent present
 at every step. :func:`observation_wrappers` builds an AC's observation from these
 (docs/task.md, "Observation" and "Action repeat").
@@ -153,9 +154,10 @@ def check_action_repeat(k) -> int:
     return int(k)
 
 
-OBS_VARIANTS = ("image", "nav")
-"""What an AC observes: its camera frames ("image"), or those beside a measurements vector
-("nav": :class:`NavObservation`)."""
+OBS_VARIANTS = ("image", "nav", "state")
+"""What an AC observes: its camera frames ("image"), those beside a measurements vector
+("nav": :class:`NavObservation`), or, with the cameras off, its state vector ("state": the
+state track, cosim.state; ``CosimParallelEnv(camera=False)``)."""
 
 
 def observation_wrappers(env, frame_stack: int = 1, obs: str = "image", action_repeat: int = 1):
@@ -163,11 +165,17 @@ def observation_wrappers(env, frame_stack: int = 1, obs: str = "image", action_r
     (:class:`FrameStack`; 1 leaves the camera as it is) and, with ``obs="nav"``, the
     measurements beside them (:class:`NavObservation`); with ``action_repeat`` R > 1 each
     action held for R steps (:class:`ActionRepeat`, innermost: the frames stacked are those
-    the agent decided on). The one place the training, validation and library factories build
-    an AC's observation (docs/task.md, "Observation")."""
+    the agent decided on). With ``obs="state"`` the env's cameras are switched off
+    (``CosimParallelEnv.cameras_off``, before its first reset: no PyBullet mirror) and each AC
+    observes its state vector (cosim.state); ``frame_stack`` must then be 1. The one place the
+    training, validation and library factories build an AC's observation (docs/task.md,
+    "Observation")."""
     k = check_frame_stack(frame_stack)
     check_obs_variant(obs)
+    check_state_stack(obs, k)
     repeat = check_action_repeat(action_repeat)
+    if obs == "state" and env.unwrapped.camera:
+        env.unwrapped.cameras_off()
     env = ActionRepeat(env, repeat) if repeat > 1 else env
     env = FrameStack(env, k) if k > 1 else env
     return NavObservation(env) if obs == "nav" else env
@@ -178,6 +186,15 @@ def check_obs_variant(obs) -> str:
     if obs not in OBS_VARIANTS:
         raise ValueError(f"obs must be one of {', '.join(OBS_VARIANTS)}, got {obs!r}")
     return obs
+
+
+def check_state_stack(obs: str, frame_stack: int) -> None:
+    """Refuse a frame stack K > 1 with ``obs="state"``: K stacks camera frames, which give a
+    single image its missing velocity; the state vector has the speeds already (the AC's and its
+    neighbours' relative velocities), so the state track observes one vector."""
+    if obs == "state" and int(frame_stack) != 1:
+        raise ValueError(f"frame_stack={frame_stack} stacks camera frames; obs='state' observes one state "
+                         "vector (it carries the speeds): use frame_stack=1 (--frame-stack 1) with it")
 
 
 def check_frame_stack(frame_stack) -> int:

@@ -113,24 +113,27 @@ over the slots). {verdict}
   {cmd}
   python studies/combined_page.py {comb.name} --page <this folder> --title "{title}"
   ```
-- **Files**: [summary.md](summary.md) (return, goal rate, turning slots' goal rate, alone, verdict, IQM,
+- **Files**: [summary.md](summary.md) (driving score, route completion, success rate, return, goal rate,
+  turning slots' route completion and goal rate, alone, verdict, IQM,
   issue 27's target per environment, budgets), [results.md](results.md) (every metric with the
   reference rows), [verdict.md](verdict.md), [iqm.md](iqm.md), [budget.csv](budget.csv)
 
-## Return, goal rate and verdict
+## Driving score and verdict
 
-Scenario 1: return [95% CI over seeds] (goal rate) and the verdict per pair; reference rows:
-mean (goal rate) over episodes x ACs (their intervals: [results.md](results.md)); the best
-degenerate row is what a pair's lower CI ends must clear (the safe non-turner brakes in every
-turning slot and is not a degenerate reference).
+Scenario 1: driving score [95% CI over seeds] (goal rate) and the verdict per pair (docs/task.md,
+"Driving score"; ", turns": the turning slots' route completion clears the safe non-turner's);
+reference rows: mean (goal rate) over episodes x ACs (their intervals: [results.md](results.md));
+the best degenerate row is what a pair's lower CI end must clear (the safe non-turner brakes in
+every turning slot and is not a degenerate reference).
 
 {s["grid"]}
 
-The same drawn: each training seed's mean (dots) and the mean with its 95% CI over seeds, against the
-autopilot (solid), the best degenerate reference (dashed red: what a lower CI end must clear) and,
-where a route turns, the safe non-turner (dotted); return axis linear within ±1,000, logarithmic beyond:
+The same drawn: each training seed's mean (dots) and the mean with its 95% CI over seeds of the driving
+score (top) and the turning slots' route completion (bottom), against the autopilot (solid), the best
+degenerate reference (dashed red: what a lower CI end must clear) and, where a route turns, the safe
+non-turner (dotted):
 
-![Scenario 1 return and goal rate per algorithm and environment with the reference lines](verdict.png)
+![Scenario 1 driving score and turning slots' route completion per algorithm and environment with the reference lines](verdict.png)
 
 Issue 27's target per environment:
 

@@ -166,8 +166,9 @@ def _names(labels: list[str]) -> str:
 
 def verdict_bullet(verdict: pd.DataFrame, targets: pd.DataFrame, env: str) -> str:
     """The verdict over the seeds together (a ``--combine`` folder's verdict.csv and targets.csv):
-    which pairs pass, whether the environment's target is met and what it lacks; where none
-    passes, the two nearest (highest mean return) with their intervals and goal rates."""
+    which pairs pass (on the driving score, eval/reporting/science.py verdict), whether the
+    environment's target is met and what it lacks; where none passes, the two nearest (highest
+    mean driving score) with their intervals and goal rates."""
     v = verdict[verdict.env == env].set_index("algorithm")
     if v.empty:
         raise SystemExit(f"part_page: the --combined folder's verdict.csv has no {env}; combine "
@@ -177,12 +178,12 @@ def verdict_bullet(verdict: pd.DataFrame, targets: pd.DataFrame, env: str) -> st
 
     def cell(a: str) -> str:
         r = v.loc[a]
-        return (f"{algo_label(a)}, {over_seeds(r.return_mean, r.return_ci_low, r.return_ci_high, int(r.n))} "
-                f"(goal rate {r.goal_mean:.2f})")
+        ds = (f"{r.DS_mean:.3f}" if int(r.n) == 1 else f"{r.DS_mean:.3f} [{r.DS_ci_low:.3f}, {r.DS_ci_high:.3f}]")
+        return f"{algo_label(a)}, DS {ds} (goal rate {r.goal_mean:.2f})"
 
     passed = [a for a in algo_order(v.index) if bool(v.loc[a, "passed"])]
     if n < MIN_SEEDS:  # too few seeds: a pair above every reference is "not shown", none passes
-        above = [a for a in algo_order(v.index) if bool(v.loc[a, "return_ok"]) and bool(v.loc[a, "goal_ok"])]
+        above = [a for a in algo_order(v.index) if str(v.loc[a, "DS_ok"]) == "True"]
         text = (f"- **{n} seed{'s' if n != 1 else ''} so far, too few for a verdict ({MIN_SEEDS} needed): "
                 + (f"{_names([algo_label(a) for a in above])} above every degenerate reference (not shown)"
                    if above else "no pair above every degenerate reference"))
@@ -198,13 +199,14 @@ def verdict_bullet(verdict: pd.DataFrame, targets: pd.DataFrame, env: str) -> st
             lacks = [f"no {kind} algorithm passes" for kind in ("discrete", "continuous")
                      if not ast.literal_eval(str(row[kind]))]
             if bool(row.has_turns) and not ast.literal_eval(str(row.turning)):
-                lacks.append("no turning slot reaches a goal")
+                lacks.append("no algorithm's turns are learned (turning slots' route completion above "
+                             "the safe non-turner's)")
             text += " It lacks: " + "; ".join(lacks) + "."
     else:
         text += ".**"
     if passed:
         return text + " " + "; ".join(cell(a) for a in passed) + "."
-    nearest = v.sort_values("return_mean", ascending=False).index[:2]
+    nearest = v.sort_values("DS_mean", ascending=False).index[:2]
     return text + " Nearest: " + "; ".join(cell(a) for a in nearest) + "."
 
 

@@ -80,7 +80,8 @@ from cosim.errors import CosimError  # noqa: E402
 from cosim.scenario import load_scenario, scenario_data, scenario_file  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
-ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum", "warm")
+ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum", "warm",
+        "state", "state-step", "state-end", "state-atfault")
 DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -97,7 +98,17 @@ ARM_FLAGS = {
     "curriculum": R2_FLAGS,
     "warm": R2_FLAGS,
     "pretrain": R2_FLAGS,  # the curriculum's first stage (pretrain_cell), not an arm of its own
+    # task version 4's state track (issue 61): the default collision rule and the two it replaced
+    "state": ["--obs", "state"],
+    "state-step": ["--obs", "state", "--collisions", "step"],
+    "state-end": ["--obs", "state", "--collisions", "end"],
+    "state-atfault": ["--obs", "state"],
 }
+SCENARIO_ARMS = {"old": ("_old", {"vehicle": OLD_VEHICLE}),
+                 "state-atfault": ("_atfault", {"contact": {"fault": "at_fault"}})}
+"""Arms that train on a copy of the scenario: the copy's name suffix and the keys it changes.
+The old arm is tested on its copy (its car); the at-fault arm on the bundled scenario (the
+test's rule charges every car in a contact)."""
 PRETRAIN_ENV = "env_1"
 """Where the curriculum arm learns to drive first: Straight, no turn (the quick PPO reached 0.94
 of its goals there)."""
@@ -235,17 +246,20 @@ def check_plan(out: Path, args) -> None:
     saved.write_text(json.dumps(plan, indent=2))
 
 
-def old_scenario(out: Path, env: str) -> Path:
-    """``OUT/scenarios/<env>_old.yaml``: the bundled scenario with the old steering. Its file
-    paths are made absolute (the copy lives elsewhere than the bundled YAML it comes from)."""
+def old_scenario(out: Path, env: str, arm: str = "old") -> Path:
+    """``OUT/scenarios/<env><suffix>.yaml``: the bundled scenario with an arm's changes
+    (:data:`SCENARIO_ARMS`; the old arm's: the old steering). Its file paths are made absolute
+    (the copy lives elsewhere than the bundled YAML it comes from)."""
+    suffix, changes = SCENARIO_ARMS[arm]
     src = scenario_file(env)
     data = scenario_data(src)
-    if "vehicle" in data:
-        raise PilotError(f"{src} has a vehicle: block of its own; the old arm replaces it")
-    data["vehicle"] = OLD_VEHICLE
-    path = out / "scenarios" / f"{Path(env).stem}_old.yaml"
+    clash = sorted(set(changes) & set(data))
+    if clash:
+        raise PilotError(f"{src} has a {clash[0]}: block of its own; the {arm} arm replaces it")
+    data.update(changes)
+    path = out / "scenarios" / f"{Path(env).stem}{suffix}.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = (f"# {src.name} with the steering before issue 25 (studies/pilot_task.py, old arm)\n"
+    text = (f"# {src.name} with {changes} (studies/pilot_task.py, {arm} arm)\n"
             + yaml.safe_dump(data, sort_keys=False))
     if not path.exists() or path.read_text() != text:
         path.write_text(text)
@@ -255,13 +269,13 @@ def old_scenario(out: Path, env: str) -> Path:
 
 def env_arg(out: Path, cell: Cell) -> str:
     """What ``cosim train --env`` gets: the old arm's scenario file, else the environment."""
-    return str(old_scenario(out, cell.env)) if cell.arm == "old" else cell.env
+    return str(old_scenario(out, cell.env, cell.arm)) if cell.arm in SCENARIO_ARMS else cell.env
 
 
 # -- training ----------------------------------------------------------------------------------
 def find_run(out: Path, cell: Cell, seed: int) -> Path | None:
     """The cell's run folder under ``OUT/runs/<arm>``: the newest if there are several."""
-    stem = Path(cell.env).stem + ("_old" if cell.arm == "old" else "")
+    stem = Path(cell.env).stem + (SCENARIO_ARMS[cell.arm][0] if cell.arm in SCENARIO_ARMS else "")
     found = sorted((out / "runs" / cell.arm).glob(f"{stem}__{cell.algo}__{seed}__*"))
     found = [p for p in found if (p / "config.yaml").exists()]
     return found[-1] if found else None
@@ -331,9 +345,9 @@ def test_steps(args, env: str) -> int:
     return args.test_steps or load_scenario(env).horizon
 
 
-def test_run(run: Path, algo: str, episodes: int, steps: int) -> pd.DataFrame:
+def test_run(run: Path, algo: str, episodes: int, steps: int, env: str | None = None) -> pd.DataFrame:
     """The run's ACs together, each in its own slot with its own selected checkpoint, under
-    the test's rules, in the run's scenario (its car), on the held-out seeds."""
+    the test's rules, in the run's scenario (its car) or ``env``, on the held-out seeds."""
     from eval.testing import selection
     from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
     from eval.training.runfolder import load_run_config
@@ -342,7 +356,7 @@ def test_run(run: Path, algo: str, episodes: int, steps: int) -> pd.DataFrame:
     chosen = selection.choose(run)
     if chosen is None:
         raise PilotError(f"{run} has no checkpoint")
-    plan = ProtocolPlan(envs=(cfg.env,), scenarios=(1,), episodes=episodes, steps=steps,
+    plan = ProtocolPlan(envs=(env or cfg.env,), scenarios=(1,), episodes=episodes, steps=steps,
                         seed=HELD_OUT_SEED, agents=cfg.agents, rotate=False)
     records = run_protocol(plan, policy_factory("trained", {algo: chosen.path}),
                            [algo] * cfg.agents)
@@ -382,9 +396,14 @@ def slot_routes(env: str) -> pd.DataFrame:
 def per_slot(records: pd.DataFrame) -> pd.DataFrame:
     """Test records -> one row per (episode, slot): return, goal, contact steps (and the
     checkpoint that drove the slot, when the records say)."""
+    from eval.testing.metrics import score_of
+
     g = records.groupby(["episode", "agent"])
     out = pd.DataFrame({"return": g["reward"].sum(), "goal": g["goal_reached"].any().astype(float),
                         "contact_steps": g["collision"].sum().astype(float)})
+    scores = pd.DataFrame({k: score_of(e.sort_values("step")) for k, e in g}).T
+    out["DS"], out["RC"] = scores["DS"].astype(float), scores["RC"].astype(float)
+    out["events"] = scores[["CV_events", "CO_events", "CP_events"]].astype(float).sum(axis=1, min_count=1)
     if "checkpoint" in records:
         out["checkpoint"] = g["checkpoint"].first()
     return out.reset_index().rename(columns={"agent": "slot"})
@@ -392,13 +411,21 @@ def per_slot(records: pd.DataFrame) -> pd.DataFrame:
 
 def slot_table(episodes: pd.DataFrame, routes: pd.DataFrame, **labels) -> pd.DataFrame:
     """(episode, slot) rows -> one row per slot: means over episodes, with its route."""
+    for c in SCORE_COLS:  # reference rows of validity.run_policy name them as the records do
+        if c not in episodes:
+            episodes = episodes.assign(**{c: np.nan})
     t = episodes.groupby("slot").agg(episodes=("return", "size"), **{
-        c: (c, "mean") for c in ("return", "goal", "contact_steps")}).reset_index()
+        c: (c, "mean") for c in ("return", "goal", "contact_steps", *SCORE_COLS)}).reset_index()
     if "checkpoint" in episodes:
         t["checkpoint"] = episodes.groupby("slot")["checkpoint"].first().to_numpy()
     t = t.merge(routes, on="slot", how="left")
     return t.assign(**labels).reindex(columns=[*labels, "slot", "movement", "turning", "episodes",
-                                               "return", "goal", "contact_steps", "checkpoint"])
+                                               "return", "goal", "contact_steps", *SCORE_COLS,
+                                               "checkpoint"])
+
+
+SCORE_COLS = ("DS", "RC", "events")
+"""Per (episode, slot): driving score, route completion, collision events (task version 4)."""
 
 
 def results(out: Path, args) -> pd.DataFrame:
@@ -413,7 +440,8 @@ def results(out: Path, args) -> pd.DataFrame:
                                         arm=cell.arm, algo=cell.algo, car=_car(cell.arm),
                                         row=f"{cell.arm} {cell.algo}"))
         for path in sorted((out / "references").glob(f"{env}__*.csv")):
-            refs = pd.read_csv(path).rename(columns={"agent": "slot", "collision_steps": "contact_steps"})
+            refs = pd.read_csv(path).rename(columns={"agent": "slot", "collision_steps": "contact_steps",
+                                                     "collision_events": "events"})
             car = path.stem.split("__")[1]
             for policy, g in refs.groupby("policy", sort=False):
                 row = f"ref: {policy}" + (" (old wheel)" if car == "old" else "")
@@ -441,10 +469,14 @@ def env_summary(table: pd.DataFrame, env: str) -> tuple[str, list[str]]:
     slots = t.drop_duplicates("slot").sort_values("slot")
     brake = t[t["row"] == "ref: always-brake"]
     brake_return = float(brake["return"].mean()) if len(brake) else np.nan
+    safe = t[t["row"] == "ref: safe-non-turner"]
+    safe_ds = float(safe["DS"].mean()) if len(safe) and "DS" in safe else np.nan
     head = ["row", "return / AC-episode", "goal rate", "goal rate, turning slots",
             *[f"{s} {m}{'*' if turn else ''}" for s, m, turn in
               zip(slots["slot"], slots["movement"], slots["turning"], strict=True)],
-            "contact steps / AC-episode", "clears always-brake", "a turning slot reaches goals"]
+            "contact steps / AC-episode", "clears always-brake", "a turning slot reaches goals",
+            "driving score", "RC, turning slots", "collision events / AC-episode",
+            "every turning slot >= 0.5 goals", "DS above safe-non-turner"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     met = []
     order = list(dict.fromkeys(t["row"]))
@@ -456,12 +488,21 @@ def env_summary(table: pd.DataFrame, env: str) -> tuple[str, list[str]]:
             "yes" if ret > brake_return else "no")
         reached = [s for s in turning.index if turning.loc[s, "goal"] > 0]
         turn_goal = "-" if turning.empty else (f"yes ({', '.join(reached)})" if reached else "no")
+        ds = float(g["DS"].mean()) if "DS" in g else np.nan
+        every_turn = "-" if turning.empty else ("yes" if (turning["goal"] >= 0.5).all() else "no")
+        above_safe = "-" if row == "ref: safe-non-turner" or np.isnan(safe_ds) or np.isnan(ds) else (
+            "yes" if ds > safe_ds else "no")
         cells_ = [row, _fmt(ret, 1), _fmt(float(g["goal"].mean())),
                   _fmt(float(turning["goal"].mean()) if len(turning) else np.nan),
                   *[_fmt(float(g.loc[s, "goal"])) if s in g.index else "-" for s in slots["slot"]],
-                  _fmt(float(g["contact_steps"].mean()), 1), clears, turn_goal]
+                  _fmt(float(g["contact_steps"].mean()), 1), clears, turn_goal,
+                  _fmt(ds), _fmt(float(turning["RC"].mean()) if len(turning) and "RC" in turning else np.nan),
+                  _fmt(float(g["events"].mean()) if "events" in g else np.nan), every_turn, above_safe]
         lines.append("| " + " | ".join(cells_) + " |")
-        if not row.startswith("ref:") and clears == "yes" and reached:
+        if row.startswith("state"):  # issue 61's target for the state track
+            if every_turn == "yes" and above_safe == "yes":
+                met.append(row)
+        elif not row.startswith("ref:") and clears == "yes" and reached:
             met.append(row)
     return "\n".join(lines), met
 
@@ -484,9 +525,11 @@ def summary(table: pd.DataFrame, args) -> str:
         parts.append(f"\n## {env_title(env)} ({env})\n\n{md}\n")
         for row in met:
             met_by.setdefault(row, set()).add(env)
-    parts.append("\n## Target (issue 25)\n\nOn the new task the test return clears always-brake "
-                 "and a turning slot reaches goals, in each environment, for at least one "
-                 "algorithm:\n")
+    parts.append("\n## Target\n\nIssue 25's arms (old, new, nav, ...): on the new task the test "
+                 "return clears always-brake and a turning slot reaches goals. Issue 61's state "
+                 "arms: every turning slot reaches >= 0.5 goals on the held-out test and the "
+                 "six-AC driving score is above the safe non-turner's. In each environment, for "
+                 "at least one algorithm:\n")
     for arm in (a for a in args.arms if a != "old"):
         full = [r.split(" ", 1)[1] for r, envs in met_by.items()
                 if r.startswith(f"{arm} ") and envs >= set(args.envs)]
@@ -518,7 +561,8 @@ def run_test(out: Path, cell: Cell, args) -> bool:
     run = find_run(out, cell, args.seed)
     start = time.monotonic()
     try:
-        records = test_run(run, cell.algo, args.episodes, test_steps(args, cell.env))
+        records = test_run(run, cell.algo, args.episodes, test_steps(args, cell.env),
+                           env=cell.env if cell.arm == "state-atfault" else None)
     except Exception as exc:  # noqa: BLE001 - one failed test must not stop the others
         say(f"test {cell.name}: FAILED ({type(exc).__name__}: {exc}); rerun to retry")
         return False

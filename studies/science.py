@@ -617,8 +617,9 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     b = plan.to_dict()
     budget = f", {b['steps']} steps per trial" if b["steps"] else ""
     budget += f", {plan.agents} ACs per training run" if plan.agents else ""
-    budget += (", collisions do not end training episodes (`--collisions continue`)"
-               if plan.collisions == "continue" else "")
+    budget += {"event": ", collisions do not end training episodes, one charge per event",
+               "step": ", collisions do not end training episodes, every contact step charged "
+                       "(`--collisions step`)"}.get(plan.collisions, "")
     budget += ", ACs observe camera frames and the nav measurements (`--obs nav`)" if plan.obs == "nav" else ""
     budget += (", one network per run for all its ACs in PPO, DQN, DDPG and TD3 (`--share-params`)"
                if plan.share_params else "")
@@ -647,30 +648,40 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     passed = int(verdict["passed"].sum())
     summary = [
         "### Science study results\n", f"`{command}`: {how}\n",
-        "Return, Scenario 1 (multi-agent):\n", science.grid_markdown(table, "return", 1, ref_table),
+        "Driving score (DS = route completion x infraction penalty, docs/task.md \"Driving score\"), "
+        "Scenario 1 (multi-agent):\n", science.grid_markdown(table, "DS", 1, ref_table),
+        "\nRoute completion, Scenario 1:\n", science.grid_markdown(table, "RC", 1, ref_table),
+        "\nSuccess rate (goal reached with no infraction), Scenario 1:\n",
+        science.grid_markdown(table, "success", 1, ref_table),
+        "\nRoute completion of the turning slots (the AC-episodes whose slot's route turns; turns are "
+        "learned where its CI's lower end clears the safe non-turner's), Scenario 1:\n",
+        science.grid_markdown(table, "RC_turning", 1, ref_table, ("autopilot", "safe-non-turner", "random")),
+        "\nReturn, Scenario 1:\n", science.grid_markdown(table, "return", 1, ref_table),
         "\nGoal rate, Scenario 1:\n", science.grid_markdown(table, "goal", 1, ref_table),
         "\nGoal rate of the turning slots (the AC-episodes whose slot's route turns), Scenario 1:\n",
         science.grid_markdown(table, "goal_turning", 1, ref_table),
         *(["\nAlone (Scenario 2, each algorithm's `ac_0` with no other AC): return [95% CI over seeds] "
            "(goal rate):\n", science.return_goal_grid_markdown(table, 2)] if 2 in t["scenarios"] else []),
-        f"\nValidity verdict (issue 14, item 1): {passed} of {len(verdict)} (algorithm, "
-        "environment) pairs have a mean return and goal rate above every degenerate reference "
-        f"({', '.join(science.DEGENERATE)}) with the 95% CI's lower end above the reference's "
-        f"value, over at least {science.MIN_SEEDS} training seeds ('not shown': above with "
-        "fewer seeds). Return [95% CI over seeds] (goal rate) and verdict per pair:\n",
+        f"\nValidity verdict (issue 61): {passed} of {len(verdict)} (algorithm, "
+        "environment) pairs have a driving score whose 95% CI's lower end clears every degenerate "
+        f"reference's ({', '.join(science.DEGENERATE)}), over at least {science.MIN_SEEDS} training "
+        "seeds ('not shown': above with fewer seeds); ', turns': the turning slots' route completion "
+        "CI's lower end clears the safe non-turner's. Driving score [95% CI over seeds] (goal rate) "
+        "and verdict per pair:\n",
         science.verdict_grid_markdown(verdict, ref_table[ref_table.scenario == 1]),
         "\nThe same drawn (`verdict.png` / `verdict.pdf`): per environment each algorithm's "
-        "seed means (dots) and mean with its 95% CI over seeds, against the autopilot, the best "
-        "degenerate reference and, where a route turns, the safe non-turner.\n",
+        "seed means (dots) and mean with its 95% CI over seeds of the driving score (top, against the "
+        "autopilot and the best degenerate reference) and of the turning slots' route completion "
+        "(bottom, against the autopilot and the safe non-turner).\n",
         "\nEach pair with what failed:\n", science.verdict_markdown(verdict),
-        "\nIQM across environments (Scenario 1 return normalised per environment: uniform "
+        "\nIQM across environments (Scenario 1 driving score normalised per environment: uniform "
         "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "
         "95% stratified bootstrap CI resampling seeds within environments):\n",
         science.iqm_markdown(iqm),
         "\nThe same drawn: `iqm.png` / `iqm.pdf`.\n",
         f"\nIssue 27's target per environment: {int(goals['met'].sum())} of {len(goals)} met (a "
         "discrete and a continuous algorithm pass the verdict; where a route turns, some "
-        "algorithm's turning slots reach goals):\n", science.targets_markdown(goals),
+        "algorithm's turns are learned):\n", science.targets_markdown(goals),
         f"\nDid the budgets suffice? Training return of the last {science.PLATEAU_FRACTION:.0%} of each "
         f"run's budget minus the {science.PLATEAU_FRACTION:.0%} before (mean over seeds); rising k/n: in k "
         "of n seeds the 95% bootstrap interval over AC-episodes lies above 0, so the curve had "
@@ -733,7 +744,7 @@ def main(argv=None) -> int:
         else:
             plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs),
                                  algos=tuple(args.algos), seeds=args.seeds, steps=args.steps,
-                                 agents=args.agents, collisions=args.collisions or "continue",
+                                 agents=args.agents, collisions=args.collisions or "event",
                                  obs=args.obs or "image", share_params=bool(args.share_params),
                                  demo_steps=args.demo_steps or 0, first_seed=args.first_seed or 0)
             plan.cells()  # an unknown preset or environment fails here, before any work

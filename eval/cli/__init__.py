@@ -193,13 +193,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
                         "preset's, 1 = the paper's single frame); tests of the run stack K too")
     t.add_argument("--obs", choices=OBS_VARIANTS, default="image",
-                   help="what an AC observes: image (default: its camera frames, the paper's) or nav "
-                        "(the frames beside speed, route command and distance to the goal; "
-                        "docs/task.md, Observation); tests of the run build the same for its ACs")
-    t.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
-                   help="continue (default): as in the test, the episode goes on and each contact "
-                        "step is charged; end: a collision ends the AC's training episode (the "
-                        "paper's rule; docs/task.md, Training rule)")
+                   help="what an AC observes: image (default: its camera frames, the paper's), nav "
+                        "(the frames beside speed, route command and distance to the goal) or state "
+                        "(65 numbers: route geometry, goal, signal, nearest cars and people; cameras "
+                        "off, frame stack 1; docs/task.md, Observation); tests of the run build the "
+                        "same for its ACs")
+    t.add_argument("--collisions", choices=COLLISION_RULES, default="event",
+                   help="event (default): as in the test, the episode goes on and each collision "
+                        "event is charged once; step: every contact step is charged (task version "
+                        "3); end: a collision ends the AC's training episode (the paper's rule; "
+                        "docs/task.md, Collision rule)")
     t.add_argument("--share-params", action="store_true",
                    help="the run's ACs act with ONE network that learns from all their transitions "
                         "(parameter sharing; default: one network per AC, the paper's; ppo dqn ddpg "
@@ -207,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--stall-truncate", type=_int_in(0), default=0, metavar="N",
                    help="truncate a training episode once every AC has stood still N steps away from "
                         "a red light: more attempts per env step, the test's rewards (default 0: off; "
-                        "docs/task.md, Training rule)")
+                        "docs/task.md, Collision rule)")
     t.add_argument("--demo-steps", type=_int_in(0), default=0, metavar="N",
                    help="dqn ddpg td3: first drive N env steps (whole episodes) with the scripted "
                         "autopilot and put every AC's transitions in its replay as demonstrations; "
@@ -374,11 +377,12 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
                    help="environment steps per trial (default: the preset's)")
     b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
                    help="ACs each trial trains (default: the preset's, 6 for quick/standard/paper)")
-    b.add_argument("--collisions", choices=COLLISION_RULES, default="continue",
+    b.add_argument("--collisions", choices=COLLISION_RULES, default="event",
                    help="training episodes at a collision (as `cosim train --collisions`; default "
-                        "continue: the test's rule, docs/task.md)")
+                        "event: the test's rule, docs/task.md)")
     b.add_argument("--obs", choices=OBS_VARIANTS, default="image",
-                   help="what the ACs observe (as `cosim train --obs`; default image, the paper's)")
+                   help="what the ACs observe (as `cosim train --obs`: image, nav or state; default "
+                        "image, the paper's)")
     b.add_argument("--share-params", action="store_true",
                    help="one network per trial for all its ACs in ppo dqn ddpg td3 (as `cosim train "
                         "--share-params`; a3c and impala stay one per AC; default: one per AC)")

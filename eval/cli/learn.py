@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import sys
@@ -11,7 +12,51 @@ from pathlib import Path
 from eval.training.runfolder import output_folder
 
 
+OWNER_ENV = "COSIM_OWNER_PID"
+"""Set by ``cosim train --algo all`` for its per-algorithm commands: the pid they die with."""
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM handled as Ctrl-C while a command runs: KeyboardInterrupt, so its cleanup runs
+    (simulators and workers closed, the run folder left resumable) and `cosim` says
+    "cosim: interrupted" (exit 130). The previous handler comes back after."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _die_with_parent() -> None:
+    """A per-algorithm command of ``--algo all`` (:data:`OWNER_ENV` set): SIGTERM (stop
+    resumably) when that parent dies, even by kill -9."""
+    owner = os.environ.pop(OWNER_ENV, "")
+    if owner.isdigit():
+        import signal
+
+        from agents.workers import die_with_owner
+
+        die_with_owner(int(owner), sig=signal.SIGTERM)
+
+
 def cmd_train(args) -> int:
+    _die_with_parent()
+    with _terminate_as_interrupt():
+        return _cmd_train(args)
+
+
+def _cmd_train(args) -> int:
 
     from eval.training.config import ASYNC_ALGOS
     from eval.training.train import ALGORITHMS, TrainError, make_config, parse_set, train
@@ -83,7 +128,7 @@ def _train_all(args, configs) -> int:
                disable=args.quiet, smoothing=0.05)
     say = print if args.quiet else bar.write
     base = _train_command(args)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", OWNER_ENV: str(os.getpid())}  # they die with this process
     if not args.quiet:  # their lines move the bar: a line every few seconds
         env["COSIM_LOG_EVERY_S"] = os.environ.get("COSIM_LOG_EVERY_S", "5")
 
@@ -139,11 +184,34 @@ def _train_all(args, configs) -> int:
                 else:
                     say(f"{algo}: FAILED (exit {proc.returncode})")
                     failed.append(algo)
+    except BaseException:  # Ctrl-C, SIGTERM: the runs still training stop resumably
+        bar.close()
+        if running:
+            print(f"cosim train: stopping {', '.join(running)}; their runs resume with "
+                  f"`cosim train --resume RUN` (run folders under {args.out})", file=sys.stderr, flush=True)
+        raise
     finally:
-        for proc in running.values():
-            proc.terminate()
+        _stop_children(list(running.values()))
         bar.close()
     return 1 if failed else 0
+
+
+def _stop_children(procs, grace_s: float = 30.0) -> None:
+    """SIGTERM each child (a `cosim train` stops as on Ctrl-C), wait up to ``grace_s`` for them
+    all, then SIGKILL the rest and reap them: none outlives this process."""
+    import subprocess
+    import time
+
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    deadline = time.monotonic() + grace_s
+    for proc in procs:
+        try:
+            proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 def _train_command(args) -> list[str]:
@@ -207,6 +275,11 @@ def _train_pbt(args) -> int:
 
 
 def cmd_test(args) -> int:
+    with _terminate_as_interrupt():
+        return _cmd_test(args)
+
+
+def _cmd_test(args) -> int:
     import datetime as dt
 
     from eval.testing.protocol import ALGO_ORDER, ProtocolError, ProtocolPlan, run_protocol
@@ -245,7 +318,7 @@ def cmd_test(args) -> int:
     except ProtocolError as exc:
         print(f"cosim test: error: {exc}", file=sys.stderr)
         return 2
-    out = output_folder(args.out / dt.datetime.now().strftime("%Y%m%d-%H%M%S"), "--out")
+    out = _test_folder(args, dt.datetime.now().strftime("%Y%m%d-%H%M%S"))
     from eval.reporting.report import provenance, write_paper_report
     from eval.testing import selection
     from eval.testing.protocol import slot_summary, slot_table, slots_markdown
@@ -265,8 +338,16 @@ def cmd_test(args) -> int:
         prov["slots"] = slots.to_dict("records")
     phases = _Phases(args.quiet)
     units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
-    records = run_protocol(plan, factory, algos, progress=phases.bar("test", units, "run"),
-                           workers=args.workers)
+    try:  # each run's episodes kept as it ends: an interrupted test goes on from them
+        records = run_protocol(plan, factory, algos, progress=phases.bar("test", units, "run"),
+                               workers=args.workers, save=out / "episodes")
+    except KeyboardInterrupt:
+        phases.close()
+        kept = len(list((out / "episodes").glob("job-*.parquet")))
+        print(f"cosim test: stopped; {out} is incomplete ({INCOMPLETE}), the episodes of {kept} finished "
+              f"run(s) kept in {out / 'episodes'}: the same command with --out {out} runs the rest",
+              file=sys.stderr, flush=True)
+        raise
     refs = None
     if refs_wanted:
         refs = reference_rows(plan, refs_wanted, progress=phases.bar("references", len(plan.envs), "env"))
@@ -293,11 +374,54 @@ def cmd_test(args) -> int:
     phases.say("writing the report (tables, figures) ...")
     written = write_paper_report(records, out, prov=prov, references=refs, replays=replays,
                                  extra_md=extra_md)
+    import shutil
+
+    shutil.rmtree(out / "episodes", ignore_errors=True)  # in records.parquet now
+    (out / INCOMPLETE).unlink(missing_ok=True)
     phases.close()
     print((out / "rq1.md").read_text())
     print(f"index: {out / 'index.html'}")
     print("wrote:\n" + "\n".join(f"  {p}" for p in [*written, *([out / "slots.csv"] if slots is not None else [])]))
     return 0
+
+
+INCOMPLETE = "incomplete.json"
+"""In a `cosim test` report folder until its report is written: the folder is not a report yet
+(interrupted, or running), its finished runs' episodes in episodes/ (eval.testing.protocol
+run_protocol's ``save``); `cosim test` with the same options and ``--out`` that folder goes on."""
+
+
+def _test_folder(args, stamp: str) -> Path:
+    """The report folder of a `cosim test`: ``--out`` itself where it is an incomplete report
+    folder of the same test (:data:`INCOMPLETE`: go on from its episodes), else a new
+    ``--out/<stamp>`` marked incomplete until its report is written.
+
+    Raises:
+        ProtocolError: ``--out`` is an incomplete folder of a test with other options.
+    """
+    import json
+
+    from eval.testing.protocol import ProtocolError
+    from eval.training.runfolder import atomic_write
+
+    command = _test_command(args)[:-2]  # without --out: the folder it names differs on a resume
+    marker = args.out / INCOMPLETE
+    if marker.is_file():
+        try:
+            started = json.loads(marker.read_text())["command"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ProtocolError(f"{marker} is unreadable ({type(exc).__name__}); delete {args.out} "
+                                "and run the test again") from None
+        if started != command:
+            raise ProtocolError(f"{args.out} holds an incomplete test run as `cosim {' '.join(started)}`; "
+                                "give those options to finish it, or another --out")
+        print(f"cosim test: going on with the incomplete test in {args.out}", file=sys.stderr)
+        return args.out
+    out = output_folder(args.out / stamp, "--out")
+    atomic_write(out / INCOMPLETE, json.dumps({"command": command, "note": (
+        "this test has not finished writing its report; the episodes of its finished runs are in "
+        f"episodes/; `cosim test` with the same options and --out {out} runs the rest")}, indent=1))
+    return out
 
 
 def _test_policies(args, plan, algos: list[str], given: dict[str, Path]):

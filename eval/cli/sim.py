@@ -169,7 +169,7 @@ def cmd_check_scenarios(args) -> int:
             table = validity.summarize(rows)
             problems = validity.failures(table)
             title = f"{sc.name} ({sc.title or sc.description}), {n} ACs, {args.episodes} episodes"
-            print(f"\n### {title}\n\n{validity.format_table(table)}\n")
+            print(f"\n### {title}\n\n{validity.format_table(table)}\n\n{validity.score_line(table)}")
             print("valid" if not problems else "NOT VALID:\n  " + "\n  ".join(problems))
             failed += [f"{sc.name} x{n}: {p}" for p in problems]
             frames.append(rows.assign(scenario=sc.name, agents=n))

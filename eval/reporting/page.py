@@ -3,7 +3,9 @@
 Its first screen says what produced the page (``cosim benchmark`` or ``cosim test``), what
 was tested and how much: the command, the preset and training budget per algorithm, the ACs,
 episodes and steps, the seeds, the task version (each environment's scenario files, hashed;
-the observation and action settings), the date and the commit. Then the legend (every
+the observation and action settings), the date and the commit; then the headline, the driving
+score DS, route completion RC and success rate of every column with their 95% intervals
+(:func:`headline_markdown`; docs/task.md, "Driving score"). Then the legend (every
 abbreviation on the page spelled out), Table RQ1, the figures, the failure replays, the
 reference rows, and provenance as tables (never a Python dict).
 
@@ -37,7 +39,10 @@ PAGE_TERMS = {
              "learner's ceiling), safe-non-turner = the autopilot that stops before its first "
              "turn, random = uniform over the nine discrete actions",
     "best degenerate": "the degenerate policy (always-forward, always-brake, full-left, ...) "
-                       "with the highest mean return in that environment, named in its n row",
+                       "with the highest mean driving score in that environment (the return "
+                       "where the references have none), named in its n row",
+    "CARLA": "the CARLA Leaderboard (leaderboard.carla.org), whose driving score (route completion "
+             "x infraction penalty) and penalty factors DS and IP follow",
     "Safety": "share of episodes without a collision step (CV = CO = CP = 0)",
     "Lane keeping": "1 - OS: share of steps inside its own lanes",
     "-": "the metric does not apply (CV with no other vehicle, CP with no pedestrian)",
@@ -183,9 +188,53 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
 
 def legend(terms: Sequence[str]) -> str:
     """Every metric and abbreviation on the page, spelled out."""
-    rows = [[t, DEFINITIONS[t]] for t in terms if t in DEFINITIONS]
+    from eval.reporting.report import row_name
+
+    rows = [[row_name(t), DEFINITIONS[t]] for t in terms if t in DEFINITIONS]
     rows += [[t, d] for t, d in PAGE_TERMS.items()]
-    return md_table(["term", "meaning"], [["goal rate" if t == "goal" else t, d] for t, d in rows])
+    return md_table(["term", "meaning"], rows)
+
+
+HEADLINE_NOTE = ("**Driving score** (the headline; docs/task.md, \"Driving score\"): per AC-episode "
+                 "DS = RC x IP, route completion (the share of the route driven along its lanes, 1 at "
+                 "the goal) times the infraction penalty (0.60 per vehicle collision event, 0.50 per "
+                 "pedestrian, 0.65 per static object, 0.70 per red light); success: the goal reached "
+                 "with no infraction. Mean [95% CI] over episodes; (ref) rows: scripted reference "
+                 "policies under Scenario 1 conditions, mean over episodes x ACs. The paper's metrics "
+                 "follow in Table RQ1.\n")
+
+
+def headline_markdown(long: pd.DataFrame | None, references: pd.DataFrame | None = None,
+                      labels: Mapping[str, str] | None = None) -> str:
+    """The page's first table: per environment, scenario and column (then the reference columns
+    of Table RQ1) the driving score, route completion and success rate with their intervals, as
+    Table RQ1's cells (eval.reporting.report.long_table); empty without a table."""
+    from eval.reporting.report import HEADLINE, reference_cells, reference_columns, row_name
+
+    if long is None or long.empty or not set(HEADLINE) & set(long["metric"]):
+        return ""
+    labels = dict(labels or {})
+    cells = long.set_index(["env", "scenario", "algorithm", "metric"])["cell"]
+    eps = long.drop_duplicates(["env", "scenario", "algorithm"]).set_index(
+        ["env", "scenario", "algorithm"])["episodes"]
+    refs = reference_cells(references, HEADLINE)
+    algos = algo_order(long["algorithm"].unique())
+    rows = []
+    for env in sorted(long["env"].unique()):
+        for s in sorted(long.loc[long["env"] == env, "scenario"].unique()):
+            for a in algos:
+                if (env, s, a) not in eps.index:
+                    continue
+                rows.append([env_title(env), f"S{s}", labels.get(a, a)]
+                            + [cells.get((env, s, a, m), "") for m in HEADLINE] + [str(int(eps[(env, s, a)]))])
+            if s == 1:
+                for col in reference_columns(references):
+                    c = refs.get((env, col))
+                    if c:
+                        rows.append([env_title(env), "S1", f"{col} (ref)"] + [c.get(m, "") for m in HEADLINE]
+                                    + [c["n (episodes)"]])
+    header = ["environment", "scenario", "policy", *[row_name(m) for m in HEADLINE], "n"]
+    return HEADLINE_NOTE + "\n" + md_table(header, rows)
 
 
 def interval_note(long: pd.DataFrame | None) -> str:
@@ -344,6 +393,9 @@ def index_markdown(prov: Mapping, rq1_md: str, *, figures: Sequence[str], refere
     algos = [t["algorithm"] for t in tested] or (algo_order(long["algorithm"].unique()) if long is not None else [])
     md = [f"# {title(prov)}\n"]
     md += first_screen(prov, algos, labels)
+    headline = headline_markdown(long, references, labels)
+    if headline:
+        md += ["## Driving score\n", headline]
     if policy != "trained":
         md.append(f"**Policy: {policy}.** Every AC was driven by the {policy} reference, not by "
                   f"a trained checkpoint; columns are labelled '{policy} (<algorithm> slot)'.\n")

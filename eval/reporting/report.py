@@ -3,8 +3,11 @@
 From the per-step records of the test protocol (eval/testing/protocol.py) this writes:
 
 - Table RQ1 as one table shaped like the paper's: the environment (its scenario
-  ``title``: Straight, Three-way, ...) as a row group, the metrics CV, CO, CP, OS,
-  RL, TTFC (then SPEED, DISTANCE, return, goal rate) as rows, algorithms as columns in
+  ``title``: Straight, Three-way, ...) as a row group, the metrics as rows: first the
+  driving score DS, route completion RC and success rate (the headline; docs/task.md,
+  "Driving score"), the infraction penalty IP and the collision events per AC-episode
+  of each kind, then the paper's CV, CO, CP, OS, RL, TTFC, SPEED, DISTANCE, return and
+  goal rate, algorithms as columns in
   the paper's order, Scenario 1 | Scenario 2 side by side, and the reference policies'
   columns beside Scenario 1's algorithms when references ran. Each cell is the mean over
   episodes and its 95% bootstrap confidence interval printed as its two ends
@@ -38,9 +41,13 @@ from eval.labels import ALGO_ORDER, SCENARIO_NAMES, algo_order, env_title  # noq
 from eval.reporting.stats import BOOTSTRAP, CI_SEED, bootstrap_ci
 from eval.testing.metrics import episode_metrics, scenario_dt
 
-TABLE_METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE", "return", "goal")
-"""Table RQ1's rows: the paper's metrics, then the return and the goal rate (the yardstick
-the reference columns are read against)."""
+HEADLINE = ("DS", "RC", "success")
+"""Table RQ1's first rows: the driving score, route completion and success rate."""
+TABLE_METRICS = (*HEADLINE, "IP", "CV_events", "CO_events", "CP_events",
+                 "CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE", "return", "goal")
+"""Table RQ1's rows: the driving score's (:data:`HEADLINE`, then the infraction penalty and the
+collision events per AC-episode of each kind), then the paper's metrics, the return and the
+goal rate."""
 UNITS = {"TTFC": "s", "SPEED": "km/h", "DISTANCE": "m"}
 
 
@@ -75,9 +82,11 @@ def long_table(per: pd.DataFrame, labels: Mapping[str, str] | None = None,
     return pd.DataFrame(rows)
 
 
-DIGITS = {"TTFC": 2, "SPEED": 2, "DISTANCE": 2, "return": 1, "goal": 2}
-"""Decimals per metric (3 for the step fractions CV..RL)."""
-ROW_NAMES = {"goal": "goal rate"}
+DIGITS = {"TTFC": 2, "SPEED": 2, "DISTANCE": 2, "return": 1, "goal": 2, "success": 2,
+          "CV_events": 2, "CO_events": 2, "CP_events": 2}
+"""Decimals per metric (3 for DS, RC, IP and the step fractions CV..RL)."""
+ROW_NAMES = {"goal": "goal rate", "success": "success rate", "CV_events": "CV events",
+             "CO_events": "CO events", "CP_events": "CP events"}
 """How a metric's row is headed where its key is not its name."""
 
 
@@ -111,7 +120,8 @@ def cell(metric: str, mean: float, lo: float, hi: float, n: int, episodes: int) 
 REFERENCE_COLUMNS = ("autopilot", "autopilot-discrete", "safe-non-turner", "random")
 """Reference policies (eval/testing/validity.py) shown as Table RQ1 columns beside the
 algorithms, in Scenario 1 whose conditions they ran under; the rest of the degenerate suite is
-one column, its strongest policy by return in each environment (:data:`BEST_DEGENERATE`)."""
+one column, its strongest policy by driving score in each environment (by return where the
+references have no DS: :data:`BEST_DEGENERATE`)."""
 BEST_DEGENERATE = "best degenerate"
 REF = "ref:"
 """Prefix of a reference column's key in :func:`wide_rows`' columns (``ref:autopilot``)."""
@@ -129,6 +139,17 @@ def reference_columns(refs: pd.DataFrame | None) -> list[str]:
 _NOT_DEGENERATE = {"autopilot", "autopilot-discrete", "safe-non-turner"}
 
 
+def strongest(pool: pd.DataFrame) -> str:
+    """The policy (index) of ``pool`` with the highest mean DS, the return breaking ties (and
+    deciding alone where the rows have no DS: references measured before the driving score)."""
+    ds = pool["DS"].astype(float) if "DS" in pool else pd.Series(np.nan, index=pool.index)
+    ret = pool["return"].astype(float)
+    if ds.notna().any():
+        return str(pd.DataFrame({"DS": ds.fillna(-np.inf), "return": ret})
+                   .sort_values(["DS", "return"], ascending=False, kind="stable").index[0])
+    return str(ret.idxmax())
+
+
 def reference_cells(refs: pd.DataFrame | None, metrics: Sequence[str] = TABLE_METRICS) -> dict:
     """(env, column) -> {metric: printed mean, "n (episodes)": the AC-episodes}; the
     reference rows are means over episodes x ACs (no interval: eval.testing.validity.summarize)."""
@@ -143,7 +164,7 @@ def reference_cells(refs: pd.DataFrame | None, metrics: Sequence[str] = TABLE_ME
                 pool = g.loc[[p for p in g.index if p not in REFERENCE_COLUMNS and p not in _NOT_DEGENERATE]]
                 if pool.empty:
                     continue
-                name = str(pool["return"].astype(float).idxmax())
+                name = strongest(pool)
             if name not in g.index:
                 continue
             r = g.loc[name]
@@ -231,7 +252,9 @@ def rq1_latex(header, rows, groups, cols) -> str:
         "% Table RQ1 (cosim test): needs \\usepackage{booktabs,multirow,graphicx}",
         r"\begin{table*}[t]", r"\centering", r"\small", r"\setlength{\tabcolsep}{3pt}",
         r"\caption{Driving errors per environment (Table RQ1): mean and [95\% bootstrap CI] over "
-        r"episodes (one episode: the value alone). CV, CO, CP, OS, RL: fraction of steps; TTFC: s; "
+        r"episodes (one episode: the value alone). DS: driving score = RC $\times$ IP; RC: route "
+        r"completion; success rate: goal reached with no infraction; IP: infraction penalty; CV, CO, CP "
+        r"events: collision events per AC-episode. CV, CO, CP, OS, RL: fraction of steps; TTFC: s; "
         r"SPEED: km/h; DISTANCE: m; return: undiscounted sum of rewards; goal rate: share of "
         r"episodes that reached the goal. (ref): a scripted reference policy under Scenario 1 "
         r"conditions, mean over episodes x ACs. ``-'': does not apply; ``--'': no collision.}",
@@ -347,7 +370,7 @@ def _checkpoint_entry(path: Path, sel) -> dict:
 
 
 TRAINING_KEYS = ("algo", "env", "preset", "steps", "agents", "seed", "horizon", "obs", "image_size",
-                 "frame_stack", "collisions_end_episode", "share_params", "stall_truncate",
+                 "frame_stack", "collisions_end_episode", "collision_charge", "share_params", "stall_truncate",
                  "demo_steps")
 """What the report says of a checkpoint's training run (keys of its config.yaml; and its
 agents' ``action_repeat``, docs/task.md "Action repeat")."""

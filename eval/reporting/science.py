@@ -7,17 +7,21 @@ over *training seeds*:
 
 - :func:`seed_means`: one value per (scenario, environment, algorithm, seed): the
   mean over that seed's test episodes (NaN-aware: TTFC and CP only where they apply, the
-  goal rate of the turning slots only over the slots whose route turns, :func:`with_turning`);
+  goal rate and route completion of the turning slots only over the slots whose route turns,
+  :func:`with_turning`);
 - :func:`seed_table`: mean and 95% percentile-bootstrap CI over seeds
   (:func:`eval.reporting.stats.bootstrap_ci`: 2,000 resamples, fixed seed); n = seeds;
 - :func:`reference_table`: the reference rows (eval/testing/validity.py: autopilot, uniform
   random, degenerate suite) with a CI over their episodes x ACs;
-- :func:`verdict`: issue 14's item 1 per (algorithm, environment): mean return AND
-  goal rate above every degenerate reference, the CI's lower end above its value, with
-  at least :data:`MIN_SEEDS` training seeds;
+- :func:`verdict`: per (algorithm, environment) of Scenario 1, on the driving score
+  (cosim/score.py; docs/task.md, "Driving score"; issue 61): a pair passes when the lower end
+  of its DS interval over training seeds clears every degenerate reference's mean DS, with
+  at least :data:`MIN_SEEDS` seeds; its turns are learned where the lower end of the turning
+  slots' route completion interval clears the safe non-turner's (``turning_ok``). The return
+  and goal rate stay in its rows as information;
 - :func:`iqm_table`: the interquartile mean across environments per algorithm
-  (rliable-style: returns normalised per environment between uniform random (0) and
-  the autopilot (1), IQM over every (environment, seed) score, stratified bootstrap
+  (rliable-style: the driving score normalised per environment between uniform random (0)
+  and the autopilot (1), IQM over every (environment, seed) score, stratified bootstrap
   CI resampling seeds within each environment), drawn by :func:`iqm_figure`;
 - :func:`convergence_curves` / :func:`convergence_figure`: training return against
   environment steps, one panel per algorithm, one curve per environment, mean over
@@ -44,19 +48,29 @@ from eval.reporting.report import algo_order, env_title
 from eval.reporting.stats import BOOTSTRAP, CI_SEED, bootstrap_ci, iqm, stratified_bootstrap
 from eval.testing.validity import DEGENERATE, POLICIES
 
-METRICS = ("return", "goal", "goal_turning", "DISTANCE", "CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED")
-"""The study's metrics (eval/testing/metrics.py names; ``goal`` is the goal rate, ``goal_turning``
-the goal rate of the AC-episodes whose slot's route turns: :func:`with_turning`)."""
-NAMES = {"return": "return", "goal": "goal rate", "goal_turning": "goal rate, turning slots",
-         "DISTANCE": "DISTANCE (m)", "TTFC": "TTFC (s)", "SPEED": "SPEED (km/h)"}
-DIGITS = {"return": 1, "goal": 2, "goal_turning": 2, "DISTANCE": 1, "TTFC": 2, "SPEED": 1}
+METRICS = ("DS", "RC", "success", "RC_turning", "return", "goal", "goal_turning", "DISTANCE",
+           "CV_events", "CO_events", "CP_events", "CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED")
+"""The study's metrics (eval/testing/metrics.py names; the driving score's first; ``goal`` is
+the goal rate, ``goal_turning`` and ``RC_turning`` the goal rate and route completion of the
+AC-episodes whose slot's route turns: :func:`with_turning`)."""
+NAMES = {"DS": "driving score", "RC": "route completion", "success": "success rate",
+         "RC_turning": "route completion, turning slots", "return": "return", "goal": "goal rate",
+         "goal_turning": "goal rate, turning slots", "CV_events": "CV events", "CO_events": "CO events",
+         "CP_events": "CP events", "DISTANCE": "DISTANCE (m)", "TTFC": "TTFC (s)", "SPEED": "SPEED (km/h)"}
+DIGITS = {"DS": 3, "RC": 3, "RC_turning": 3, "success": 2, "return": 1, "goal": 2, "goal_turning": 2,
+          "CV_events": 2, "CO_events": 2, "CP_events": 2, "DISTANCE": 1, "TTFC": 2, "SPEED": 1}
+VERDICT_METRIC = "DS"
+"""What the verdict and the IQM score: the driving score (issue 61)."""
+TURNING_METRIC, TURNING_REFERENCE = "RC_turning", "safe-non-turner"
+"""Turns are learned where the turning slots' route completion clears the safe non-turner's."""
 VERDICT_SCENARIO = 1
 """The references run under Scenario 1 conditions (every AC in the traffic)."""
 MIN_SEEDS = 3
 """Issue 14, item 1 asks for 3 training seeds: with fewer the verdict is 'not shown', whatever
 the (then degenerate or two-point) bootstrap interval says."""
 NORM_LOW, NORM_HIGH = "random", "autopilot"
-"""The IQM's normalisation: uniform random over Discrete(9) scores 0, the autopilot 1."""
+"""The IQM's normalisation of the driving score: uniform random over Discrete(9) scores 0, the
+autopilot 1."""
 WINDOW = 20
 """Convergence: the mean return of the most recent episodes (any AC) finished by a step."""
 
@@ -80,26 +94,38 @@ def slot_routes(env: str) -> pd.DataFrame:
 
 
 def with_turning(rows: pd.DataFrame) -> pd.DataFrame:
-    """``rows`` (per (episode, AC), with ``env``, ``agent`` and ``goal``) plus ``goal_turning``:
-    the goal where the AC's slot turns (:func:`slot_routes`), NaN on straight slots, so its
-    mean is the turning slots' goal rate (NaN in an environment without a turn)."""
+    """``rows`` (per (episode, AC), with ``env``, ``agent``, ``goal`` and ``RC``) plus
+    ``goal_turning`` and ``RC_turning``: the goal and the route completion where the AC's slot
+    turns (:func:`slot_routes`), NaN on straight slots, so their means are the turning slots'
+    goal rate and route completion (NaN in an environment without a turn; RC_turning NaN too
+    where the rows have no RC)."""
     turning = {}
     for env in rows["env"].unique():
         r = slot_routes(env)
         turning[env] = set(r.loc[r["turning"], "slot"])
     mask = np.array([a in turning[e] for e, a in zip(rows["env"], rows["agent"], strict=True)], bool)
-    return rows.assign(goal_turning=rows["goal"].astype(float).where(mask))
+    rc = rows["RC"].astype(float) if "RC" in rows else pd.Series(np.nan, index=rows.index)
+    return rows.assign(goal_turning=rows["goal"].astype(float).where(mask), RC_turning=rc.where(mask))
+
+
+def _with_metrics(frame: pd.DataFrame, metrics: Sequence[str]) -> pd.DataFrame:
+    """``frame`` with a NaN column for each of ``metrics`` it lacks (rows written before the
+    driving score: their DS, RC, ... are '-')."""
+    missing = [m for m in metrics if m not in frame]
+    return frame.assign(**dict.fromkeys(missing, np.nan)) if missing else frame
 
 
 def seed_means(per: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.DataFrame:
     """One row per (scenario, env, algorithm, train_seed): the mean over its test episodes
     (and ACs) of each metric; NaN where the metric never applied (CP without people,
-    TTFC without a collision, the turning slots' goal rate where no slot turns)."""
+    TTFC without a collision, the turning slots' metrics where no slot turns) or was not
+    measured (records without the driving score's columns: eval/testing/metrics.py)."""
     per = per.assign(goal=per["goal"].astype(float))
-    if "goal_turning" in metrics and "goal_turning" not in per:
+    if {"goal_turning", "RC_turning"} & set(metrics) and not {"goal_turning", "RC_turning"} <= set(per):
         per = with_turning(per)
+    per = _with_metrics(per, metrics)
     keys = ["scenario", "env", "algorithm", "train_seed"]
-    return per.groupby(keys, sort=True)[list(metrics)].mean().reset_index()
+    return per.groupby(keys, sort=True)[[m for m in metrics]].mean().reset_index()
 
 
 def fmt(metric: str, mean: float, lo: float, hi: float, n: int | None = None,
@@ -139,6 +165,7 @@ def seed_table(seeds: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.Data
     """Long table: per (scenario, env, algorithm, metric) the mean over seeds, its 95%
     bootstrap CI and n (the seeds where the metric applied)."""
     rows = []
+    seeds = _with_metrics(seeds, metrics)  # seed means kept from before the driving score: '-'
     for (scenario, env, algo), g in seeds.groupby(["scenario", "env", "algorithm"], sort=True):
         for m in metrics:
             rows.append(_row(scenario, env, "algorithm", algo, m, g[m].to_numpy(float)))
@@ -149,8 +176,9 @@ def reference_table(refs: pd.DataFrame, metrics: Sequence[str] = METRICS) -> pd.
     """Long table of the reference rows (eval/testing/validity.py per-(episode, AC) rows with an
     ``env`` column): mean and CI over episodes x ACs, under Scenario 1 conditions."""
     rows = []
-    if "goal_turning" in metrics and "goal_turning" not in refs:
+    if {"goal_turning", "RC_turning"} & set(metrics) and not {"goal_turning", "RC_turning"} <= set(refs):
         refs = with_turning(refs)
+    refs = _with_metrics(refs, metrics)  # reference rows from before the driving score: '-'
     for (env, policy), g in refs.groupby(["env", "policy"], sort=False):
         for m in metrics:
             rows.append(_row(VERDICT_SCENARIO, env, "reference", policy, m, g[m].to_numpy(float)))
@@ -166,45 +194,69 @@ def degenerate_means(references: pd.DataFrame, env: str, metric: str,
     return dict(zip(r["name"], r["mean"].astype(float), strict=True))
 
 
+def _clears(low: float, value: float) -> bool:
+    """``low`` above ``value`` and not equal up to float rounding (the mean of three 0.1s is
+    0.10000000000000002)."""
+    return bool(low > value and not np.isclose(low, value))
+
+
 def verdict(table: pd.DataFrame, references: pd.DataFrame,
             degenerate: Sequence[str] = tuple(DEGENERATE), min_seeds: int = MIN_SEEDS
             ) -> pd.DataFrame:
-    """Per (algorithm, env) of Scenario 1: does the mean return AND goal rate beat every
-    degenerate reference with the 95% CI excluding the reference's value (CI low > value),
-    over at least ``min_seeds`` training seeds?
+    """Per (algorithm, env) of Scenario 1, on the driving score (docs/task.md, "Driving score"):
+    does the lower end of the DS 95% CI over training seeds clear the mean DS of every
+    degenerate reference (CI low > value), over at least ``min_seeds`` seeds? And are its turns
+    learned: does the lower end of the turning slots' route completion CI clear the safe
+    non-turner's (``turning_ok``; NaN where no slot turns or no safe non-turner ran)?
 
-    Columns: algorithm, env, n, return/goal mean and CI, the strongest degenerate reference
-    for each (name and value), return_ok, goal_ok, seeds_ok, passed, why (what failed, or '').
+    Columns: algorithm, env, n, DS mean and CI, the strongest degenerate reference (name and
+    DS), DS_ok, RC_turning mean and CI, the safe non-turner's RC_turning, turning_ok, seeds_ok,
+    passed (DS_ok and seeds_ok), why (what failed, or ''); as information the return and goal
+    rate (mean and CI) and the turning slots' goal rate (``turning_goal_mean``).
     """
+    m = VERDICT_METRIC
     t = table[(table["kind"] == "algorithm") & (table["scenario"] == VERDICT_SCENARIO)]
     rows = []
     for (algo, env), g in t.groupby(["name", "env"], sort=False):
         g = g.set_index("metric")
-        row = {"algorithm": algo, "env": env, "title": env_title(env), "n": int(g.loc["return", "n"])}
+        row = {"algorithm": algo, "env": env, "title": env_title(env), "n": int(g.loc[m, "n"])}
         why = []
-        for m in ("return", "goal"):
-            mean, lo, hi = (float(g.loc[m, c]) for c in ("mean", "ci_low", "ci_high"))
-            env_refs = degenerate_means(references, env, m, degenerate)
-            if not env_refs:
-                raise ValueError(f"no degenerate reference for {env} ({m}); run the references first")
-            best = max(env_refs, key=env_refs.get)
-            # above, and not equal up to float rounding (the mean of three 0.1s is 0.10000000000000002)
-            beaten = [name for name, v in env_refs.items() if lo > v and not np.isclose(lo, v)]
-            ok = len(beaten) == len(env_refs)
-            row.update({f"{m}_mean": mean, f"{m}_ci_low": lo, f"{m}_ci_high": hi,
-                        f"{m}_best_reference": best, f"{m}_reference": env_refs[best], f"{m}_ok": ok})
-            if not ok:
-                lost = len(env_refs) - len(beaten)
-                why.append(f"{NAMES.get(m, m)} CI low {lo:.{DIGITS[m]}f} <= {best} "
-                           f"{env_refs[best]:.{DIGITS[m]}f}"
-                           + (f" (and {lost - 1} more)" if lost > 1 else ""))
-        # informational (issue 27's target): do the turning slots reach goals at all?
+        for info in ("return", "goal"):  # what the verdict used to score: shown, not judged
+            if info in g.index:
+                row.update({f"{info}_{c}": float(g.loc[info, k]) for c, k in
+                            (("mean", "mean"), ("ci_low", "ci_low"), ("ci_high", "ci_high"))})
+        mean, lo, hi = (float(g.loc[m, c]) for c in ("mean", "ci_low", "ci_high"))
+        env_refs = {k: v for k, v in degenerate_means(references, env, m, degenerate).items() if np.isfinite(v)}
+        if not env_refs:
+            raise ValueError(f"no degenerate reference's {NAMES[m]} ({m}) for {env}: run the references "
+                             "again (rows from before the driving score have none)")
+        best = max(env_refs, key=env_refs.get)
+        beaten = [name for name, v in env_refs.items() if np.isfinite(lo) and _clears(lo, v)]
+        ok = len(beaten) == len(env_refs)
+        row.update({f"{m}_mean": mean, f"{m}_ci_low": lo, f"{m}_ci_high": hi,
+                    f"{m}_best_reference": best, f"{m}_reference": env_refs[best], f"{m}_ok": ok})
+        if not np.isfinite(mean):
+            why.append(f"no {NAMES[m]} measured (records from before the driving score)")
+        elif not ok:
+            lost = len(env_refs) - len(beaten)
+            why.append(f"{NAMES[m]} CI low {lo:.{DIGITS[m]}f} <= {best} {env_refs[best]:.{DIGITS[m]}f}"
+                       + (f" (and {lost - 1} more)" if lost > 1 else ""))
+        # the turns: the turning slots' route completion against the safe non-turner's
+        tm = TURNING_METRIC
+        t_mean, t_lo, t_hi = ((float(g.loc[tm, c]) for c in ("mean", "ci_low", "ci_high"))
+                              if tm in g.index else (np.nan,) * 3)
+        r = references[(references["env"] == env) & (references["metric"] == tm)
+                       & (references["name"] == TURNING_REFERENCE)]["mean"]
+        ref = float(r.iloc[0]) if len(r) else np.nan
+        row.update({f"{tm}_mean": t_mean, f"{tm}_ci_low": t_lo, f"{tm}_ci_high": t_hi,
+                    f"{tm}_reference": ref,
+                    "turning_ok": _clears(t_lo, ref) if np.isfinite(t_mean) and np.isfinite(ref) else np.nan})
         row["turning_goal_mean"] = (float(g.loc["goal_turning", "mean"]) if "goal_turning" in g.index
                                     else float("nan"))
         row["seeds_ok"] = row["n"] >= min_seeds
         if not row["seeds_ok"]:
-            why.append(f"{row['n']} seed(s), item 1 needs {min_seeds}")
-        row["passed"] = row["return_ok"] and row["goal_ok"] and row["seeds_ok"]
+            why.append(f"{row['n']} seed(s), the verdict needs {min_seeds}")
+        row["passed"] = bool(row[f"{m}_ok"] and row["seeds_ok"])
         row["why"] = "; ".join(why)
         rows.append(row)
     out = pd.DataFrame(rows)
@@ -213,21 +265,30 @@ def verdict(table: pd.DataFrame, references: pd.DataFrame,
                            else c).reset_index(drop=True)
 
 
+def has_turns(v: pd.DataFrame) -> pd.Series:
+    """Per environment of a :func:`verdict`: whether some slot's route turns (a turning slots'
+    metric applies)."""
+    cols = [c for c in (f"{TURNING_METRIC}_mean", "turning_goal_mean") if c in v]
+    return v.groupby("env")[cols].apply(lambda x: bool(x.notna().to_numpy().any()))
+
+
 def targets(v: pd.DataFrame) -> pd.DataFrame:
     """Per environment, issue 27's target read off a :func:`verdict`: the discrete and the
-    continuous algorithms that pass (clear every degenerate reference, 3+ seeds), and those
-    whose turning slots reach goals (mean > 0; NaN where no slot's route turns)."""
+    continuous algorithms that pass (their DS clears every degenerate reference, 3+ seeds), and
+    those whose turns are learned (``turning_ok``: the turning slots' route completion clears the
+    safe non-turner's; where no slot's route turns, no turn is asked for)."""
     from agents.registry import CONTINUOUS, DISCRETE
 
+    turns = has_turns(v)
     rows = []
     for env, g in v.groupby("env", sort=False):
-        passed = g.loc[g["passed"], "algorithm"].tolist()
-        turning = g["turning_goal_mean"]
+        passed = g.loc[g["passed"].astype(bool), "algorithm"].tolist()
+        learned = g["turning_ok"].map(lambda x: _turning_word(x) == "yes").astype(bool)
         rows.append({"env": env, "title": env_title(env),
                      "discrete": [a for a in passed if a in DISCRETE],
                      "continuous": [a for a in passed if a in CONTINUOUS],
-                     "has_turns": bool(turning.notna().any()),
-                     "turning": g.loc[turning > 0, "algorithm"].tolist()})
+                     "has_turns": bool(turns[env]),
+                     "turning": g.loc[learned, "algorithm"].tolist()})
     t = pd.DataFrame(rows)
     t["met"] = (t["discrete"].map(bool) & t["continuous"].map(bool)
                 & (~t["has_turns"] | t["turning"].map(bool)))
@@ -241,29 +302,31 @@ def targets_markdown(t: pd.DataFrame) -> str:
              names(r["turning"]) if r["has_turns"] else "(no turning slot)",
              "met" if r["met"] else "not met"] for _, r in t.iterrows()]
     return md_table(["environment", "discrete algorithms that pass", "continuous algorithms that pass",
-                     "algorithms whose turning slots reach goals", "target"], rows)
+                     "algorithms whose turns are learned (turning slots' RC above the safe non-turner's)",
+                     "target"], rows)
 
 
-def normalise(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
-    """Scenario 1 returns per (env, algorithm, seed) as (R - random) / (autopilot - random),
-    with the references' mean returns in that environment; column ``score``. An environment
-    where the autopilot does not out-earn random cannot be normalised: its scores are NaN."""
-    s1 = seeds[seeds["scenario"] == VERDICT_SCENARIO]
-    ref = references[references["metric"] == "return"].set_index(["env", "name"])["mean"]
+def normalise(seeds: pd.DataFrame, references: pd.DataFrame, metric: str = VERDICT_METRIC) -> pd.DataFrame:
+    """Scenario 1 ``metric`` (the driving score) per (env, algorithm, seed) as (x - random) /
+    (autopilot - random), with the references' means in that environment; column ``score``.
+    An environment where the autopilot does not score above random cannot be normalised: its
+    scores are NaN."""
+    s1 = _with_metrics(seeds[seeds["scenario"] == VERDICT_SCENARIO], [metric])
+    ref = references[references["metric"] == metric].set_index(["env", "name"])["mean"]
     out = []
     for env, g in s1.groupby("env", sort=True):
         low, high = ref.get((env, NORM_LOW), np.nan), ref.get((env, NORM_HIGH), np.nan)
         span = high - low
-        score = (g["return"] - low) / span if np.isfinite(span) and span > 0 else np.nan
-        out.append(g[["env", "algorithm", "train_seed", "return"]].assign(score=score))
+        score = (g[metric] - low) / span if np.isfinite(span) and span > 0 else np.nan
+        out.append(g[["env", "algorithm", "train_seed", metric]].assign(score=score))
     return pd.concat(out, ignore_index=True)
 
 
-def iqm_table(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
-    """Per algorithm: IQM of the normalised Scenario 1 returns over every (env, seed), its
-    stratified-bootstrap 95% CI, the environments and runs it pools; then the degenerate
+def iqm_table(seeds: pd.DataFrame, references: pd.DataFrame, metric: str = VERDICT_METRIC) -> pd.DataFrame:
+    """Per algorithm: IQM of the normalised Scenario 1 driving score (``metric``) over every
+    (env, seed), its stratified-bootstrap 95% CI, the environments and runs it pools; then the
     references' IQM over environments of their normalised mean (no seeds: no CI)."""
-    norm = normalise(seeds, references)
+    norm = normalise(seeds, references, metric)
     rows = []
     for algo in algo_order(norm["algorithm"].unique()):
         g = norm[(norm["algorithm"] == algo) & np.isfinite(norm["score"])]
@@ -273,12 +336,13 @@ def iqm_table(seeds: pd.DataFrame, references: pd.DataFrame) -> pd.DataFrame:
         point, lo, hi = stratified_bootstrap(by_env)
         rows.append({"kind": "algorithm", "name": algo, "iqm": point, "ci_low": lo, "ci_high": hi,
                      "envs": len(by_env), "runs": len(g)})
-    ref = references[references["metric"] == "return"].pivot(index="env", columns="name", values="mean")
+    ref = references[references["metric"] == metric].pivot(index="env", columns="name", values="mean")
     if NORM_LOW in ref and NORM_HIGH in ref:
         span = ref[NORM_HIGH] - ref[NORM_LOW]
         ok = span > 0
         for name in [p for p in POLICIES if p in ref.columns]:
-            scores = ((ref[name] - ref[NORM_LOW]) / span)[ok].to_numpy()
+            scores = ((ref[name] - ref[NORM_LOW]) / span)[ok].to_numpy(float)
+            scores = scores[np.isfinite(scores)]
             if len(scores):
                 v = float(iqm(scores))
                 rows.append({"kind": "reference", "name": name, "iqm": v, "ci_low": np.nan,
@@ -435,21 +499,23 @@ def convergence_figure(curves: pd.DataFrame, out: Path, stem: str = "convergence
 
 
 # -- the verdict as a figure -----------------------------------------------------------------
-SYMLOG_RETURN = 1_000.0
-"""The verdict figure's return axis is linear within +-1,000 and logarithmic beyond: a run sunk by
-contact reaches -10,000 where the references sit near -550 and the autopilot at 1,300-3,100."""
-RETURN_TICKS = (-20_000, -10_000, -5_000, -2_000, -1_000, -500, 0, 500, 1_000, 2_000, 5_000, 10_000)
+FIGURE_METRICS = (VERDICT_METRIC, TURNING_METRIC)
+"""The verdict figure's rows: the driving score (what a pair passes on) and the turning slots'
+route completion (what says its turns are learned)."""
 
 
 def verdict_lines(v: pd.DataFrame, references: pd.DataFrame, env: str, metric: str) -> list[tuple[str, float, str]]:
     """The reference lines of one :func:`verdict_figure` panel, (label, value, line style): the
-    autopilot, the strongest degenerate reference (what a CI's lower end must clear, named) and,
-    where a slot's route turns, the safe non-turner (:func:`shows_reference`)."""
+    autopilot, the strongest degenerate reference (on the driving score: what a CI's lower end
+    must clear, named) and, where a slot's route turns, the safe non-turner (on the turning
+    slots' route completion, the value their CI's lower end must clear)."""
     first = v[v["env"] == env].iloc[0]
-    turns = bool(v.loc[v["env"] == env, "turning_goal_mean"].notna().any())
+    turns = bool(has_turns(v[v["env"] == env]).get(env, False))
     r = references[(references["env"] == env) & (references["metric"] == metric)].set_index("name")["mean"]
+    r = r[np.isfinite(r.astype(float))]
     lines = [("autopilot", float(r["autopilot"]), "-")] if "autopilot" in r.index else []
-    lines.append((f"best degenerate ({first[f'{metric}_best_reference']})", float(first[f"{metric}_reference"]), "--"))
+    if f"{metric}_best_reference" in first.index:
+        lines.append((f"best degenerate ({first[f'{metric}_best_reference']})", float(first[f"{metric}_reference"]), "--"))
     if "safe-non-turner" in r.index and shows_reference("safe-non-turner", turns):
         lines.append(("safe non-turner", float(r["safe-non-turner"]), ":"))
     return lines
@@ -457,60 +523,65 @@ def verdict_lines(v: pd.DataFrame, references: pd.DataFrame, env: str, metric: s
 
 def verdict_figure(v: pd.DataFrame, seeds: pd.DataFrame, references: pd.DataFrame, out: Path,
                    stem: str = "verdict") -> list[Path]:
-    """The :func:`verdict` grid drawn: one column per environment, Scenario 1's return (top, axis
-    :data:`SYMLOG_RETURN`) and goal rate (bottom); per algorithm each training seed's mean (dots) and
-    the mean with its 95% CI over seeds (bar), "pass" above a pair that clears every degenerate
-    reference; the :func:`verdict_lines` across. PDF and PNG."""
+    """The :func:`verdict` grid drawn: one column per environment, Scenario 1's driving score
+    (top) and the turning slots' route completion (bottom; "no turning slot" where no route
+    turns); per algorithm each training seed's mean (dots) and the mean with its 95% CI over
+    seeds (bar), "pass" above a pair whose DS clears every degenerate reference, "turns" above
+    one whose turning slots' RC clears the safe non-turner's; the :func:`verdict_lines` across.
+    PDF and PNG."""
     from eval.labels import colour
     from eval.reporting.figures import PAGE_IN, _plt, _save
 
     plt = _plt()
     envs = sorted(v["env"].unique())
     algos = algo_order(v["algorithm"].unique())
-    s1 = seeds[seeds["scenario"] == VERDICT_SCENARIO]
+    s1 = _with_metrics(seeds[seeds["scenario"] == VERDICT_SCENARIO], FIGURE_METRICS)
     width = min(PAGE_IN, 1.0 + 1.25 * len(envs))  # one environment: a column, not a stretched page
     fig, axes = plt.subplots(2, len(envs), figsize=(width, 3.6), squeeze=False)
     styles = {}
     for col, env in enumerate(envs):
-        for row, metric in enumerate(("return", "goal")):
+        for row, metric in enumerate(FIGURE_METRICS):
             ax = axes[row][col]
+            ax.set_ylim(-0.04, 1.12)
+            ax.grid(axis="y", lw=0.3)
+            ax.set_xticks(range(len(algos)))
+            ax.set_xticklabels([algo_label(a) for a in algos] if row == 1 else [], rotation=90)
+            ax.set_xlim(-0.6, len(algos) - 0.4)
+            if row == 0:
+                ax.set_title(env_title(env), loc="left")
+            e = v[v["env"] == env]
+            if metric == TURNING_METRIC and not e[f"{metric}_mean"].notna().any():
+                ax.text(0.5, 0.5, "no turning slot", transform=ax.transAxes, ha="center", va="center",
+                        fontsize=6, color="#666666")
+                continue
             for label, value, style in verdict_lines(v, references, env, metric):
                 kind = label.split(" (")[0]
                 ax.axhline(value, color="#444444" if kind != "best degenerate" else "#C00000",
                            ls=style, lw=0.8, zorder=1)
                 styles.setdefault(kind, style)
             for x, algo in enumerate(algos):
-                r = v[(v["env"] == env) & (v["algorithm"] == algo)]
+                r = e[e["algorithm"] == algo]
                 if r.empty:
                     continue
                 r = r.iloc[0]
                 c = colour(algo)
                 pts = s1.loc[(s1["env"] == env) & (s1["algorithm"] == algo), metric].to_numpy(float)
+                pts = pts[np.isfinite(pts)]
                 ax.scatter(x + np.linspace(-0.15, 0.15, len(pts)) if len(pts) > 1 else [x] * len(pts),
                            pts, s=6, color=c, alpha=0.6, lw=0, zorder=2)
                 lo, hi, mean = r[f"{metric}_ci_low"], r[f"{metric}_ci_high"], r[f"{metric}_mean"]
+                if not np.isfinite(mean):
+                    continue
                 ax.errorbar([x], [mean], yerr=[[mean - lo], [hi - mean]], fmt="_", color=c, ms=8,
                             mew=1.4, elinewidth=1.2, capsize=0, zorder=3)
-                if row == 0 and r["passed"]:
-                    ax.annotate("pass", (x, hi), xytext=(0, 3), textcoords="offset points",
+                word = ("pass" if row == 0 and bool(r["passed"]) else
+                        "turns" if row == 1 and _turning_word(r["turning_ok"]) == "yes" else "")
+                if word:
+                    ax.annotate(word, (x, hi), xytext=(0, 3), textcoords="offset points",
                                 ha="center", fontsize=5.5, fontweight="bold")
-            ax.set_xticks(range(len(algos)))
-            ax.set_xticklabels([algo_label(a) for a in algos] if row == 1 else [], rotation=90)
-            ax.set_xlim(-0.6, len(algos) - 0.4)
-            ax.grid(axis="y", lw=0.3)
-            if metric == "return":
-                ax.set_yscale("symlog", linthresh=SYMLOG_RETURN)
-                low, high = ax.get_ylim()
-                ax.set_ylim(low, high + 0.6 * abs(high))  # room for "pass" above the autopilot's line
-                ax.set_yticks([t for t in RETURN_TICKS if low <= t <= high])
-                ax.yaxis.set_major_formatter(lambda t, _: f"{t:,.0f}")
-                ax.yaxis.set_minor_locator(plt.NullLocator())
-                ax.set_title(env_title(env), loc="left")
-            else:
-                ax.set_ylim(-0.04, 1.08)
         axes[0][col].tick_params(axis="y", labelsize=5)
-    axes[0][0].set_ylabel("Scenario 1 return")
-    axes[1][0].set_ylabel("goal rate")
+    axes[0][0].set_ylabel("Scenario 1 driving score")
+    axes[1][0].set_ylabel("RC, turning slots")
     from matplotlib.lines import Line2D
 
     handles = [Line2D([], [], color="#C00000" if k == "best degenerate" else "#444444", ls=st, lw=0.8, label=k)
@@ -538,7 +609,7 @@ def iqm_lines(t: pd.DataFrame) -> list[tuple[str, float, str]]:
 
 def iqm_figure(t: pd.DataFrame, out: Path, stem: str = "iqm") -> list[Path]:
     """The :func:`iqm_table` drawn: one row per algorithm (the paper's order, top down), its IQM of
-    normalised Scenario 1 return with the 95% stratified bootstrap CI, against :func:`iqm_lines`.
+    normalised Scenario 1 driving score with the 95% stratified bootstrap CI, against :func:`iqm_lines`.
     A column wide; PDF and PNG."""
     from eval.labels import colour
     from eval.reporting.figures import COLUMN_IN, _plt, _save
@@ -558,7 +629,7 @@ def iqm_figure(t: pd.DataFrame, out: Path, stem: str = "iqm") -> list[Path]:
     ax.invert_yaxis()
     ax.grid(axis="x", lw=0.3)
     envs = int(algos["envs"].max()) if len(algos) else 0
-    ax.set_xlabel(f"IQM of Scenario 1 return over {envs} environment{'s' if envs != 1 else ''} "
+    ax.set_xlabel(f"IQM of Scenario 1 driving score over {envs} environment{'s' if envs != 1 else ''} "
                   "(random 0, autopilot 1)")
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)
     fig.tight_layout()
@@ -610,21 +681,46 @@ def metrics_markdown(table: pd.DataFrame, references: pd.DataFrame, scenario: in
 
 
 def verdict_markdown(v: pd.DataFrame) -> str:
+    m, tm = VERDICT_METRIC, TURNING_METRIC
     rows = []
     for _, r in v.iterrows():
+        turning = (f"{fmt(tm, r[f'{tm}_mean'], r[f'{tm}_ci_low'], r[f'{tm}_ci_high'])}"
+                   if np.isfinite(r[f"{tm}_mean"]) else "-")
+        ref = f"{r[f'{tm}_reference']:.3f}" if np.isfinite(r[f"{tm}_reference"]) else "-"
         rows.append([algo_label(r["algorithm"]), r["title"], r["n"],
-                     fmt("return", r["return_mean"], r["return_ci_low"], r["return_ci_high"]),
-                     f"{r['return_best_reference']} {r['return_reference']:.1f}",
-                     fmt("goal", r["goal_mean"], r["goal_ci_low"], r["goal_ci_high"]),
-                     f"{r['goal_best_reference']} {r['goal_reference']:.2f}",
+                     fmt(m, r[f"{m}_mean"], r[f"{m}_ci_low"], r[f"{m}_ci_high"]),
+                     f"{r[f'{m}_best_reference']} {r[f'{m}_reference']:.3f}",
+                     turning, ref, _turning_word(r["turning_ok"]),
+                     fmt("return", r.get("return_mean", np.nan), r.get("return_ci_low", np.nan),
+                         r.get("return_ci_high", np.nan)),
+                     fmt("goal", r.get("goal_mean", np.nan), r.get("goal_ci_low", np.nan),
+                         r.get("goal_ci_high", np.nan)),
                      _verdict_word(r), r["why"]])
-    return md_table(["algorithm", "environment", "seeds", "return [95% CI]", "best degenerate return",
-                     "goal rate [95% CI]", "best degenerate goal rate", "verdict", "why"], rows)
+    return md_table(["algorithm", "environment", "seeds", "driving score [95% CI]", "best degenerate DS",
+                     "RC turning slots [95% CI]", "safe non-turner RC turning", "turns learned",
+                     "return [95% CI]", "goal rate [95% CI]", "verdict", "why"], rows)
+
+
+def _turning_word(ok) -> str:
+    """'yes' / 'no' for a verdict row's ``turning_ok``; '-' where it does not apply (NaN)."""
+    if ok is True or str(ok) == "True":
+        return "yes"
+    if ok is False or str(ok) == "False":
+        return "no"
+    return "-"
 
 
 def _verdict_word(r) -> str:
-    """'pass', 'not shown' (above every reference, too few seeds) or 'FAIL' for a verdict row."""
-    return "pass" if r["passed"] else ("not shown" if r["return_ok"] and r["goal_ok"] else "FAIL")
+    """'pass', 'not shown' (its DS clears every reference, too few seeds) or 'FAIL' for a verdict row."""
+    return "pass" if r["passed"] else ("not shown" if bool(r[f"{VERDICT_METRIC}_ok"]) else "FAIL")
+
+
+def score_cell(mean: float, lo: float, hi: float, n: int, goal: float) -> str:
+    """'DS [95% CI] (goal rate)' as the README's grids write a cell; one seed:
+    'DS (goal rate; 1 seed)'."""
+    d = DIGITS[VERDICT_METRIC]
+    ds = f"{mean:.{d}f}" if n == 1 else f"{mean:.{d}f} [{lo:.{d}f}, {hi:.{d}f}]"
+    return f"{ds} ({goal:.2f}{'' if n > 1 else '; 1 seed'})"
 
 
 def shows_reference(name: str, route_turns: bool) -> bool:
@@ -634,32 +730,34 @@ def shows_reference(name: str, route_turns: bool) -> bool:
 
 
 def verdict_grid_markdown(v: pd.DataFrame, references: pd.DataFrame | None = None) -> str:
-    """The :func:`verdict` as one algorithms x environments grid: each cell 'return [95% CI]
-    (goal rate), verdict' ('return (goal rate; 1 seed)' with one seed), a pass in bold; with
-    ``references`` (:func:`reference_table`'s Scenario 1 rows) the autopilot's and the safe
-    non-turner's 'return (goal rate)' below (the safe non-turner only where a route turns: elsewhere
-    it is the autopilot); last, each environment's strongest degenerate return and goal rate (what
-    a cell's CI must clear). The README's results table."""
+    """The :func:`verdict` as one algorithms x environments grid: each cell 'DS [95% CI] (goal
+    rate), verdict' ('DS (goal rate; 1 seed)' with one seed), a pass in bold, ', turns' where its
+    turning slots' route completion clears the safe non-turner's; with ``references``
+    (:func:`reference_table`'s Scenario 1 rows) the autopilot's and the safe non-turner's 'DS
+    (goal rate)' below (the safe non-turner only where a route turns: elsewhere it is the
+    autopilot); last, each environment's strongest degenerate DS (what a cell's CI must clear).
+    The README's results table."""
+    m = VERDICT_METRIC
     envs = sorted(v["env"].unique())
     cells = {}
     for _, r in v.iterrows():
         word = _verdict_word(r)
-        cell = return_goal_cell(r["return_mean"], r["return_ci_low"], r["return_ci_high"], r["n"], r["goal_mean"])
-        cells[(r["algorithm"], r["env"])] = f"{cell}, " + (f"**{word}**" if word == "pass" else word)
+        cell = score_cell(r[f"{m}_mean"], r[f"{m}_ci_low"], r[f"{m}_ci_high"], r["n"], r.get("goal_mean", np.nan))
+        cells[(r["algorithm"], r["env"])] = (f"{cell}, " + (f"**{word}**" if word == "pass" else word)
+                                             + (", turns" if _turning_word(r["turning_ok"]) == "yes" else ""))
     rows = [[algo_label(a)] + [cells.get((a, e), "") for e in envs] for a in algo_order(v["algorithm"].unique())]
     if references is not None:
         r = references.set_index(["name", "env", "metric"])["mean"]
-        turns = v.groupby("env")["turning_goal_mean"].apply(lambda x: x.notna().any())
+        turns = has_turns(v)
         for name, label in (("autopilot", "autopilot"), ("safe-non-turner", "safe non-turner")):
-            row = [f"{r[(name, e, 'return')]:,.1f} ({r[(name, e, 'goal')]:.2f})"
-                   if (name, e, "return") in r.index and shows_reference(name, turns[e]) else ""
-                   for e in envs]
+            row = [f"{r[(name, e, m)]:.3f} ({r[(name, e, 'goal')]:.2f})"
+                   if (name, e, m) in r.index and (name, e, "goal") in r.index
+                   and shows_reference(name, turns[e]) else "" for e in envs]
             if any(row):
                 rows.append([f"*{label}*", *row])
     first = v.drop_duplicates("env").set_index("env")
     rows.append(["*best degenerate*"] + [
-        f"{first.loc[e, 'return_reference']:,.1f} ({first.loc[e, 'return_best_reference']}); "
-        f"{first.loc[e, 'goal_reference']:.2f} ({first.loc[e, 'goal_best_reference']})" for e in envs])
+        f"{first.loc[e, f'{m}_reference']:.3f} ({first.loc[e, f'{m}_best_reference']})" for e in envs])
     return md_table(["algorithm", *[env_title(e) for e in envs]], rows)
 
 
@@ -684,7 +782,7 @@ def iqm_markdown(t: pd.DataFrame) -> str:
         ci = f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]" if np.isfinite(r["ci_low"]) else "-"
         label = algo_label(r["name"]) if r["kind"] == "algorithm" else f"*{r['name']}*"
         rows.append([label, f"{r['iqm']:.2f}", ci, r["envs"], r["runs"]])
-    return md_table(["policy", "IQM (normalised return)", "95% CI", "environments", "scores"], rows)
+    return md_table(["policy", "IQM (normalised driving score)", "95% CI", "environments", "scores"], rows)
 
 
 __all__ = ["METRICS", "budget_check", "budget_markdown", "convergence_curve", "convergence_curves",

@@ -99,10 +99,11 @@ class BenchmarkPlan:
     """Environment steps per trial (default: the preset's, per algorithm)."""
     agents: int | None = None
     """ACs each trial trains (default: the preset's)."""
-    collisions: str | None = "continue"
-    """Training episodes at a collision: "continue" (the test's rule, the default since
-    2026-11-24; docs/task.md, Training rule) or "end" (the paper's). None is what a plan
-    saved before then holds (no key): it meant, and still means, "end"."""
+    collisions: str | None = "event"
+    """Training episodes at a collision (``cosim train --collisions``): "event" (the test's
+    rule, the default: each collision event charged once), "step" (every contact step charged)
+    or "end" (the paper's); docs/task.md, "Collision rule". None is what a plan saved before
+    2026-11-24 holds (no key): it meant, and still means, "end"."""
     obs: str = "image"
     """What the trials' ACs observe (``cosim train --obs``): image, or nav (docs/task.md)."""
     share_params: bool = False

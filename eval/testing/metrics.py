@@ -1,9 +1,15 @@
 """Driving metrics (SPEC §4) as pure functions over the per-step records.
 
-Per AC per episode:
+Per AC per episode, first the driving score (the headline, cosim/score.py; docs/task.md,
+"Driving score"), then the paper's metrics:
 
 | metric | definition |
 |---|---|
+| DS | driving score: RC x IP, 0..1 |
+| RC | route completion: the furthest credited progress along the route over its length, 0..1 (1 at the goal) |
+| success | the goal reached with no infraction (no collision event, no red light) |
+| IP | infraction penalty: 0.60 per vehicle event, 0.50 per pedestrian, 0.65 per object, 0.70 per red light, multiplied |
+| CV events, CO events, CP events | collision events (one per other actor; the same actor again within 5 s is the same event) with vehicles (NaN without another vehicle), objects, pedestrians (NaN without one) |
 | CV | fraction of steps in collision with another vehicle; NaN ("-") when no other vehicle existed |
 | CO | fraction of steps in collision with a static road object |
 | CP | fraction of steps in collision with a pedestrian; NaN ("-") when no pedestrian existed |
@@ -12,6 +18,12 @@ Per AC per episode:
 | TTFC | simulated seconds until the first collision of any kind; NaN ("--") when none |
 | SPEED | mean forward speed, km/h |
 | DISTANCE | abs(goal - spawn) - abs(goal - final position), metres (Euclidean) |
+
+The driving score needs the records' columns ``event_vehicle``, ``event_pedestrian``,
+``event_object`` and ``route_completion`` (records written since task version 4). Records
+without them (older ones) give NaN for DS, RC, IP, success and the event counts (shown "-")
+and a :class:`ScoreColumnsMissing` warning naming the missing columns; every other metric is
+computed as before.
 
 Success rates (RQ2, :func:`success_rates`, metrics.csv): Safety = 1 - the mean of CV, CO,
 CP (those that apply); Efficiency = SPEED and DISTANCE; Lane keeping = 1 - OS. (The report's
@@ -22,12 +34,33 @@ eval/reporting/report.py ``per_episode``.)
 from __future__ import annotations
 
 import functools
+import warnings
 
 import numpy as np
 import pandas as pd
 
-METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
+from cosim.score import driving_score, infraction_penalty
+
+SCORE_METRICS = ("DS", "RC", "success", "IP", "CV_events", "CO_events", "CP_events")
+"""The driving score's metrics (cosim/score.py), the report's first rows."""
+PAPER_METRICS = ("CV", "CO", "CP", "OS", "RL", "TTFC", "SPEED", "DISTANCE")
+"""The paper's metrics (SPEC §4)."""
+METRICS = (*SCORE_METRICS, *PAPER_METRICS)
+SCORE_COLUMNS = ("event_vehicle", "event_pedestrian", "event_object", "route_completion")
+"""The per-step record columns the driving score is computed from."""
 DEFINITIONS = {
+    "DS": "driving score: route completion x infraction penalty (RC x IP), 0..1, per AC-episode "
+          "(docs/task.md, \"Driving score\")",
+    "RC": "route completion: the furthest progress credited along the route's lanes over the "
+          "route's length, 0..1 (1 when the goal is reached)",
+    "success": "share of AC-episodes that reached the goal with no infraction (no collision event, "
+               "no red light)",
+    "IP": "infraction penalty: the product of 0.60 per vehicle collision event, 0.50 per "
+          "pedestrian, 0.65 per static object, 0.70 per red light crossed (CARLA Leaderboard)",
+    "CV_events": "collision events with vehicles per AC-episode (one per other vehicle; the same "
+                 "one again within 5 s is the same event)",
+    "CO_events": "collision events with static road objects per AC-episode",
+    "CP_events": "collision events with pedestrians per AC-episode",
     "CV": "collision with another vehicle: fraction of the AC's steps in contact with one",
     "CO": "collision with a static road object: fraction of steps",
     "CP": "collision with a pedestrian: fraction of steps",
@@ -41,6 +74,40 @@ DEFINITIONS = {
 }
 """Each metric's definition in words (the table above): the legend of every report."""
 KEYS = ["episode", "agent", "algorithm"]
+
+
+class ScoreColumnsMissing(UserWarning):
+    """Records without the driving score's columns (written before task version 4)."""
+
+
+def missing_score_columns(records: pd.DataFrame) -> list[str]:
+    """The :data:`SCORE_COLUMNS` ``records`` lack (absent, or NaN throughout)."""
+    return [c for c in SCORE_COLUMNS if c not in records or records[c].isna().all()]
+
+
+def score_of(episode: pd.DataFrame) -> dict:
+    """DS, RC, IP, success and the collision event counts of one AC-episode's records (sorted
+    by step); NaN for each where the records lack :data:`SCORE_COLUMNS`.
+
+    RC is the largest running ``route_completion`` (1.0 once the goal is reached), the events
+    are the steps on which a new event starts, red lights the steps that crossed one."""
+    nan = dict.fromkeys(SCORE_METRICS, np.nan)
+    if missing_score_columns(episode):
+        return nan
+    ev = {k: int(episode[f"event_{k}"].eq(True).sum())
+          for k in ("vehicle", "pedestrian", "object")}
+    red = int(episode["red_light"].astype(bool).sum()) if "red_light" in episode else 0
+    goal = bool(episode["goal_reached"].any())
+    rc = 1.0 if goal else float(np.clip(episode["route_completion"].max(), 0.0, 1.0))
+    ip = infraction_penalty(vehicle=ev["vehicle"], pedestrian=ev["pedestrian"], obj=ev["object"],
+                            red_light=red)
+    others = "n_vehicles" not in episode or bool((episode["n_vehicles"] > 0).any())
+    peds = "n_pedestrians" not in episode or bool((episode["n_pedestrians"] > 0).any())
+    return {"DS": driving_score(rc, ip), "RC": rc,
+            "success": float(goal and sum(ev.values()) == 0 and red == 0), "IP": ip,
+            "CV_events": float(ev["vehicle"]) if others else np.nan,
+            "CO_events": float(ev["object"]),
+            "CP_events": float(ev["pedestrian"]) if peds else np.nan}
 
 
 @functools.cache
@@ -61,10 +128,17 @@ def distance_driven(episode: pd.DataFrame) -> float:
 
 
 def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
-    """One row per (episode, agent) with the SPEC §4 metrics, return and length; ``dt``: the
-    seconds per step of the environment the records are from (:func:`scenario_dt`)."""
+    """One row per (episode, agent) with the driving score and the SPEC §4 metrics, return and
+    length; ``dt``: the seconds per step of the environment the records are from
+    (:func:`scenario_dt`). Records without :data:`SCORE_COLUMNS`: the score's metrics are NaN,
+    with a :class:`ScoreColumnsMissing` warning."""
     if records.empty:
-        return pd.DataFrame(columns=[*KEYS, *METRICS, "return", "steps"])
+        return pd.DataFrame(columns=[*KEYS, *METRICS, "return", "steps", "goal"])
+    missing = missing_score_columns(records)
+    if missing:
+        warnings.warn(f"the records have no {', '.join(missing)} column (recorded before the driving "
+                      "score, task version 4): DS, RC, IP, success and the collision event counts are "
+                      "NaN ('-')", ScoreColumnsMissing, stacklevel=2)
     rows = []
     for (episode, agent, algorithm), g in records.groupby(KEYS, sort=True):
         g = g.sort_values("step")
@@ -76,6 +150,7 @@ def episode_metrics(records: pd.DataFrame, dt: float) -> pd.DataFrame:
             "episode": episode,
             "agent": agent,
             "algorithm": algorithm,
+            **score_of(g),
             "CV": g["collision_vehicle"].mean() if others else np.nan,
             "CO": g["collision_object"].mean(),
             "CP": g["collision_pedestrian"].mean() if peds else np.nan,

@@ -22,6 +22,7 @@ tables and plots are computed from those records.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ from pathlib import Path
 import pandas as pd
 
 from agents import registry
-from agents.observations import image_space, is_nav_space
+from agents.observations import image_space
 from cosim.errors import CosimError
 from eval.labels import ENVS
 from eval.testing import selection
@@ -42,6 +43,7 @@ from eval.testing.rollout import (
     RepeatPolicy,
     SampledPolicy,
     StackedPolicy,
+    StatePolicy,
     run_episodes,
 )
 
@@ -185,7 +187,8 @@ def load_for_slot(path: Path, algo: str, image_size: int = 84):
             "action space; give a checkpoint trained with that action type"
         )
     shape = tuple(image_space(agent.observation_space).shape)
-    if len(shape) != 3 or shape[:2] != (image_size, image_size) or shape[2] % 3 or not shape[2]:
+    if obs_of(agent) != "state" and (len(shape) != 3 or shape[:2] != (image_size, image_size)
+                                     or shape[2] % 3 or not shape[2]):
         raise ProtocolError(
             f"checkpoint {path} sees observations of shape {shape}, the test environments give "
             f"{(image_size, image_size, 3)} camera images (or K of them stacked, "
@@ -196,14 +199,17 @@ def load_for_slot(path: Path, algo: str, image_size: int = 84):
 
 def frame_stack_of(agent) -> int:
     """Camera frames a checkpoint's agent observes at once: its image channels / 3
-    (a run trained with ``frame_stack`` K has 84x84x3K images)."""
-    return int(image_space(agent.observation_space).shape[-1]) // 3
+    (a run trained with ``frame_stack`` K has 84x84x3K images); 1 for the state track."""
+    return 1 if obs_of(agent) == "state" else int(image_space(agent.observation_space).shape[-1]) // 3
 
 
 def obs_of(agent) -> str:
     """The observation variant a checkpoint's agent was trained on (``cosim train --obs``):
-    "nav" for a ``Dict(image, measurements)`` observation space, else "image"."""
-    return "nav" if is_nav_space(agent.observation_space) else "image"
+    "nav" for a ``Dict(image, measurements)`` observation space, "state" for a vector
+    (agents.base.observation_variant), else "image"."""
+    from agents.base import observation_variant
+
+    return observation_variant(agent.observation_space)
 
 
 def drive(agent, sample_seed: int | None = None, env=None, slot: str | None = None):
@@ -226,6 +232,11 @@ def drive(agent, sample_seed: int | None = None, env=None, slot: str | None = No
             raise ProtocolError(f"{agent.algo} was trained with --obs nav: give drive() the test env and "
                                 "the AC slot it drives, to build that AC's measurements")
         policy = NavPolicy(policy, env, slot)
+    if obs_of(agent) == "state":  # its own state vector, from the shared test env's world
+        if env is None or slot is None:
+            raise ProtocolError(f"{agent.algo} was trained with --obs state: give drive() the test env and "
+                                "the AC slot it drives, to build that AC's state vector")
+        policy = StatePolicy(policy, env, slot)
     policy = StackedPolicy(policy, k) if k > 1 else policy
     return RepeatPolicy(policy, repeat) if (repeat := action_repeat_of(agent)) > 1 else policy
 
@@ -463,9 +474,13 @@ def run_job(plan: ProtocolPlan, make_policy: PolicyFactory, job: ProtocolJob) ->
 _WORKER_POLICIES: list = []  # a test worker process's policy factory (set by _start_worker)
 
 
-def _start_worker(make_policy: PolicyFactory) -> None:
+def _start_worker(make_policy: PolicyFactory, owner: int | None = None) -> None:
     import torch
 
+    if owner is not None:  # the test's process dies (kill -9, SIGTERM): its workers go too
+        from agents.workers import die_with_owner
+
+        die_with_owner(owner)
     torch.set_num_threads(1)  # the workers share the machine's cores
     _WORKER_POLICIES[:] = [make_policy]
 
@@ -474,14 +489,82 @@ def _worker_job(plan: ProtocolPlan, job: ProtocolJob) -> pd.DataFrame:
     return run_job(plan, _WORKER_POLICIES[0], job)
 
 
+def _job_file(save: Path, k: int) -> Path:
+    return save / f"job-{k:03d}.parquet"
+
+
+def _kept_jobs(save: Path, plan: ProtocolPlan, jobs: list[ProtocolJob]) -> dict[int, pd.DataFrame]:
+    """``save``'s records of the jobs an earlier, interrupted run of the same plan finished
+    (job index -> records); ``save`` is created and its plan.json written on a first run.
+
+    Raises:
+        ProtocolError: ``save`` holds the episodes of another plan, or cannot be written.
+    """
+    import dataclasses
+    import json
+
+    from eval.training.runfolder import atomic_write
+
+    want = json.loads(json.dumps({"plan": dataclasses.asdict(plan), "jobs": [dataclasses.asdict(j) for j in jobs]}))
+    path = save / "plan.json"
+    try:
+        save.mkdir(parents=True, exist_ok=True)
+        if not path.exists():
+            atomic_write(path, json.dumps(want, indent=1))
+            return {}
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ProtocolError(f"{path}: {exc}; delete {save} to run the test afresh") from None
+    if saved != want:
+        raise ProtocolError(f"{save} holds the episodes of another test plan ({path}); give the options "
+                            "of the test that started it, or another --out")
+    kept = {}
+    for k in range(len(jobs)):
+        if _job_file(save, k).is_file():
+            try:
+                kept[k] = pd.read_parquet(_job_file(save, k))
+            except Exception as exc:  # a file cut by a kill is renamed into place whole, so a bug or a disk fault
+                raise ProtocolError(f"{_job_file(save, k)} is unreadable ({type(exc).__name__}); delete it "
+                                    "to run its episodes again") from None
+    return kept
+
+
+def _keep_job(save: Path | None, k: int, records: pd.DataFrame) -> None:
+    """Write job ``k``'s records under ``save`` (a temporary name, renamed: whole or absent)."""
+    if save is None:
+        return
+    path = _job_file(save, k)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        records.to_parquet(tmp, index=False)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        from eval.training.runfolder import write_error
+
+        raise ProtocolError(str(write_error(path, exc)).replace(
+            "a training run continues from its last checkpoint with `cosim train --resume RUN`",
+            "the episodes already kept are not run again")) from exc
+
+
 def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence[str] = ALGO_ORDER,
-                 progress: Callable[[str], None] | None = None, workers: int = 1) -> pd.DataFrame:
+                 progress: Callable[[str], None] | None = None, workers: int = 1,
+                 save: Path | None = None) -> pd.DataFrame:
     """Run Scenario 1 and/or 2 in every environment of the plan; return all records.
 
     ``workers`` > 1 runs the plan's :func:`protocol_jobs` in that many processes (each with one
-    torch thread); the records are the same, in the same order, as with one. ``progress`` is
-    told "<env> scenario 1" when an environment's Scenario 1 is done and "<env> scenario 2
-    <algo>" for each AC alone."""
+    torch thread, each ending with this process, even on kill -9); the records are the same, in
+    the same order, as with one. ``progress`` is told "<env> scenario 1" when an environment's
+    Scenario 1 is done and "<env> scenario 2 <algo>" for each AC alone.
+
+    ``save``: a folder where each job's records are written as it ends (``job-<k>.parquet``,
+    beside the plan in plan.json); a run interrupted (Ctrl-C, kill -9, a full disk) and started
+    again with the same plan and folder runs only the jobs not kept there, and returns the same
+    records as one run without interruption.
+
+    Raises:
+        ProtocolError: ``save`` holds another plan's episodes, or cannot be written.
+    """
     algos = list(algos)[: plan.agents] if 1 in plan.scenarios else list(algos)
     jobs = protocol_jobs(plan, algos)
     left = {env: sum(j.env == env and j.scenario == 1 for j in jobs) for env in plan.envs}
@@ -492,13 +575,19 @@ def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence
         if progress and (job.scenario == 2 or not left[job.env]):
             progress(f"{job.env} scenario {job.scenario}" + (f" {job.order[0]}" if job.scenario == 2 else ""))
 
-    workers = max(1, min(int(workers), len(jobs)))
+    save = None if save is None else Path(save)
+    results: list[pd.DataFrame | None] = [None] * len(jobs)
+    for k, records in (_kept_jobs(save, plan, jobs) if save is not None else {}).items():
+        results[k] = records
+        done(jobs[k])
+    todo = [k for k in range(len(jobs)) if results[k] is None]
+    workers = max(1, min(int(workers), len(todo)))
     if workers == 1:
-        frames = []
-        for job in jobs:
-            frames.append(run_job(plan, make_policy, job))
-            done(job)
-        return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+        for k in todo:
+            results[k] = run_job(plan, make_policy, jobs[k])
+            _keep_job(save, k, results[k])
+            done(jobs[k])
+        return pd.concat(results, ignore_index=True) if results else pd.DataFrame()
     import multiprocessing
     import pickle
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -508,15 +597,30 @@ def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence
     except (pickle.PicklingError, AttributeError, TypeError) as exc:
         raise ProtocolError(f"workers={workers}: this policy factory cannot go to another process "
                             f"({exc}); use policy_factory(...) or workers=1") from exc
-    results: list[pd.DataFrame | None] = [None] * len(jobs)
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_start_worker, initargs=(make_policy,)) as pool:
-        running = {pool.submit(_worker_job, plan, job): k for k, job in enumerate(jobs)}
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_start_worker, initargs=(make_policy, os.getpid()))
+    try:
+        running = {pool.submit(_worker_job, plan, jobs[k]): k for k in todo}
         for future in as_completed(running):
             k = running[future]
             results[k] = future.result()
+            _keep_job(save, k, results[k])
             done(jobs[k])
+    except BaseException:  # Ctrl-C, SIGTERM, a failed job: the workers stop now, not after their jobs
+        _stop_pool(pool)
+        raise
+    pool.shutdown()
     return pd.concat(results, ignore_index=True)
+
+
+def _stop_pool(pool) -> None:
+    """End a ProcessPoolExecutor's workers at once (their jobs cancelled) and wait for them."""
+    processes = list(getattr(pool, "_processes", {}).values())  # the executor keeps no other handle
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        proc.kill()
+    for proc in processes:
+        proc.join(timeout=10)
 
 
 def metrics_table(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:

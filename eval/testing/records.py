@@ -1,9 +1,13 @@
 """Per-step records: one row per AC per step, the raw material of every metric.
 
 Columns: episode, seed, step, time, agent, algorithm, x, y, heading, speed (m/s),
-distance_to_goal, progress, every event flag, every weighted reward term
+distance_to_goal, progress, route_completion (the AC-episode's running route completion,
+0..1), every event flag (``collision_*``: in contact this step; ``event_*``: a new collision
+event starts this step, what the driving score counts), every weighted reward term
 (``r_<term>``), reward, n_vehicles, n_pedestrians, spawn/goal coordinates,
 terminated, truncated. Stored as Parquet so any other metric can be computed later.
+An info without ``route_completion`` or an ``event_*`` flag (an older env) leaves that
+column out: the driving score is then NaN (eval/testing/metrics.py).
 """
 
 from __future__ import annotations
@@ -19,6 +23,10 @@ INFO_COLUMNS = (
     "x", "y", "heading", "speed", "distance_to_goal", "progress", "n_vehicles",
     "n_pedestrians", "spawn_x", "spawn_y", "goal_x", "goal_y", "time",
 )
+SCORE_INFO = ("route_completion",)
+"""Float info keys of the driving score, recorded when the info has them."""
+OPTIONAL_EVENTS = ("event_vehicle", "event_pedestrian", "event_object")
+"""Event flags recorded when the info has them (an env before task version 4 has none)."""
 
 
 def record_row(*, episode: int, seed: int, step: int, agent: str, algorithm: str,
@@ -27,8 +35,12 @@ def record_row(*, episode: int, seed: int, step: int, agent: str, algorithm: str
     row = {"episode": episode, "seed": seed, "step": step, "agent": agent, "algorithm": algorithm}
     for key in INFO_COLUMNS:
         row[key] = float(info[key])
+    for key in SCORE_INFO:
+        if key in info:
+            row[key] = float(info[key])
     for key in EVENT_COLUMNS:
-        row[key] = bool(info[key])
+        if key in info or key not in OPTIONAL_EVENTS:
+            row[key] = bool(info[key])
     for term, value in info["reward_terms"].items():
         row[f"r_{term}"] = float(value)
     row.update(reward=float(reward), terminated=bool(terminated), truncated=bool(truncated))

@@ -4,7 +4,8 @@ A policy is anything with ``act(obs, deterministic=True)`` (every trained agent)
 or a callable ``policy(obs) -> action``. :class:`RandomPolicy` and
 :class:`AutopilotPolicy` are the two references; :class:`StackedPolicy` feeds a
 policy trained on stacked frames its own frame history, :class:`NavPolicy` one trained on
-the ``nav`` observation its own measurements, :class:`RepeatPolicy` holds the actions of one
+the ``nav`` observation its own measurements, :class:`StatePolicy` one trained on the state
+track its own state vector, :class:`RepeatPolicy` holds the actions of one
 trained with an action repeat.
 """
 
@@ -140,6 +141,28 @@ class NavPolicy:
         return _act(self.policy, self.guide.observe(obs, self.env.unwrapped.last_infos[self.agent]))
 
 
+class StatePolicy:
+    """A policy trained on the state track (``--obs state``, cosim.state), driving AC ``agent``
+    of a test env that may give camera images (ACs of other runs share it): it ignores the
+    env's observation and builds that AC's state vector itself from the env's world and last
+    controls (cosim.state.agent_state), as the training env with its cameras off does.
+    """
+
+    def __init__(self, policy, env, agent: str):
+        self.policy, self.env, self.agent = policy, env, agent
+        self.algo = getattr(policy, "algo", None)
+        self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    def reset(self) -> None:
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def act(self, obs, deterministic: bool = True):
+        from cosim.state import agent_state
+
+        return _act(self.policy, agent_state(self.env, self.agent))
+
+
 class SampledPolicy:
     """A stochastic-policy agent (PPO, A3C, IMPALA) tested by sampling its action
     distribution, the policy its training optimised, instead of taking the mode.
@@ -220,4 +243,4 @@ def mean_return(records: pd.DataFrame) -> float:
     return float(records.groupby(["episode", "agent"])["reward"].sum().mean())
 
 
-__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "RepeatPolicy", "StackedPolicy", "mean_return", "run_episodes", "np"]
+__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "RepeatPolicy", "StackedPolicy", "StatePolicy", "mean_return", "run_episodes", "np"]

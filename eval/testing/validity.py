@@ -7,13 +7,18 @@ criteria of docs/scenarios.md:
 
 - the ``autopilot`` (the scripted, privileged reference driver) and the
   ``autopilot-discrete`` (the same driver restricted to Discrete(9), the ceiling of a
-  discrete learner) each reach at least ``AUTOPILOT_MIN_GOAL`` of the goals without a
-  single vehicle, object or pedestrian collision;
+  discrete learner) each reach a mean driving score of at least ``AUTOPILOT_MIN_DS`` and at
+  least ``AUTOPILOT_MIN_GOAL`` of the goals without a single vehicle, object or pedestrian
+  collision;
 - the ``safe-non-turner`` (the autopilot that holds before its route's first turn) never
-  collides; it reaches the goals of the straight routes only, a row for learners to beat
-  (docs/task.md, "Reference policies");
-- every degenerate policy reaches at most ``DEGENERATE_MAX_GOAL`` of the goals and
-  earns at most ``DEGENERATE_MAX_RETURN`` of the (continuous) autopilot's mean return.
+  collides; it reaches the goals of the straight routes only, and its driving score is a row
+  for learners to beat (docs/task.md, "Reference policies");
+- every degenerate policy reaches a mean driving score of at most ``DEGENERATE_MAX_DS`` and
+  at most ``DEGENERATE_MAX_GOAL`` of the goals.
+
+The driving score (cosim/score.py; docs/task.md, "Driving score") replaced the earlier
+criterion on the return (a degenerate policy earning at most half the autopilot's): the
+return is still in the table.
 
 The policies need no camera, so they run on :class:`cosim.world.World` (no
 rendering): a whole environment takes seconds to a minute.
@@ -33,8 +38,9 @@ from cosim.world import World
 from eval.testing.conditions import TestConditions
 
 AUTOPILOT_MIN_GOAL = 0.9
+AUTOPILOT_MIN_DS = 0.9  # mean driving score of each autopilot
 DEGENERATE_MAX_GOAL = 0.2
-DEGENERATE_MAX_RETURN = 0.5  # fraction of the autopilot's mean return
+DEGENERATE_MAX_DS = 0.1  # mean driving score of every degenerate policy
 HELD_OUT_SEED = 10_000  # episode seeds start here; training runs use small seeds
 
 _TABLE = discrete_controls()  # the Discrete(9) table in World.step's units (cosim.dynamics)
@@ -57,7 +63,9 @@ DEGENERATE: dict[str, tuple[float, float] | None] = {
 }
 _DRIFT = {"forward-drift-left": 5, "forward-drift-right": 6}  # their discrete actions
 POLICIES = (*REFERENCES, *DEGENERATE)
-COLUMNS = ("return", "goal", "DISTANCE", "CV", "CO", "CP", "OS", "RL")
+SCORE_COLUMNS = ("DS", "RC", "success", "IP", "CV_events", "CO_events", "CP_events")
+"""The driving score's columns (as eval.testing.metrics.SCORE_METRICS)."""
+COLUMNS = (*SCORE_COLUMNS, "return", "goal", "DISTANCE", "CV", "CO", "CP", "OS", "RL")
 
 
 def _controller(name: str, world: World, rng: np.random.Generator) -> Callable[[str], tuple]:
@@ -99,8 +107,11 @@ def held(act: Callable[[str], tuple], hold: int) -> Callable[[str], tuple]:
 
 def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
                steps: int | None = None, seed: int = HELD_OUT_SEED, hold: int = 1) -> pd.DataFrame:
-    """One row per (episode, AC): return, goal, DISTANCE, the step fractions CV..RL, TTFC
-    (s to the first collision, NaN without one) and SPEED (mean forward speed, km/h);
+    """One row per (episode, AC): the driving score DS, route completion RC, success,
+    infraction penalty IP and collision events per kind (cosim/score.py; CV_events NaN
+    without another vehicle, CP_events without a pedestrian, as CV and CP), return, goal,
+    DISTANCE, the step fractions CV..RL, TTFC (s to the first collision, NaN without one) and
+    SPEED (mean forward speed, km/h);
     ``hold`` > 1 holds each of the policy's actions for that many steps (:func:`held`)."""
     sc = TestConditions.of(1, steps).scenario(scenario)
     rows = []
@@ -110,8 +121,8 @@ def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
             rng = np.random.default_rng(ep_seed)
             first = world.reset(seed=ep_seed)
             act = held(_controller(policy, world, rng), int(hold))
-            acc = {ac: dict.fromkeys(("return", "n", "cv", "co", "cp", "os", "rl", "goal", "speed"),
-                                     0.0) | {"ttfc": np.nan}
+            acc = {ac: dict.fromkeys(("return", "n", "cv", "co", "cp", "os", "rl", "goal", "speed",
+                                      "ev", "eo", "ep", "rc"), 0.0) | {"ttfc": np.nan}
                    for ac in world.ac_ids}
             last = {ac: (r.x, r.y) for ac, r in first.items()}
             saw = {"vehicles": False, "persons": False}
@@ -129,6 +140,10 @@ def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
                     a["cp"] += ev.collision_pedestrian
                     a["os"] += ev.lane_violation
                     a["rl"] += ev.red_light
+                    a["ev"] += ev.event_vehicle
+                    a["eo"] += ev.event_object
+                    a["ep"] += ev.event_pedestrian
+                    a["rc"] = max(a["rc"], float(ev.route_completion))
                     a["goal"] = max(a["goal"], float(ev.goal_reached))
                     a["speed"] += ev.speed
                     if ev.collision and np.isnan(a["ttfc"]):
@@ -150,8 +165,25 @@ def run_policy(scenario: Scenario, policy: str, num_agents: int, episodes: int,
                     "OS": a["os"] / n, "RL": a["rl"] / n,
                     "TTFC": a["ttfc"], "SPEED": 3.6 * a["speed"] / n,
                     "collision_steps": a["cv"] + a["co"] + a["cp"],
+                    **score_row(a, saw),
                 })
     return pd.DataFrame(rows)
+
+
+def score_row(a: dict, saw: dict) -> dict:
+    """DS, RC, success, IP and the event counts of one AC-episode from :func:`run_policy`'s
+    sums (``ev``/``eo``/``ep``: collision events, ``rl``: red lights, ``rc``: the largest
+    running route completion, ``goal``)."""
+    from cosim.score import driving_score, infraction_penalty
+
+    ip = infraction_penalty(vehicle=int(a["ev"]), pedestrian=int(a["ep"]), obj=int(a["eo"]),
+                            red_light=int(a["rl"]))
+    rc = 1.0 if a["goal"] else min(max(a["rc"], 0.0), 1.0)
+    clean = a["ev"] + a["eo"] + a["ep"] + a["rl"] == 0
+    return {"DS": driving_score(rc, ip), "RC": rc, "success": float(bool(a["goal"]) and clean),
+            "IP": ip, "CV_events": a["ev"] if saw["vehicles"] else np.nan, "CO_events": a["eo"],
+            "CP_events": a["ep"] if saw["persons"] else np.nan,
+            "collision_events": a["ev"] + a["eo"] + a["ep"]}
 
 
 def check_scenario(scenario: Scenario | str, num_agents: int, episodes: int,
@@ -171,22 +203,31 @@ def summarize(rows: pd.DataFrame) -> pd.DataFrame:
     """Mean per policy (in POLICIES order) of every column, plus collision steps (and TTFC, the
     mean over the AC-episodes with a collision, and SPEED, when the rows have them: the report's
     reference columns)."""
-    extra = [c for c in ("TTFC", "SPEED") if c in rows.columns]
-    table = rows.groupby("policy", sort=False)[[*COLUMNS, "collision_steps", *extra]].mean()
+    extra = [c for c in ("TTFC", "SPEED", "collision_events") if c in rows.columns]
+    cols = [c for c in COLUMNS if c in rows.columns]  # rows from before the driving score lack DS..
+    table = rows.groupby("policy", sort=False)[[*cols, "collision_steps", *extra]].mean()
     table["n"] = rows.groupby("policy", sort=False).size()
     return table.reindex([p for p in POLICIES if p in table.index])
 
 
 def failures(table: pd.DataFrame) -> list[str]:
-    """The validity criteria that a summary table breaks (empty: the scenario is valid)."""
+    """The validity criteria that a summary table breaks (empty: the scenario is valid); a
+    table without a driving score (``DS`` missing or NaN) fails its DS criteria as not measured."""
     out = []
     if "autopilot" not in table.index:
         return ["the autopilot was not run, so no criterion can be checked"]
-    ap = table.loc["autopilot"]
+
+    def ds(name: str) -> float:
+        return float(table.loc[name, "DS"]) if "DS" in table.columns else float("nan")
+
     for name in DRIVERS:
         if name not in table.index:
             continue
         row = table.loc[name]
+        if not np.isfinite(ds(name)):
+            out.append(f"{name}: no driving score measured (needs >= {AUTOPILOT_MIN_DS:.2f})")
+        elif ds(name) < AUTOPILOT_MIN_DS:
+            out.append(f"{name} scores DS {ds(name):.3f} (needs >= {AUTOPILOT_MIN_DS:.2f})")
         if row["goal"] < AUTOPILOT_MIN_GOAL:
             out.append(f"{name} reaches {row['goal']:.0%} of goals (needs >= {AUTOPILOT_MIN_GOAL:.0%})")
         if row["collision_steps"] > 0:
@@ -194,25 +235,54 @@ def failures(table: pd.DataFrame) -> list[str]:
     if "safe-non-turner" in table.index and table.loc["safe-non-turner", "collision_steps"] > 0:
         steps = table.loc["safe-non-turner", "collision_steps"]
         out.append(f"safe-non-turner collides ({steps:.2f} collision steps per AC)")
-    limit = DEGENERATE_MAX_RETURN * ap["return"]
     for name in table.index:
         if name in REFERENCES:
             continue
         row = table.loc[name]
+        if not np.isfinite(ds(name)):
+            out.append(f"{name}: no driving score measured (allowed <= {DEGENERATE_MAX_DS:.2f})")
+        elif ds(name) > DEGENERATE_MAX_DS:
+            out.append(f"{name} scores DS {ds(name):.3f} (allowed <= {DEGENERATE_MAX_DS:.2f})")
         if row["goal"] > DEGENERATE_MAX_GOAL:
             out.append(f"{name} reaches {row['goal']:.0%} of goals (allowed <= {DEGENERATE_MAX_GOAL:.0%})")
-        if row["return"] > limit:
-            out.append(f"{name} earns {row['return']:.0f}, more than {DEGENERATE_MAX_RETURN:.0%} "
-                       f"of the autopilot's {ap['return']:.0f}")
     return out
 
 
+def score_line(table: pd.DataFrame) -> str:
+    """Each reference's driving score in one line, and the strongest degenerate policy's:
+    what `cosim check-scenarios` prints under each table."""
+    if "DS" not in table.columns:
+        return "driving score: not measured (rows without DS)"
+
+    def v(name):
+        x = float(table.loc[name, "DS"])
+        return f"{x:.3f}" if np.isfinite(x) else "-"
+
+    parts = [f"{p} {v(p)}" for p in REFERENCES if p in table.index]
+    degenerate = table.loc[[p for p in table.index if p not in REFERENCES], "DS"].astype(float)
+    if degenerate.notna().any():
+        best = degenerate.idxmax()
+        parts.append(f"best degenerate {best} {v(best)}")
+    return (f"driving score (DS; autopilots need >= {AUTOPILOT_MIN_DS:.2f}, degenerate policies "
+            f"<= {DEGENERATE_MAX_DS:.2f}): " + ", ".join(parts))
+
+
 def format_table(table: pd.DataFrame) -> str:
-    """The summary as a Markdown table (CV and CP "-" where no vehicle / pedestrian existed)."""
-    head = "| policy | return | goal rate | DISTANCE m | CV | CO | CP | OS | RL |"
-    lines = [head, "|" + "---|" * 9]
+    """The summary as a Markdown table: the driving score DS, route completion RC and success
+    rate first, then the return, goal rate, DISTANCE, the step fractions CV..RL and the
+    collision events per AC-episode (vehicle / object / pedestrian). "-": does not apply (CV
+    and CP where no vehicle / pedestrian existed) or not measured (no DS in the rows)."""
+    head = ("| policy | DS | RC | success | return | goal rate | DISTANCE m | CV | CO | CP | OS | RL "
+            "| events V / O / P |")
+    lines = [head, "|" + "---|" * 13]
+
+    def num(r, c, d):
+        return "-" if c not in r.index or pd.isna(r[c]) else f"{r[c]:.{d}f}"
+
     for name, r in table.iterrows():
-        cells = [f"{r['return']:.0f}", f"{r['goal']:.2f}", f"{r['DISTANCE']:.1f}"]
-        cells += ["-" if pd.isna(r[c]) else f"{r[c]:.3f}" for c in ("CV", "CO", "CP", "OS", "RL")]
+        cells = [num(r, "DS", 3), num(r, "RC", 3), num(r, "success", 2),
+                 f"{r['return']:.0f}", f"{r['goal']:.2f}", f"{r['DISTANCE']:.1f}"]
+        cells += [num(r, c, 3) for c in ("CV", "CO", "CP", "OS", "RL")]
+        cells.append(" / ".join(num(r, c, 2) for c in ("CV_events", "CO_events", "CP_events")))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

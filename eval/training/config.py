@@ -33,10 +33,12 @@ ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
 DISCRETE_ALGOS = registry.DISCRETE
 CONTINUOUS_ALGOS = registry.CONTINUOUS
 ASYNC_ALGOS = registry.ASYNC
-COLLISION_RULES = ("continue", "end")
-"""``--collisions``: the episode goes on after a collision as in the test (the default) or a
-collision ends the AC's training episode (the paper's rule); TrainConfig.collisions_end_episode
-and docs/task.md, "Training rule"."""
+COLLISION_RULES = ("event", "step", "end")
+"""``--collisions``: ``event`` (the default, the test's rule): the episode goes on after a
+collision and each collision event is charged once; ``step``: the episode goes on and every
+contact step is charged (task version 3); ``end``: a collision ends the AC's training episode
+(the paper's rule). TrainConfig.collision_charge and .collisions_end_episode; docs/task.md,
+"Collision rule"."""
 
 
 DEMO_UPDATES = 2000
@@ -105,14 +107,19 @@ class TrainConfig:
     obs: str = "image"
     """What an AC observes: ``image``, its camera frames (the paper's observation), or ``nav``,
     those beside the measurements vector (speed, route command, distance to the goal;
-    cosim.wrappers.NavObservation). Checkpoints record it as their observation space (Box or
-    Dict), and every test of a checkpoint builds it for that AC (docs/task.md, "Observation")."""
+    cosim.wrappers.NavObservation), or ``state``, the state track: a 65-number vector with the
+    cameras off (cosim.state; frame_stack 1, MLPs of the preset's ``state_hidden``). Checkpoints
+    record it as their observation space (Box or Dict), and every test of a checkpoint builds it
+    for that AC (docs/task.md, "Observation")."""
     collisions_end_episode: bool = False
-    """False (the default, ``--collisions continue``): the test's rule, the episode goes on after
-    a collision and the car pays the collision reward every step it stays in contact, until the
-    goal, leaving the region or the horizon. True (``--collisions end``): a collision ends the
-    AC's training episode (the paper's training protocol), which makes crashing worth more than
-    waiting when 71 or more steps remain (docs/task.md, "Training rule")."""
+    """False (the default, ``--collisions event`` or ``step``): the test's rule, the episode goes
+    on after a collision until the goal, leaving the region or the horizon. True (``--collisions
+    end``): a collision ends the AC's training episode (the paper's training protocol), which
+    makes crashing worth more than waiting when 71 or more steps remain (docs/task.md,
+    "Collision rule")."""
+    collision_charge: str = "event"
+    """``event`` (the default): the collision weight once per collision event; ``step``
+    (``--collisions step``): every contact step (cosim.scenario.Contact.charge)."""
 
     validation_episodes: int = 0
     """Held-out episodes the run's ACs drive under the test's rules at every checkpoint; each
@@ -138,7 +145,7 @@ class TrainConfig:
     """0 (the default, the test's rule): an episode runs to its goals or the horizon. N > 0
     (``--stall-truncate N``): a training episode is truncated once every AC has stood still for
     N steps away from a red light (cosim.scenario.Termination.stall_truncate), so the ACs get
-    more attempts per env step; the rewards are the test's (docs/task.md, Training rule)."""
+    more attempts per env step; the rewards are the test's (docs/task.md, Collision rule)."""
     demo_steps: int = 0
     """0 (the default): no demonstrations. N > 0 (``--demo-steps N``, DQN, DDPG and TD3): before
     its first env step the run drives at least N env steps (whole episodes, seeds apart from
@@ -183,7 +190,7 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
                 image_size: int = 84, agent_preset: str | None = None,
                 hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
                 torch_threads: int = 0, frame_stack: int | None = None, obs: str = "image",
-                learner_threads: int = 0, collisions: str = "continue",
+                learner_threads: int = 0, collisions: str = "event",
                 validation_episodes: int | None = None, validation_steps: int | None = None,
                 share_params: bool = False, init_from: str | Path | None = None,
                 stall_truncate: int = 0, demo_steps: int = 0, demo_updates: int = 0) -> TrainConfig:
@@ -195,9 +202,11 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     ``workers``: A3C runs one learner thread per environment, IMPALA acts in all).
     ``validation_episodes`` / ``validation_steps``: the held-out episodes that pick each AC's
     best.pt (TrainConfig.validation_episodes; 0 episodes: by training return).
-    ``collisions``: "continue" (the default, the test's rule: the episode goes on and every
-    contact step is charged) or "end" (a collision ends the AC's training episode, the paper's).
-    ``obs``: "image" (the default) or "nav" (TrainConfig.obs). ``share_params``: one network for
+    ``collisions``: "event" (the default, the test's rule: the episode goes on and each collision
+    event is charged once), "step" (every contact step charged) or "end" (a collision ends the
+    AC's training episode, the paper's).
+    ``obs``: "image" (the default), "nav" or "state" (TrainConfig.obs; "state" takes frame stack 1
+    and the preset's ``state_hidden`` MLP sizes). ``share_params``: one network for
     all the run's ACs (TrainConfig.share_params). ``init_from``: a run folder or checkpoint to
     warm-start from (TrainConfig.init_from). ``stall_truncate``: TrainConfig.stall_truncate.
     ``demo_steps``, ``demo_updates``: autopilot demonstrations in the replay (TrainConfig.demo_steps).
@@ -233,7 +242,11 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         raise TrainError(f"--steps must be >= 1, got {total}")
     if envs is None:  # A3C and IMPALA: the preset's workers, one environment (and A3C thread) each
         envs = p.envs if algo not in ASYNC_ALGOS else p.workers
-    frame_stack = p.frame_stack if frame_stack is None else int(frame_stack)
+    if obs == "state" and frame_stack is not None and int(frame_stack) != 1:
+        raise TrainError(f"--frame-stack {frame_stack} stacks camera frames; --obs state observes one "
+                         "state vector (it carries the speeds): drop --frame-stack or give 1")
+    # the state track observes one vector: the preset's frame stack is the camera's
+    frame_stack = (1 if obs == "state" else p.frame_stack) if frame_stack is None else int(frame_stack)
     if frame_stack < 1:
         raise TrainError(f"--frame-stack must be >= 1 (1: a single camera frame), got {frame_stack}")
     if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
@@ -257,7 +270,9 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
     config_cls = registry.get_config_class(algo)  # PPOConfig, ... (agents/configs.py, no torch)
     chosen = agent_preset or p.agent_preset
     try:  # the preset's typed config (with its YAML's changes), then the --set changes
-        base = config_cls.preset(chosen, **{"reward_scale": p.reward_scale, **p.overrides.get(algo, {})})
+        # the state track's MLPs: the preset's state_hidden, unless the algorithm's YAML sets hidden
+        state = {"hidden": tuple(p.state_hidden)} if obs == "state" else {}
+        base = config_cls.preset(chosen, **{"reward_scale": p.reward_scale, **state, **p.overrides.get(algo, {})})
         agent_config = base.replace(**parse_hyper(base, hyper or {}, algo))
     except ValueError as exc:
         raise TrainError(f"{algo} hyperparameters: {exc}") from exc
@@ -267,7 +282,9 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
         image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
         torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs,
         learner_threads=int(learner_threads),
-        collisions_end_episode=collisions == "end", validation_episodes=validation_episodes,
+        collisions_end_episode=collisions == "end",
+        collision_charge="step" if collisions == "step" else "event",
+        validation_episodes=validation_episodes,
         validation_steps=validation_steps, policy_dtype=p.policy_dtype, share_params=bool(share_params),
         init_from=_init_source(init_from), stall_truncate=int(stall_truncate),
         demo_steps=int(demo_steps), demo_updates=int(demo_updates),

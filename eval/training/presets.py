@@ -65,6 +65,11 @@ class TrainPreset:
     exact, or float16, half the bytes and rounded (agents.checkpoint.POLICY_DTYPES). Only the
     smoke preset takes float16: its 60 policy files would otherwise be ~385 MB for numbers that
     check the pipeline, not the algorithms (docs/benchmarks.md#disk-per-run-and-per-preset)."""
+    state_hidden: tuple[int, ...] = (256, 256)
+    """Hidden sizes of every algorithm's MLPs on the state track (``--obs state``, cosim.state:
+    65 numbers; each config's ``hidden``, 64x64 for PPO, A3C and IMPALA otherwise): the
+    MetaDrive / highway-env scale for a vector of nearby actors. An algorithm's YAML that sets
+    ``hidden`` wins; ``--set hidden=[...]`` wins over both."""
 
 
 
@@ -144,5 +149,7 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
         if settings.get("policy_dtype", "float32") not in POLICY_DTYPES:
             raise PresetError(folder / "runs.yaml", f"{name}: policy_dtype must be one of "
                                                     f"{', '.join(POLICY_DTYPES)}, got {settings['policy_dtype']!r}")
+        if "state_hidden" in settings:
+            settings = {**settings, "state_hidden": tuple(settings["state_hidden"])}
         presets[name] = TrainPreset(steps=steps, overrides=overrides, **settings)
     return presets

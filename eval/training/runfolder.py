@@ -75,8 +75,9 @@ def unwritable_reason(folder: Path) -> str | None:
     return None
 
 
-def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
-    """Create ``out/<env>__<algo>__<seed>__<timestamp>/``; fail early if unwritable."""
+def new_run_dir(out: Path, cfg: TrainConfig, keep: str | None = None) -> Path:
+    """Create ``out/<env>__<algo>__<seed>__<timestamp>/`` with its config.yaml (``keep``: the
+    run's ``--keep``, recorded there) and manifest.json; fail early if unwritable."""
     out = Path(out)
     reason = unwritable_reason(out)
     if reason:
@@ -89,9 +90,35 @@ def new_run_dir(out: Path, cfg: TrainConfig) -> Path:
         run = out / f"{env}__{cfg.algo}__{cfg.seed}__{stamp}-{suffix}"
         suffix += 1
     (run / "checkpoints").mkdir(parents=True)
-    atomic_write(run / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    write_run_config(run, cfg, keep)
     atomic_write(run / "manifest.json", json.dumps(manifest(cfg), indent=2))
     return run
+
+
+def write_run_config(run: Path, cfg: TrainConfig, keep: str | None = None) -> None:
+    """config.yaml: ``cfg`` and, beside its keys, ``keep`` (the run's ``--keep``, what a resume
+    honours; :func:`run_keep`). ``keep`` None keeps the file's own (or writes none)."""
+    keep = keep if keep is not None else run_keep(run)
+    data = cfg.to_dict() | ({"keep": keep} if keep is not None else {})
+    atomic_write(Path(run) / "config.yaml", yaml.safe_dump(data, sort_keys=False))
+
+
+def run_keep(run: Path) -> str | None:
+    """The ``--keep`` policy a run's config.yaml records; None for a run written before it
+    was recorded, or without a readable config.yaml (:func:`load_run_config` names that)."""
+    try:
+        data = yaml.safe_load((Path(run) / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
+        return None
+    keep = data.get("keep") if isinstance(data, dict) else None
+    return keep if keep in KEEP_POLICIES else None
+
+
+def resume_keep(run: Path, given: str) -> str:
+    """The ``--keep`` a resumed run finishes with: ``all`` where the run was started with it or
+    the resume asks for it (the one that deletes less: a resume never prunes what the run was
+    told to keep), else ``best``."""
+    return "all" if "all" in (run_keep(run), given) else given
 
 
 def extend_budget(run: Path, cfg: TrainConfig, done: int, steps: int) -> TrainConfig:
@@ -114,7 +141,7 @@ def extend_budget(run: Path, cfg: TrainConfig, done: int, steps: int) -> TrainCo
         raise TrainError(f"{run} is finished and kept only best.pt for {', '.join(missing)} (--keep best); "
                          "training it further needs latest.pt: train runs you will extend with --keep all")
     cfg = dataclasses.replace(cfg, steps=int(steps))
-    atomic_write(run / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    write_run_config(run, cfg)
     return cfg
 
 
@@ -137,6 +164,9 @@ def load_run_config(run: Path) -> TrainConfig:
         raise TrainError(f"{path}: malformed YAML{at}; {fix}") from None
     if not isinstance(data, dict):
         raise TrainError(f"{path}: expected a mapping of run settings, got {type(data).__name__}; {fix}")
+    keep = data.pop("keep", None)  # the run's --keep (write_run_config), not a TrainConfig key
+    if keep is not None and keep not in KEEP_POLICIES:
+        raise TrainError(f"{path}: 'keep' must be one of {', '.join(sorted(KEEP_POLICIES))}, got {keep!r}; {fix}")
     fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(data) - set(fields))
     if unknown:
@@ -286,10 +316,42 @@ the moment (``git``) and this one (``git_at_start``)."""
 
 
 def atomic_write(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` so a reader sees the old file or the new, never half."""
+    """Replace ``path`` with ``text`` so a reader sees the old file or the new, never half: the
+    text goes to ``<name>.tmp`` (fsync'ed), renamed over ``path``. A failed write (a full disk)
+    removes the ``.tmp``, leaves ``path`` as it was and raises :func:`write_error`'s error.
+
+    Raises:
+        TrainError: the file could not be written, naming it, the reason and the fix.
+    """
+    path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise write_error(path, exc) from exc
+
+
+def write_error(path: Path, exc: OSError) -> TrainError:
+    """The one-line error of a write to ``path`` that failed with ``exc``: what failed, why, the
+    free space there, and what to do (a full disk: free space, then resume; training runs
+    resume from their last checkpoint, eval/training/runfolder.py)."""
+    import errno
+    import shutil
+
+    try:
+        free = f"{shutil.disk_usage(Path(path).parent).free / 1e6:.1f} MB free there"
+    except OSError:
+        free = "free space unknown"
+    full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    fix = ("the disk is full: free space, then run the command again (a training run continues from "
+           "its last checkpoint with `cosim train --resume RUN`)" if full else
+           "make the folder writable or choose another --out")
+    return TrainError(f"cannot write {path} ({exc.strerror or exc}; {free}); {fix}")
 
 
 def pending_name(name: str, env_step: int) -> str:

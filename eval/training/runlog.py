@@ -21,8 +21,10 @@ import numpy as np
 
 from cosim.env import EPISODE_EVENTS
 from cosim.events import REWARD_TERMS
-from eval.training.config import TrainConfig
-from eval.training.runfolder import atomic_write, pending_name
+from agents.errors import AgentError
+from cosim.errors import CosimError
+from eval.training.config import TrainConfig, TrainError
+from eval.training.runfolder import atomic_write, pending_name, write_error
 
 log = logging.getLogger(__name__)
 
@@ -66,12 +68,22 @@ class RunLog:
         self._file = open(self.csv_path, "a", newline="")  # noqa: SIM115 - closed in close()
         self._csv = csv.DictWriter(self._file, fieldnames=EPISODE_FIELDS, extrasaction="ignore")
         if self.rows == 0:
-            self._csv.writeheader()
-            self._file.flush()
+            try:
+                self._csv.writeheader()
+                self._file.flush()
+            except OSError as exc:
+                self._file.close()
+                raise self._write_error(exc) from exc
         for row in self._read_rows():
             self.recent[row["agent"]].append(float(row["return"]))
-        self.tb = SummaryWriter(str(self.run / "tb"), purge_step=self.env_steps or None)
+        # the events after the checkpoint go (they are redone); the checkpoint covers its own
+        # step S (episodes that ended at S are rows it kept), and purge_step drops steps >= it
+        self.tb = SummaryWriter(str(self.run / "tb"), purge_step=self.env_steps + 1 if self.env_steps else None)
         self.on_checkpoint: Callable[[Path, int, float], None] | None = None
+
+    def _write_error(self, exc: OSError) -> TrainError:
+        """A failed write to episodes.csv (a full disk), its fix naming this run."""
+        return TrainError(str(write_error(self.csv_path, exc)).replace("--resume RUN", f"--resume {self.run}"))
 
     def _read_rows(self) -> list[dict]:
         with open(self.csv_path, newline="") as f:
@@ -105,8 +117,11 @@ class RunLog:
         self.episodes[agent] = k + 1
         row = {**stats, "agent": agent, "episode": k, "env_step": env_step,
                "wall_time_s": round(self.elapsed, 2)}
-        self._csv.writerow(row)
-        self._file.flush()
+        try:
+            self._csv.writerow(row)
+            self._file.flush()
+        except OSError as exc:  # a full disk: the rows after the last checkpoint are redone on resume
+            raise self._write_error(exc) from exc
         self.rows += 1
         self.recent[agent].append(float(stats["return"]))
         tb = self.tb
@@ -164,17 +179,26 @@ class RunLog:
                 best_step[agent_id] = env_step
             for name in names:
                 pending = folder / pending_name(name, env_step)
-                # latest.pt resumes training (everything); best.pt is what the test drives (the
-                # policy only, a third to a fifth of the size, agents/checkpoint.py; float16 in
-                # the smoke preset, TrainConfig.policy_dtype)
-                policy = name == "best.pt"
-                agent.save(pending, policy_only=policy,  # written to a temp name, renamed
-                           policy_dtype=self.cfg.policy_dtype if policy else "float32")
                 staged.append((pending, folder / name))
         state = {"env_steps": env_step, "episodes": self.episodes, "best": best,
                  "best_step": best_step, "validation": validation,
                  "csv_rows": self.rows, "elapsed_s": self.elapsed, "timing": extra_time or {}}
-        atomic_write(self.run / "state.json", json.dumps(state, indent=2))  # the commit point
+        try:
+            for pending, final in staged:
+                # latest.pt resumes training (everything); best.pt is what the test drives (the
+                # policy only, a third to a fifth of the size, agents/checkpoint.py; float16 in
+                # the smoke preset, TrainConfig.policy_dtype)
+                policy = final.name == "best.pt"
+                agents[final.parent.name].save(pending, policy_only=policy,  # a temp name, renamed
+                                               policy_dtype=self.cfg.policy_dtype if policy else "float32")
+            atomic_write(self.run / "state.json", json.dumps(state, indent=2))  # the commit point
+        except (OSError, CosimError, AgentError) as exc:  # a full disk: this checkpoint is not committed
+            for pending, _ in staged:
+                pending.unlink(missing_ok=True)
+            reason = " ".join(str(exc).split()).replace("--resume RUN", f"--resume {self.run}")
+            kept = (f"the run keeps its checkpoint at step {self.env_steps}" if self.env_steps
+                    else "the run has no checkpoint yet (a resume restarts it)")
+            raise TrainError(f"checkpoint at step {env_step} not written, {kept}: {reason}") from exc
         for pending, final in staged:
             os.replace(pending, final)
         self.env_steps, self.best, self.best_step, self.validation = env_step, best, best_step, validation
@@ -202,7 +226,12 @@ class RunLog:
         return {**rule, "best": best, "representative": representative, "history": self.validation}
 
     def close(self) -> None:
-        self._file.close()
-        self.tb.close()
+        """Close the CSV, TensorBoard and the validator; a failed flush (a full disk, whose
+        error is already on its way) is logged, not raised over it, and the rest still close."""
+        for what, close in (("episodes.csv", self._file.close), ("TensorBoard", self.tb.close)):
+            try:
+                close()
+            except OSError as exc:
+                log.warning("closing %s of %s: %s", what, self.run, exc)
         if self.validator is not None:
             self.validator.close()

@@ -34,6 +34,9 @@ from eval.training.runfolder import (
     prune_finished,
     read_state,
     recover_checkpoints,
+    resume_keep,
+    run_keep,
+    write_run_config,
 )
 from eval.training.runlog import RunLog
 
@@ -49,7 +52,8 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
     ``on_checkpoint(run, env_steps, mean_return)`` is called after each committed
     checkpoint (how Ray Tune trials report, eval/scale/benchmark.py and eval/scale/pbt.py).
     ``keep`` is what the folder keeps once the run is finished (eval/training/runfolder.py
-    KEEP_POLICIES; ``"all"``, the library default, deletes nothing). ``steps`` with ``resume``
+    KEEP_POLICIES; ``"all"``, the library default, deletes nothing), recorded in config.yaml; a
+    resume keeps all where the run or the resume says ``all`` (runfolder.resume_keep). ``steps`` with ``resume``
     raises the run's budget to that many environment steps (runfolder.extend_budget).
 
     Raises:
@@ -65,6 +69,8 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
             recover_checkpoints(run, None if state is None else int(state["env_steps"]))
             if steps is not None:
                 cfg = extend_budget(run, cfg, 0 if state is None else int(state["env_steps"]), int(steps))
+            if run_keep(run) != (keep := resume_keep(run, keep)):  # the run's own --keep, recorded
+                write_run_config(run, cfg, keep)
             if state is None:  # stopped before its first checkpoint: start again from step 0
                 log.info("resume: %s has no checkpoint yet; restarting it from step 0", run)
                 shutil.rmtree(run / "tb", ignore_errors=True)
@@ -74,7 +80,7 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
     else:
         if cfg.init_from is not None:  # a source that does not fit is refused before a run folder exists
             _check_init_source(cfg)
-        run = new_run_dir(out, cfg)
+        run = new_run_dir(out, cfg, keep)
         lock = RunLock(run)
         state = None
     try:
@@ -104,12 +110,14 @@ def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, 
             _train_sync(cfg, runlog, state is not None, quiet, progress)
     finally:
         runlog.close()
-        plot_convergence(run)
+        try:
+            plot_convergence(run)
+        except OSError as exc:  # a full disk: the error that stopped the run is the one to see
+            log.warning("convergence plot of %s not written: %s", run, exc)
 
 
 def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_space,
                    device: str = "cpu") -> dict:
-    import agents as agents_pkg
     from agents.base import check_observations
     from agents.registry import get_agent_class
 
@@ -118,8 +126,8 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
         from agents.shared import share
 
         latest = run / "checkpoints" / "ac_0" / "latest.pt"
-        if resumed and latest.exists():
-            core = agents_pkg.load(latest, device=device)
+        if resumed:
+            core = _resume_agent(cfg, run, latest, device)
             try:
                 check_observations(core.observation_space, obs_space, f"checkpoint {latest}")
             except ValueError as exc:
@@ -132,8 +140,8 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
     for k in range(cfg.agents):
         aid = f"ac_{k}"
         latest = run / "checkpoints" / aid / "latest.pt"
-        if resumed and latest.exists():
-            out[aid] = agents_pkg.load(latest, device=device)  # saved from any device, loads on any
+        if resumed:  # saved from any device, loads on any
+            out[aid] = _resume_agent(cfg, run, latest, device)
             try:  # a config.yaml edited to another --obs or --frame-stack than the checkpoints'
                 check_observations(out[aid].observation_space, obs_space, f"checkpoint {latest}")
             except ValueError as exc:
@@ -143,6 +151,28 @@ def _load_or_build(cfg: TrainConfig, run: Path, resumed: bool, obs_space, act_sp
             out[aid] = cls.from_spaces(obs_space, act_space, cfg.agent_config, seed=cfg.seed + k, device=device)
             _warm_start(cfg, out[aid], k)
     return out
+
+
+def _resume_agent(cfg: TrainConfig, run: Path, latest: Path, device: str):
+    """The agent a resumed run goes on training: its ``latest.pt``, which must exist (the run
+    has a committed checkpoint), hold ``cfg.algo``, be a full checkpoint and match its checksum.
+    Never a fresh agent in its place: the run's step count covers the steps it was trained.
+
+    Raises:
+        TrainError: the file is missing, corrupt, of another algorithm or policy-only, in one
+            line naming the file and the fix.
+    """
+    from agents.checkpoint import CheckpointError, load_checkpoint
+
+    fix = ("restore it from a copy, or start the run again from step 0 by deleting its state.json "
+           "(the steps trained are lost), or start a new run")
+    if not latest.is_file():
+        raise TrainError(f"cannot resume {run}: {latest.relative_to(run)} is missing, though state.json "
+                         f"counts the steps it trained; {fix}")
+    try:
+        return load_checkpoint(latest, device=device, expected_algo=cfg.algo, require_full=True)
+    except CheckpointError as exc:
+        raise TrainError(f"cannot resume: {str(exc).rstrip('.')}. To resume, {fix}") from None
 
 
 def init_checkpoint(source: str | Path, k: int) -> Path:
@@ -397,6 +427,7 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
         cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
         horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
+        collision_charge=cfg.collision_charge,
         stall_truncate=cfg.stall_truncate or None,
     )
     return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs,

@@ -203,6 +203,11 @@ def test_wrong_format_version_and_algorithm(tmp_path):
     payload = torch.load(path, weights_only=True)
     payload["format_version"] = 99
     torch.save(payload, tmp_path / "future.pt")
+    edited = {**payload, "format_version": 1, "seed": 12345}  # changed with its checksum kept: refused
+    torch.save(edited, tmp_path / "edited.pt")
+    with pytest.raises(agents.CheckpointError, match="edited.pt is corrupt: its contents do not match the checksum"):
+        agents.load(tmp_path / "edited.pt")
+    del payload["checksum"]  # the payloads below lack one, as files saved before checksums: loaded unchecked
     with pytest.raises(agents.CheckpointError, match="format version 99"):
         agents.load(tmp_path / "future.pt")
 

@@ -1,24 +1,39 @@
-"""Scenario.cars_see_acs: SUMO's cars brake for an AC anywhere on their lane ahead
-(SumoBridge._cars_seeing), not only for one SUMO has mapped onto that lane as their leader.
+"""Scenario.cars_see_acs (on by default since task version 4): SUMO's cars brake for an AC
+anywhere on their lane ahead (SumoBridge._cars_seeing), not only for one SUMO has mapped onto
+that lane as their leader, and SUMO's people stop for an AC's body on their next steps
+anywhere (SumoBridge._people_seeing).
 
 An AC is moved by moveToXY(keepRoute=2), which maps an AC standing across or between lanes to
-one lane (or none): without the option a car on another lane its body covers drives into it
-(docs/task.md, "Cars that see an AC anywhere").
+one lane (or none): without the option a car on another lane its body covers drives into it,
+and a person walks through an AC lying on its sidewalk or crossing (docs/task.md, "Cars that
+see an AC anywhere").
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 import yaml
 
-from cosim.scenario import scenario_data
+from cosim.geometry import rect_circle_overlap, rect_corners
+from cosim.scenario import Scenario, load_scenario, scenario_data
+from cosim.sumo_bridge import PERSON_AHEAD, PERSON_RADIUS
 from cosim.world import World
 
 BRAKE = {"ac_0": (-1.0, 0.0)}
 LANE = "st_e_1"  # Straight (env_1), eastbound, the right lane: centre line y = 145.2, x from -242.5
 BOUNDARY = 146.8  # y of the line between st_e_1 and st_e_2 (centre y = 148.4), both 3.2 m wide
+KERB = 143.6  # y of st_e_1's right edge (the sidewalk st_e_0 beyond it, 2 m wide)
+# where an AC stands across the car's lane, 122.5 m along it: (y, heading, the lane SUMO maps it to)
+ACROSS = {
+    # heading north, centred on the lane line: SUMO maps it to the left lane
+    "across the lane line": (BOUNDARY, math.pi / 2, "st_e_2"),
+    # heading south, its rear 1.65 m into the lane (past its centre line), the other 2.85 m on
+    # the sidewalk and beyond: SUMO maps it (its front off the road) to no lane
+    "mostly off the road": (KERB - 0.6, -math.pi / 2, ""),
+}
 
 
 def _scenario(tmp_path, see: bool) -> str:
@@ -46,20 +61,28 @@ def _leader(ls) -> str:
     return lead[0] if lead else ""  # libsumo: ("", -1) for none
 
 
+def test_cars_and_people_see_acs_by_default():
+    default = {f.name: f.default for f in dataclasses.fields(Scenario)}["cars_see_acs"]
+    assert default is True  # task version 4
+    assert all(load_scenario(f"env_{k}").cars_see_acs for k in range(1, 6))
+
+
+@pytest.mark.parametrize("where", list(ACROSS))
 @pytest.mark.parametrize("see", [False, True])
-def test_a_car_stops_for_an_ac_standing_across_its_lane_only_with_the_option(tmp_path, see):
-    """An AC standing across the line between the two eastbound lanes (heading north, centred on
-    it): SUMO maps it to the left lane, so a car on the right lane does not see it. Without the
-    option the car drives into it (2 contact steps at 14.5 m/s, then through it: cars are not
-    solid); with it the car stops before it, held, and drives on once the AC has gone."""
+def test_a_car_stops_for_an_ac_standing_across_its_lane_only_with_the_option(tmp_path, see, where):
+    """An AC standing across the car's lane where SUMO does not map it onto that lane (across
+    the line to the next lane, or mostly off the road), so a car on the lane does not see it.
+    Without the option the car drives into it (contact steps at 13.89 m/s, then through it: cars
+    are not solid); with it the car stops before it, held, and drives on once the AC has gone."""
+    y, heading, mapped = ACROSS[where]
     with World(_scenario(tmp_path, see), 1, background=False) as w:
         assert w.scenario.cars_see_acs is see
         w.reset(seed=0)
         ls = w.bridge._ls
-        w.place_ac("ac_0", -120.0, BOUNDARY, math.pi / 2)  # across both lanes, 122.5 m along them
+        w.place_ac("ac_0", -120.0, y, heading)  # across the lane, 122.5 m along it
         for _ in range(2):
             w.step(BRAKE)
-        assert ls.vehicle.getLaneID("ac_0") != LANE, "SUMO has not mapped the AC onto the car's lane"
+        assert ls.vehicle.getLaneID("ac_0") == mapped != LANE, "SUMO has not mapped the AC onto the car's lane"
         _car(ls, 60.0, 13.89)  # 61 m before the AC, at the speed limit
         contact, held = [], False
         for _ in range(80):
@@ -192,3 +215,81 @@ def test_a_car_braking_for_an_ac_it_follows_is_not_held_for_one_further_on(tmp_p
             assert "car" not in w.bridge._held, "its leader, the first AC, is nearer"
         assert "ac_0" in leader and not contact, "it stopped behind the first AC"
         assert ls.vehicle.getSpeed("car") < 0.5
+
+
+# People (Four-way, env_3): a person walking south on the north arm's west sidewalk (xn_s_0,
+# centre x = -4.5, 2 m wide), then east over its zebra crossing :X_c0 (y = 5.5, x -3.5 to 3.5)
+WALKS = {
+    # the AC stands across the sidewalk, 6.5 m ahead of the person, its front off the road:
+    # SUMO maps it to no lane
+    "across the sidewalk": (14.0, (-4.5, 15.0, math.pi), ""),
+    # the AC lies along the crossing (as one that turned onto it), its front 2.75 m from the
+    # crossing's west end: SUMO maps it into the junction and lets the person step onto it
+    "along the crossing": (2.0, (1.5, 5.5, math.pi), ":X_0_0"),
+}
+
+
+def _walker(ls, before_end: float) -> None:
+    for tls in ls.trafficlight.getIDList():  # every signal green: only the AC can stop it
+        ls.trafficlight.setRedYellowGreenState(tls, "G" * len(ls.trafficlight.getRedYellowGreenState(tls)))
+    ls.person.add("walker", "xn_s", ls.lane.getLength("xn_s_0") - before_end)
+    ls.person.appendWalkingStage("walker", ["xn_s", "xn_n"], 3.0)
+
+
+def _clearance(w: World, px: float, py: float) -> float:
+    """Metres between the person's circle and the AC's body (negative: they overlap)."""
+    x, y, h, _ = w.ac_state("ac_0")
+    dx, dy = px - x, py - y
+    lon, lat = abs(dx * math.cos(h) + dy * math.sin(h)), abs(-dx * math.sin(h) + dy * math.cos(h))
+    out = math.hypot(max(lon - w.vehicle.length / 2, 0.0), max(lat - w.vehicle.width / 2, 0.0))
+    return (out if out > 0 else -min(w.vehicle.length / 2 - lon, w.vehicle.width / 2 - lat)) - PERSON_RADIUS
+
+
+@pytest.mark.parametrize("where", list(WALKS))
+@pytest.mark.parametrize("see", [False, True])
+def test_a_person_stops_for_an_ac_standing_on_its_path_only_with_the_option(where, see):
+    """Without the option the person walks through the AC's body (SUMO's people do not avoid
+    vehicles; a standing AC is not charged for it, a moving one is); with it the person stops
+    before the body, held, within PERSON_AHEAD m + 0.6 of it, and walks on once the AC has gone."""
+    before_end, pose, mapped = WALKS[where]
+    with World(load_scenario("env_3").with_overrides(cars_see_acs=see), 1, background=False) as w:
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        _walker(ls, before_end)
+        w.place_ac("ac_0", *pose)
+        gaps, held = [], 0
+        for _ in range(120):
+            w.step(BRAKE)
+            assert ls.vehicle.getLaneID("ac_0") == mapped
+            gaps.append(_clearance(w, *ls.person.getPosition("walker")))
+            held += "walker" in w.bridge._held_people
+        if not see:
+            assert min(gaps) < -0.5 and not held, "it walked through the AC"
+            return
+        assert min(gaps) > 0.3, "it stopped before the AC's body"
+        assert held > 60 and "walker" in w.bridge._held_people
+        assert ls.person.getSpeed("walker") == 0.0
+        assert gaps[-1] <= PERSON_AHEAD + 0.6, "it walked up to the AC first"
+        stood = ls.person.getPosition("walker")
+        w.place_ac("ac_0", -60.0, 40.0, 0.0)  # away, off the road
+        for _ in range(20):
+            w.step(BRAKE)
+        assert "walker" not in w.bridge._held_people
+        assert math.dist(stood, ls.person.getPosition("walker")) > 1.5, "released, it walks on"
+
+
+def test_a_person_an_ac_already_touches_is_not_held():
+    """An AC placed over a person on the sidewalk (one that ran into it): held, the person would
+    stand in the contact for as long as the AC stands; it walks on out of it."""
+    with World(load_scenario("env_3"), 1, background=False) as w:
+        assert w.scenario.cars_see_acs
+        w.reset(seed=0)
+        ls = w.bridge._ls
+        _walker(ls, 14.0)  # at (-5.1, 21.5), walking south
+        w.place_ac("ac_0", -4.5, 21.2, math.pi)  # across the sidewalk, over the person
+        w.step(BRAKE)
+        assert _clearance(w, *ls.person.getPosition("walker")) < 0.0
+        for _ in range(40):
+            w.step(BRAKE)
+            assert "walker" not in w.bridge._held_people
+        assert _clearance(w, *ls.person.getPosition("walker")) > 0.5, "it walked out"

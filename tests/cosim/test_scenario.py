@@ -41,9 +41,9 @@ def test_solid_cars_is_read_from_the_yaml_and_off_in_every_bundled_scenario(tmp_
     assert not any(load_scenario(f"env_{k}").solid_cars for k in range(1, 6))  # task version 3
 
 
-def test_cars_see_acs_is_read_from_the_yaml_and_off_in_every_bundled_scenario(tmp_path):
-    assert load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(cars_see_acs=True))).cars_see_acs
-    assert not any(load_scenario(f"env_{k}").cars_see_acs for k in range(1, 6))  # task version 3
+def test_cars_see_acs_is_read_from_the_yaml_and_on_in_every_bundled_scenario(tmp_path):
+    assert not load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(cars_see_acs=False))).cars_see_acs
+    assert all(load_scenario(f"env_{k}").cars_see_acs for k in range(1, 6))  # task version 4
 
 
 def test_scenario_data_makes_every_file_absolute_or_relative_to_the_copys_folder(tmp_path):

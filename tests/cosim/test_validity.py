@@ -18,6 +18,8 @@ from eval.testing.validity import (
     check_scenario,
     failures,
     format_table,
+    run_policy,
+    score_line,
     summarize,
 )
 
@@ -194,32 +196,63 @@ def test_the_degenerate_policy_suite_passes_on_short_episodes(env):
 
 
 def _table(**rows) -> pd.DataFrame:
-    """A summary table: policy -> (goal, return, collision_steps)."""
-    return pd.DataFrame({p: dict(zip(("goal", "return", "collision_steps"), v, strict=True))
-                         for p, v in rows.items()}).T
+    """A summary table: policy -> (goal, return, collision_steps, DS)."""
+    return pd.DataFrame({p: dict(zip(("goal", "return", "collision_steps", "DS"), v, strict=True))
+                         for p, v in rows.items()}).T.astype(float)
 
 
 def test_the_discrete_autopilot_is_held_to_the_autopilots_criteria():
     assert REFERENCES == ("autopilot", "autopilot-discrete", "safe-non-turner")
     assert POLICIES[:3] == REFERENCES  # they head every table, then the degenerate policies
-    ok = dict(autopilot=(1.0, 2000.0, 0.0), **{"autopilot-discrete": (0.95, 1900.0, 0.0)})
+    ok = dict(autopilot=(1.0, 2000.0, 0.0, 1.0), **{"autopilot-discrete": (0.95, 1900.0, 0.0, 0.95)})
     assert failures(_table(**ok)) == []
-    weak = failures(_table(**(ok | {"autopilot-discrete": (0.6, 900.0, 0.0)})))
-    assert weak == ["autopilot-discrete reaches 60% of goals (needs >= 90%)"]
-    crash = failures(_table(**(ok | {"autopilot-discrete": (1.0, 900.0, 2.0)})))
-    assert crash == ["autopilot-discrete collides (2.00 collision steps per AC)"]
+    weak = failures(_table(**(ok | {"autopilot-discrete": (0.6, 900.0, 0.0, 0.7)})))
+    assert weak == ["autopilot-discrete scores DS 0.700 (needs >= 0.90)",
+                    "autopilot-discrete reaches 60% of goals (needs >= 90%)"]
+    crash = failures(_table(**(ok | {"autopilot-discrete": (1.0, 900.0, 2.0, 0.6)})))
+    assert crash == ["autopilot-discrete scores DS 0.600 (needs >= 0.90)",
+                     "autopilot-discrete collides (2.00 collision steps per AC)"]
 
 
 def test_the_safe_non_turner_must_not_collide_but_may_score():
-    ok = {"autopilot": (1.0, 2000.0, 0.0), "always-brake": (0.0, -550.0, 0.0)}
-    # a third of the goals (the straight slots) and 60% of the autopilot's return: a reference
-    # row to beat, not a degenerate policy, so neither limit applies to it
-    assert failures(_table(**ok, **{"safe-non-turner": (0.33, 1200.0, 0.0)})) == []
-    assert failures(_table(**ok, **{"safe-non-turner": (0.0, -200.0, 1.5)})) == [
+    ok = {"autopilot": (1.0, 2000.0, 0.0, 1.0), "always-brake": (0.0, -550.0, 0.0, 0.0)}
+    # a third of the goals (the straight slots), a DS of 0.6 and 60% of the autopilot's return: a
+    # reference row to beat, not a degenerate policy, so no limit of theirs applies to it
+    assert failures(_table(**ok, **{"safe-non-turner": (0.33, 1200.0, 0.0, 0.6)})) == []
+    assert failures(_table(**ok, **{"safe-non-turner": (0.0, -200.0, 1.5, 0.2)})) == [
         "safe-non-turner collides (1.50 collision steps per AC)"]
-    assert failures(_table(**ok, **{"always-coast": (0.33, 1200.0, 0.0)})) == [
-        "always-coast reaches 33% of goals (allowed <= 20%)",
-        "always-coast earns 1200, more than 50% of the autopilot's 2000"]
+    assert failures(_table(**ok, **{"always-coast": (0.33, 1200.0, 0.0, 0.4)})) == [
+        "always-coast scores DS 0.400 (allowed <= 0.10)",
+        "always-coast reaches 33% of goals (allowed <= 20%)"]
+
+
+def test_the_driving_score_criteria_on_hand_made_numbers():
+    """Both autopilots DS >= 0.9 with no collision, every degenerate policy DS <= 0.1 (its return
+    no longer judged); a table without DS fails as not measured; the safe non-turner's DS shows."""
+    ok = {"autopilot": (1.0, 2000.0, 0.0, 0.9), "autopilot-discrete": (0.9, 1500.0, 0.0, 0.93),
+          "safe-non-turner": (0.5, 900.0, 0.0, 0.62), "always-brake": (0.0, -550.0, 0.0, 0.1),
+          "random": (0.0, 1900.0, 0.0, 0.02)}  # a return near the autopilot's is no failure now
+    assert failures(_table(**ok)) == []
+    assert failures(_table(**(ok | {"autopilot": (1.0, 2000.0, 0.0, 0.899)}))) == [
+        "autopilot scores DS 0.899 (needs >= 0.90)"]
+    assert failures(_table(**(ok | {"always-brake": (0.0, -550.0, 0.0, 0.101)}))) == [
+        "always-brake scores DS 0.101 (allowed <= 0.10)"]
+    assert failures(_table(**(ok | {"autopilot-discrete": (0.95, 1500.0, 0.5, 0.95)}))) == [
+        "autopilot-discrete collides (0.50 collision steps per AC)"]  # a high DS is not enough
+    unmeasured = failures(_table(**ok).drop(columns="DS"))
+    assert unmeasured[0] == "autopilot: no driving score measured (needs >= 0.90)" and len(unmeasured) == 4
+    line = score_line(_table(**ok))
+    assert line.endswith("autopilot 0.900, autopilot-discrete 0.930, safe-non-turner 0.620, "
+                         "best degenerate always-brake 0.100")
+    assert "| safe-non-turner | 0.620 |" in format_table(_table(**ok).assign(
+        RC=0.7, success=0.5, DISTANCE=0.0, CV=0.0, CO=0.0, CP=np.nan, OS=0.0, RL=0.0))
+
+
+def test_reference_rows_carry_the_driving_score():
+    rows = run_policy(_quiet("env_1"), "autopilot", 1, episodes=1, steps=40)
+    (r,) = rows.itertuples()
+    assert 0.0 < r.RC < 1.0 and r.IP == 1.0 and r.DS == pytest.approx(r.RC * r.IP)
+    assert r.success == 0.0 and r.CO_events == 0 and np.isnan(r.CP_events)  # 40 steps: not there yet
 
 
 def test_the_criteria_catch_a_scenario_that_an_open_loop_policy_solves():

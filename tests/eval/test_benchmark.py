@@ -125,11 +125,12 @@ def test_plan_collisions_reach_every_trial_and_the_default_is_the_saved_plan():
     end, cont = BenchmarkPlan(**grid, collisions="end"), BenchmarkPlan(**grid)
     assert {c.collisions_end_episode for c in end.cells()} == {True}
     assert {c.collisions_end_episode for c in cont.cells()} == {False} and len(cont.cells()) == 4
-    assert BenchmarkPlan(**grid, collisions="continue") == cont  # the default, also when named
-    assert cont.to_dict() == {**end.to_dict(), "collisions": "continue"}
+    assert BenchmarkPlan(**grid, collisions="event") == cont  # the default, also when named
+    assert cont.to_dict() == {**end.to_dict(), "collisions": "event"}
+    assert {c.collision_charge for c in BenchmarkPlan(**grid, collisions="step").cells()} == {"step"}
     # a plan saved before the rule was recorded (no key) trained under "end", and reads so
     assert BenchmarkPlan(**grid, collisions=None) == end
-    with pytest.raises(BenchmarkError, match="--collisions must be continue or end"):
+    with pytest.raises(BenchmarkError, match="--collisions must be event or step or end"):
         BenchmarkPlan(collisions="stop")
 
 

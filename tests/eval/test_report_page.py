@@ -87,7 +87,7 @@ def benchmark_report(out: Path, episodes: int = 1, records: pd.DataFrame | None 
               for e in ENVS for a in ALGOS]
     plan = ProtocolPlan(envs=ENVS, episodes=episodes, steps=20, seed=10_000, agents=len(ALGOS))
     bench = {"preset": "smoke", "envs": list(ENVS), "algos": ALGOS, "seeds": 1, "steps": None,
-             "collisions": "continue"}
+             "collisions": "event"}
     prov = provenance(policy="trained", plan=plan, algos=ALGOS,
                       checkpoints={t["algorithm"]: t["path"] for t in tested if t["env"] == ENVS[0]},
                       command=["benchmark", "--preset", "smoke"], env_checkpoints=tested, benchmark=bench)

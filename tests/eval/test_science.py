@@ -90,21 +90,21 @@ def test_the_turning_slots_goal_rate_counts_only_slots_whose_route_turns():
     assert cell == "-"
 
 
-def test_targets_need_a_discrete_and_a_continuous_pass_and_turning_goals_where_routes_turn():
+def test_targets_need_a_discrete_and_a_continuous_pass_and_turns_learned_where_routes_turn():
+    def row(env, algo, passed, rc, ok):
+        return {"env": env, "algorithm": algo, "passed": passed, "RC_turning_mean": rc, "turning_ok": ok,
+                "turning_goal_mean": np.nan if np.isnan(rc) else 0.0}
+
     v = pd.DataFrame([
-        # Four-way: ppo and td3 pass, dqn's turning slots reach goals: met
-        {"env": "env_3", "algorithm": "ppo", "passed": True, "turning_goal_mean": 0.0},
-        {"env": "env_3", "algorithm": "td3", "passed": True, "turning_goal_mean": 0.0},
-        {"env": "env_3", "algorithm": "dqn", "passed": False, "turning_goal_mean": 0.2},
-        # Roundabout: both kinds pass, but no turning slot reaches a goal: not met
-        {"env": "env_4", "algorithm": "a3c", "passed": True, "turning_goal_mean": 0.0},
-        {"env": "env_4", "algorithm": "ddpg", "passed": True, "turning_goal_mean": 0.0},
+        # Four-way: ppo and td3 pass, dqn's turning slots' RC clears the safe non-turner's: met
+        row("env_3", "ppo", True, 0.3, False), row("env_3", "td3", True, 0.3, False),
+        row("env_3", "dqn", False, 0.8, True),
+        # Roundabout: both kinds pass, but no algorithm's turns are learned: not met
+        row("env_4", "a3c", True, 0.4, False), row("env_4", "ddpg", True, 0.4, False),
         # Straight: no turning slot, so passing algorithms of both kinds are enough
-        {"env": "env_1", "algorithm": "impala", "passed": True, "turning_goal_mean": np.nan},
-        {"env": "env_1", "algorithm": "ddpg", "passed": True, "turning_goal_mean": np.nan},
+        row("env_1", "impala", True, np.nan, np.nan), row("env_1", "ddpg", True, np.nan, np.nan),
         # Merge: no continuous algorithm passes
-        {"env": "env_5", "algorithm": "ppo", "passed": True, "turning_goal_mean": 0.5},
-        {"env": "env_5", "algorithm": "td3", "passed": False, "turning_goal_mean": 0.5}])
+        row("env_5", "ppo", True, 0.9, True), row("env_5", "td3", False, 0.9, True)])
     t = science.targets(v).set_index("env")
     assert t.loc["env_3", "met"] and t.loc["env_3", "turning"] == ["dqn"]
     assert t.loc["env_3", "discrete"] == ["ppo"] and t.loc["env_3", "continuous"] == ["td3"]
@@ -114,65 +114,76 @@ def test_targets_need_a_discrete_and_a_continuous_pass_and_turning_goals_where_r
     md = science.targets_markdown(science.targets(v))
     assert "(no turning slot)" in md and md.count("not met") == 2
     assert "| Four-way | PPO | TD3 | DQN | met |" in md  # the names as the other tables write them
+    # read back from verdict.csv (True/False/NaN as text and floats): the same targets
+    again = science.targets(v.astype({"turning_ok": str}).replace({"turning_ok": {"nan": np.nan}}))
+    assert again.set_index("env").loc["env_3", "turning"] == ["dqn"]
+
+
+REF_METRICS = ("return", "goal", "DS", "RC_turning")
 
 
 def _refs(env="env_1", values: dict | None = None) -> pd.DataFrame:
-    """A reference long table: every policy's mean return and goal rate in ``env``."""
+    """A reference long table: every policy's mean return, goal rate, driving score and turning
+    slots' route completion in ``env`` (``values``: policy -> a tuple of those, 0 where left out)."""
     values = values or {}
     rows = []
     for p in POLICIES:
-        ret, goal = values.get(p, (0.0, 0.0))
-        for m, v in (("return", ret), ("goal", goal)):
+        given = tuple(values.get(p, ()))
+        for m, v in zip(REF_METRICS, given + (0.0,) * (len(REF_METRICS) - len(given)), strict=True):
             rows.append({"scenario": 1, "env": env, "kind": "reference", "name": p, "metric": m,
                          "mean": v, "ci_low": v, "ci_high": v, "n": 3,
                          "cell": science.fmt(m, v, v, v)})
     return pd.DataFrame(rows)
 
 
-def test_verdict_needs_return_and_goal_ci_above_every_degenerate_reference():
-    refs = _refs(values={"autopilot": (1000, 1.0), "always-forward": (300, 0.1)})
+def test_verdict_needs_the_driving_score_ci_above_every_degenerate_reference():
+    """A pair passes when its DS interval's lower end clears every degenerate reference's DS
+    (the return no longer decides); its turns are learned where the turning slots' RC interval's
+    lower end clears the safe non-turner's."""
+    refs = _refs(values={"autopilot": (1000, 1.0, 0.95, 0.9), "always-forward": (300, 0.1, 0.08),
+                         "always-brake": (-500, 0.0, 0.0), "safe-non-turner": (700, 0.5, 0.6, 0.3)})
     table = pd.concat([
-        science.seed_table(_seeds({"return": [400, 500, 600], "goal": [0.2, 0.4, 0.6]}, "ppo")),
-        science.seed_table(_seeds({"return": [250, 500, 900], "goal": [0.2, 0.4, 0.6]}, "dqn")),
-        science.seed_table(_seeds({"return": [400, 500, 600], "goal": [0.1, 0.1, 0.7]}, "td3")),
+        science.seed_table(_seeds({"DS": [0.2, 0.4, 0.6], "return": [-4000, -3000, -900],
+                                   "RC_turning": [0.4, 0.5, 0.6]}, "ppo")),
+        science.seed_table(_seeds({"DS": [0.05, 0.5, 0.9], "return": [900, 950, 990],
+                                   "RC_turning": [0.1, 0.5, 0.9]}, "dqn")),
+        science.seed_table(_seeds({"DS": [0.08, 0.3, 0.4]}, "td3")),
     ])
     v = science.verdict(table, refs).set_index("algorithm")
     assert list(v.index) == ["ppo", "dqn", "td3"]  # the paper's order
-    assert v.loc["ppo", "passed"] and v.loc["ppo", "why"] == ""
-    assert v.loc["ppo", "return_best_reference"] == "always-forward"
-    assert v.loc["ppo", "return_reference"] == 300 and v.loc["ppo", "goal_reference"] == 0.1
-    # dqn's mean return (550) beats always-forward, but its CI reaches down to 250
-    assert not v.loc["dqn", "passed"] and not v.loc["dqn", "return_ok"] and v.loc["dqn", "goal_ok"]
-    assert "always-forward 300.0" in v.loc["dqn", "why"]
-    # td3's goal CI starts at 0.1 = always-forward's: not excluded
-    assert not v.loc["td3", "passed"] and v.loc["td3", "return_ok"] and not v.loc["td3", "goal_ok"]
-    assert v.loc["td3", "why"].startswith("goal rate CI low 0.10 <= always-forward 0.10")
-    # above every reference, but with one seed: item 1 asks for three
-    one = science.verdict(science.seed_table(_seeds({"return": [500], "goal": [0.5]}, "a3c")),
+    # ppo: DS CI [0.2, 0.6] clears always-forward's 0.08, whatever its (negative) return
+    assert v.loc["ppo", "passed"] and v.loc["ppo", "why"] == "" and v.loc["ppo", "return_mean"] < 0
+    assert v.loc["ppo", "DS_best_reference"] == "always-forward" and v.loc["ppo", "DS_reference"] == 0.08
+    assert v.loc["ppo", "turning_ok"] and v.loc["ppo", "RC_turning_reference"] == 0.3  # 0.4 > 0.3
+    # dqn: a high return and mean DS, but its DS CI reaches down to 0.05; its turns not shown
+    assert not v.loc["dqn", "passed"] and not v.loc["dqn", "DS_ok"] and not v.loc["dqn", "turning_ok"]
+    assert v.loc["dqn", "why"] == "driving score CI low 0.050 <= always-forward 0.080"
+    # td3's CI starts at 0.08 = always-forward's: not excluded
+    assert not v.loc["td3", "passed"] and v.loc["td3", "why"].startswith("driving score CI low 0.080")
+    # above every reference, but with one seed: the verdict asks for three
+    one = science.verdict(science.seed_table(_seeds({"DS": [0.5], "goal": [0.5]}, "a3c")),
                           refs).set_index("algorithm")
-    assert one.loc["a3c", "return_ok"] and one.loc["a3c", "goal_ok"] and not one.loc["a3c", "seeds_ok"]
-    assert not one.loc["a3c", "passed"] and one.loc["a3c", "why"] == "1 seed(s), item 1 needs 3"
+    assert one.loc["a3c", "DS_ok"] and not one.loc["a3c", "seeds_ok"]
+    assert not one.loc["a3c", "passed"] and one.loc["a3c", "why"] == "1 seed(s), the verdict needs 3"
     assert "| A3C | Straight | 1 |" in science.verdict_markdown(one.reset_index())  # the names as the README writes them
-    single = science.seed_table(_seeds({"return": [500.0], "goal": [0.5]}, "a3c")).set_index("metric")
-    assert single.loc["return", "cell"] == "500.0 (1 seed)"  # no interval drawn from one value
     assert "not shown" in science.verdict_markdown(one.reset_index())
-    grid = science.grid_markdown(table, "return", 1, refs)
-    assert "| *autopilot* | 1000.0 [1000.0, 1000.0] |" in grid
+    grid = science.grid_markdown(table, "DS", 1, refs)
+    assert "| *autopilot* | 0.950 [0.950, 0.950] |" in grid
     assert [line.split(" | ")[0] for line in grid.splitlines()[2:5]] == ["| PPO", "| DQN", "| TD3"]
-    assert "| *best degenerate* | 300.0 (always-forward) |" in grid
-    assert "| *best degenerate* | 0.10 (always-forward) |" in science.grid_markdown(table, "goal", 1, refs)
+    assert "| *best degenerate* | 0.080 (always-forward) |" in grid
     both = pd.concat([v.reset_index(), one.reset_index()], ignore_index=True)
     cells = {line.split(" | ")[0].strip("| "): line.split(" | ")[1].rstrip(" |")
              for line in science.verdict_grid_markdown(both, refs).splitlines()[2:]}
-    assert cells["PPO"] == "500.0 [400.0, 600.0] (0.40), **pass**"
-    assert cells["DQN"].endswith("(0.40), FAIL") and cells["TD3"].endswith(", FAIL")
-    assert cells["A3C"] == "500.0 (0.50; 1 seed), not shown"
-    assert cells["*autopilot*"] == "1,000.0 (1.00)"
-    assert cells["*safe non-turner*"] == "0.0 (0.00)"  # these seeds have turning slots' goal rates
-    no_turn = science.verdict_grid_markdown(both.assign(turning_goal_mean=np.nan), refs)
+    assert cells["PPO"] == "0.400 [0.200, 0.600] (0.50), **pass**, turns"
+    assert cells["DQN"].endswith("(0.50), FAIL") and cells["TD3"].endswith(", FAIL, turns")  # its RC_turning 0.5 > 0.3
+    assert cells["A3C"] == "0.500 (0.50; 1 seed), not shown, turns"
+    assert cells["*autopilot*"] == "0.950 (1.00)" and cells["*safe non-turner*"] == "0.600 (0.50)"
+    no_turn = science.verdict_grid_markdown(both.assign(RC_turning_mean=np.nan, turning_goal_mean=np.nan), refs)
     assert "*safe non-turner*" not in no_turn and "*autopilot*" in no_turn  # no route turns: it is the autopilot
-    assert cells["*best degenerate*"] == "300.0 (always-forward); 0.10 (always-forward)"
+    assert cells["*best degenerate*"] == "0.080 (always-forward)"
     assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
+    with pytest.raises(ValueError, match="no degenerate reference's driving score"):
+        science.verdict(table, refs[refs["metric"] != "DS"])  # references from before the score
 
 
 def test_iqm_figure_draws_each_algorithm_its_interval_and_the_reference_lines(tmp_path, monkeypatch):
@@ -209,38 +220,36 @@ def test_verdict_figure_draws_each_seed_the_interval_and_the_references_a_pair_m
     import matplotlib
 
     matplotlib.use("Agg")
-    refs = pd.concat([_refs("env_1", {"autopilot": (1000, 1.0), "always-forward": (300, 0.1),
-                                      "safe-non-turner": (700, 0.5)}),
-                      _refs("env_2", {"autopilot": (900, 0.9), "always-brake": (-500, 0.0),
-                                      "always-forward": (-900, 0.05), "safe-non-turner": (100, 0.2)})])
-    seeds = pd.concat([_seeds({"return": [400, 500, 600], "goal": [0.2, 0.4, 0.6]}, "ppo"),
-                       _seeds({"return": [-9000, -800, 50], "goal": [0.0, 0.0, 0.1], "goal_turning": [np.nan] * 3},
-                              "dqn", env="env_2")])
-    seeds.loc[seeds["env"] == "env_1", "goal_turning"] = np.nan  # no route turns in env_1
+    refs = pd.concat([_refs("env_1", {"autopilot": (1000, 1.0, 0.97), "always-forward": (300, 0.1, 0.1),
+                                      "safe-non-turner": (700, 0.5, 0.97)}),
+                      _refs("env_2", {"autopilot": (900, 0.9, 0.95, 0.9), "always-brake": (-500, 0.0, 0.0),
+                                      "always-forward": (-900, 0.05, 0.04), "safe-non-turner": (100, 0.2, 0.5, 0.3)})])
+    seeds = pd.concat([_seeds({"DS": [0.2, 0.4, 0.6], "RC_turning": [np.nan] * 3, "goal_turning": [np.nan] * 3},
+                              "ppo"),  # no route turns in env_1
+                       _seeds({"DS": [0.0, 0.02, 0.3], "RC_turning": [0.1, 0.5, 0.6]}, "dqn", env="env_2")])
     v = science.verdict(science.seed_table(seeds), refs)
-    assert science.verdict_lines(v, refs, "env_1", "return") == [
-        ("autopilot", 1000.0, "-"), ("best degenerate (always-forward)", 300.0, "--")]  # no turns: no safe non-turner
-    v2 = v.assign(turning_goal_mean=np.where(v["env"] == "env_2", 0.0, np.nan))
-    assert science.verdict_lines(v2, refs, "env_2", "goal") == [
-        ("autopilot", 0.9, "-"), ("best degenerate (always-forward)", 0.05, "--"), ("safe non-turner", 0.2, ":")]
+    assert science.verdict_lines(v, refs, "env_1", "DS") == [
+        ("autopilot", 0.97, "-"), ("best degenerate (always-forward)", 0.1, "--")]  # no turns: no safe non-turner
+    assert science.verdict_lines(v, refs, "env_2", "RC_turning") == [
+        ("autopilot", 0.9, "-"), ("safe non-turner", 0.3, ":")]
 
     from eval.reporting import figures
 
     kept = []
     monkeypatch.setattr(figures, "_save", lambda fig, out, stem: kept.append(fig) or [out / f"{stem}.png"])
-    assert science.verdict_figure(v2, seeds, refs, tmp_path) == [tmp_path / "verdict.png"]
+    assert science.verdict_figure(v, seeds, refs, tmp_path) == [tmp_path / "verdict.png"]
     (fig,) = kept
-    ret1, ret2, goal1, goal2 = (fig.axes[i] for i in (0, 1, 2, 3))  # rows: return, goal; columns: env_1, env_2
-    assert ret1.get_title(loc="left") == "Straight" and ret1.get_yscale() == "symlog"
+    ds1, ds2, turn1, turn2 = (fig.axes[i] for i in (0, 1, 2, 3))  # rows: DS, RC turning; columns: env_1, env_2
+    assert ds1.get_title(loc="left") == "Straight" and ds1.get_yscale() == "linear"
     # the seed means as dots, each at its value
-    assert sorted(ret2.collections[0].get_offsets()[:, 1]) == [-9000, -800, 50]
-    assert sorted(goal1.collections[0].get_offsets()[:, 1]) == pytest.approx([0.2, 0.4, 0.6])
-    # the reference lines across, at their values
-    assert sorted(line.get_ydata()[0] for line in ret2.lines if len(line.get_ydata()) == 2
-                  and line.get_ydata()[0] == line.get_ydata()[1]) == [0, 100, 900]  # random's 0 beats always-brake's -500
+    assert sorted(ds2.collections[0].get_offsets()[:, 1]) == pytest.approx([0.0, 0.02, 0.3])
+    assert sorted(turn2.collections[0].get_offsets()[:, 1]) == pytest.approx([0.1, 0.5, 0.6])
+    # the reference lines across, at their values: the best degenerate here is always-forward's 0.04
+    assert sorted(line.get_ydata()[0] for line in ds2.lines if len(line.get_ydata()) == 2
+                  and line.get_ydata()[0] == line.get_ydata()[1]) == pytest.approx([0.04, 0.5, 0.95])
     # "pass" above PPO in env_1 (its CI clears always-forward), nothing above DQN in env_2
-    assert [t.get_text() for t in ret1.texts] == ["pass"] and len(ret2.texts) == 0
-    assert ret2.get_ylim()[0] <= -9000 and "-5,000" in [t.get_text() for t in ret2.get_yticklabels()]
+    assert [t.get_text() for t in ds1.texts] == ["pass"] and len(ds2.texts) == 0
+    assert [t.get_text() for t in turn1.texts] == ["no turning slot"] and len(turn2.texts) == 0
 
 
 def test_scenario_2_grid_gives_each_algorithm_alone_its_return_interval_and_goal_rate():
@@ -256,18 +265,19 @@ def test_scenario_2_grid_gives_each_algorithm_alone_its_return_interval_and_goal
     assert "| PPO |  | -50.0 (0.00; 1 seed) |" in grid and "TD3" not in grid and "9" * 6 not in grid
 
 
-def test_returns_are_normalised_between_random_and_the_autopilot():
-    refs = pd.concat([_refs("env_1", {"random": (-100, 0), "autopilot": (300, 1)}),
-                      _refs("env_2", {"random": (50, 0), "autopilot": (50, 1)})])
-    seeds = pd.concat([_seeds({"return": [-100, 100, 300, 500]}, env="env_1"),
-                       _seeds({"return": [10, 20, 30, 40]}, env="env_2")])
+def test_the_driving_score_is_normalised_between_random_and_the_autopilot():
+    refs = pd.concat([_refs("env_1", {"random": (-100, 0, 0.1), "autopilot": (300, 1, 0.9)}),
+                      _refs("env_2", {"random": (50, 0, 0.5), "autopilot": (50, 1, 0.5)})])
+    seeds = pd.concat([_seeds({"DS": [0.1, 0.5, 0.9, 1.0], "return": [9e9] * 4}, env="env_1"),
+                       _seeds({"DS": [0.1, 0.2, 0.3, 0.4]}, env="env_2")])
     norm = science.normalise(seeds, refs).set_index(["env", "train_seed"])["score"]
-    np.testing.assert_allclose(norm.loc["env_1"], [0.0, 0.5, 1.0, 1.5])
-    assert norm.loc["env_2"].isna().all()  # the autopilot earns no more than random: no scale
+    np.testing.assert_allclose(norm.loc["env_1"], [0.0, 0.5, 1.0, 1.125])
+    assert norm.loc["env_2"].isna().all()  # the autopilot scores no more than random: no scale
     t = science.iqm_table(seeds, refs).set_index("name")
     assert t.loc["ppo", "iqm"] == pytest.approx(0.75) and t.loc["ppo", "envs"] == 1
     assert t.loc["ppo", "ci_low"] <= 0.75 <= t.loc["ppo", "ci_high"]
     assert t.loc["autopilot", "iqm"] == 1.0 and t.loc["random", "iqm"] == 0.0
+    assert "IQM (normalised driving score)" in science.iqm_markdown(t.reset_index())
 
 
 def test_convergence_curve_is_the_mean_of_the_latest_episodes():
@@ -348,10 +358,8 @@ def test_smoke_study_writes_every_result_and_resumes(smoke):
     def clears(low, value):
         return low > value and not np.isclose(low, value)
 
-    for _, r in verdict.iterrows():  # pass iff both CI lower ends clear the best degenerate row
-        expected = (clears(r["return_ci_low"], ref[(r["env"], "return")])
-                    and clears(r["goal_ci_low"], ref[(r["env"], "goal")])
-                    and r["n"] >= science.MIN_SEEDS)
+    for _, r in verdict.iterrows():  # pass iff the DS CI's lower end clears the best degenerate row
+        expected = clears(r["DS_ci_low"], ref[(r["env"], "DS")]) and r["n"] >= science.MIN_SEEDS
         assert bool(r["passed"]) == expected
         assert r["n"] == seeds
 
@@ -642,12 +650,12 @@ def test_part_page_contact_bullet_counts_the_long_runs_by_kind_end_and_algorithm
 
 
 def _verdict_rows(**passed) -> pd.DataFrame:
-    """verdict.csv's rows of env_3 (3 seeds): each algorithm's return mean, interval, goal rate
-    and whether it passed."""
+    """verdict.csv's rows of env_3 (3 seeds): each algorithm's driving score mean, interval, goal
+    rate and whether it passed."""
     rows = []
     for algo, (mean, ok) in passed.items():
-        rows.append({"algorithm": algo, "env": "env_3", "n": 3, "return_mean": mean, "return_ci_low": mean - 100,
-                     "return_ci_high": mean + 100, "goal_mean": 0.25, "passed": ok})
+        rows.append({"algorithm": algo, "env": "env_3", "n": 3, "DS_mean": mean, "DS_ci_low": mean - 0.1,
+                     "DS_ci_high": mean + 0.1, "goal_mean": 0.25, "passed": ok, "DS_ok": ok})
     return pd.DataFrame(rows)
 
 
@@ -657,18 +665,19 @@ def test_part_page_verdict_bullet_names_the_passes_the_target_and_what_it_lacks(
     page = load_study("part_page")
     targets = pd.DataFrame([{"env": "env_3", "discrete": "[]", "continuous": "['ddpg']", "has_turns": True,
                              "turning": "[]", "met": False}])
-    none = page.verdict_bullet(_verdict_rows(ppo=(-900.0, False), dqn=(-300.0, False), td3=(-500.0, False)),
+    none = page.verdict_bullet(_verdict_rows(ppo=(0.1, False), dqn=(0.3, False), td3=(0.2, False)),
                                targets, "env_3")
     assert none.startswith("- **The verdict with 3 seeds: no pair passes; Four-way's target is not met.** "
-                           "It lacks: no discrete algorithm passes; no turning slot reaches a goal. Nearest: ")
-    assert none.endswith("Nearest: DQN, -300.0 [-400.0, -200.0] (goal rate 0.25); TD3, -500.0 [-600.0, -400.0] "
+                           "It lacks: no discrete algorithm passes; no algorithm's turns are learned (turning "
+                           "slots' route completion above the safe non-turner's). Nearest: ")
+    assert none.endswith("Nearest: DQN, DS 0.300 [0.200, 0.400] (goal rate 0.25); TD3, DS 0.200 [0.100, 0.300] "
                          "(goal rate 0.25).")
     met = targets.assign(discrete="['dqn']", turning="['dqn']", met=True)
-    two = page.verdict_bullet(_verdict_rows(dqn=(800.0, True), ddpg=(600.0, True), ppo=(-900.0, False)), met, "env_3")
+    two = page.verdict_bullet(_verdict_rows(dqn=(0.8, True), ddpg=(0.6, True), ppo=(0.1, False)), met, "env_3")
     assert two == ("- **The verdict with 3 seeds: DQN and DDPG pass; Four-way's target is met.** "
-                   "DQN, 800.0 [700.0, 900.0] (goal rate 0.25); DDPG, 600.0 [500.0, 700.0] (goal rate 0.25).")
-    few = page.verdict_bullet(_verdict_rows(dqn=(800.0, False), ppo=(-900.0, False)).assign(
-        n=2, return_ok=[True, False], goal_ok=[True, True]), targets, "env_3")
+                   "DQN, DS 0.800 [0.700, 0.900] (goal rate 0.25); DDPG, DS 0.600 [0.500, 0.700] (goal rate 0.25).")
+    few = page.verdict_bullet(_verdict_rows(dqn=(0.8, False), ppo=(0.1, False)).assign(
+        n=2, DS_ok=[True, False]), targets, "env_3")
     assert few.startswith("- **2 seeds so far, too few for a verdict (3 needed): DQN above every degenerate "
                           "reference (not shown); Four-way's target is not met so far.**")
     with pytest.raises(SystemExit, match="verdict.csv has no env_4"):

@@ -104,7 +104,7 @@ def _ram(cfg) -> list[tuple[bool, bool, float]]:
 def test_collisions_continue_trains_under_the_test_rule():
     """The default (`--collisions continue`): the AC's training episode goes on after it hits a
     car and every contact step is charged, as in the test, and a car driving on leaves the
-    contact (cars are not solid: docs/task.md, "Training rule"); `--collisions end` ends it at
+    contact (cars are not solid: docs/task.md, "Collision rule"); `--collisions end` ends it at
     the first hit (the paper's)."""
     paper = make_config("ddpg", "env_1", "smoke", agents=1, collisions="end")
     assert paper.collisions_end_episode and paper.to_dict()["collisions_end_episode"] is True
@@ -122,13 +122,13 @@ def test_collisions_continue_trains_under_the_test_rule():
 
 
 def test_a_continue_run_config_reads_back_and_a_bad_flag_is_refused(tmp_path):
-    """config.yaml of a `--collisions continue` run loads again (resume, tests, --runs); a
+    """config.yaml of a `--collisions step` run loads again (resume, tests, --runs); a
     value that is not true/false is refused naming the key."""
     import yaml
 
     from eval.training.runfolder import load_run_config
 
-    cfg = make_config("dqn", "env_1", "smoke", agents=1, collisions="continue")
+    cfg = make_config("dqn", "env_1", "smoke", agents=1, collisions="step")
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
     assert load_run_config(tmp_path).collisions_end_episode is False
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({**cfg.to_dict(), "collisions_end_episode": "no"}))
@@ -139,15 +139,16 @@ def test_a_continue_run_config_reads_back_and_a_bad_flag_is_refused(tmp_path):
         load_run_config(tmp_path)
 
 
-def test_cosim_train_collisions_continue_reaches_the_run_config(tmp_path):
+def test_cosim_train_collisions_step_reaches_the_run_config(tmp_path):
     import yaml
 
     from eval.cli import main
 
     assert main(["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "4",
-                 "--collisions", "continue", "--out", str(tmp_path), "--quiet"]) == 0
+                 "--collisions", "step", "--out", str(tmp_path), "--quiet"]) == 0
     (run,) = tmp_path.iterdir()
-    assert yaml.safe_load((run / "config.yaml").read_text())["collisions_end_episode"] is False
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert config["collisions_end_episode"] is False and config["collision_charge"] == "step"
 
 
 def test_share_params_trains_one_network_for_every_ac_and_resumes_it(tmp_path):

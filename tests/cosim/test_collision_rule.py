@@ -1,0 +1,138 @@
+"""The collision rule of task version 4 (docs/task.md, "Collision rule"): a contact is charged
+once per event and the episode goes on; the per-step rule and the paper's collision-ends rule are
+one option away; solid cars; who is charged; route completion as driven."""
+
+import dataclasses
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from cosim.events import Events
+from cosim.scenario import Contact, SpawnJitter, load_scenario
+from cosim.world import World
+
+
+def _straight(**changes):
+    base = load_scenario("env_1")
+    return dataclasses.replace(base, spawn_jitter=SpawnJitter(), **changes)
+
+
+def _press_into_parked_car(sc, steps=120):
+    """One AC on Straight at full throttle towards a car parked 30 m ahead on its lane."""
+    with World(sc, 1, background=False) as w:
+        w.reset(seed=0)
+        x, y, h, _ = w.ac_state("ac_0")
+        w.bridge.place_car("stopped", x + 30 * math.cos(h), y + 30 * math.sin(h), h, "st_e")
+        out = []
+        for _ in range(steps):
+            if not w.active:
+                break
+            out.append(w.step({"ac_0": (1.0, 0.0)})["ac_0"])
+    return out
+
+
+def test_default_charges_a_contact_once_per_event_and_the_episode_goes_on():
+    out = _press_into_parked_car(_straight())
+    contact = [k for k, r in enumerate(out) if r.events.collision_vehicle]
+    events = [k for k, r in enumerate(out) if r.events.event_vehicle]
+    assert len(out) == 120 and not any(r.terminated for r in out), "the episode goes on"
+    assert len(contact) > 40, "the AC keeps pushing into the car it cannot pass"
+    # the first contact step is an event; the same car again counts only 5 s (50 steps) later
+    assert events[0] == contact[0]
+    assert all(b - a >= 50 for a, b in zip(events, events[1:], strict=False))
+    assert 2 <= len(events) <= 1 + (contact[-1] - contact[0]) // 50
+    charged = [k for k, r in enumerate(out) if r.reward_terms["collision"] != 0.0]
+    assert charged == events
+    assert all(out[k].reward_terms["collision"] == -50.0 for k in events)
+
+
+def test_the_per_step_rule_charges_every_contact_step():
+    out = _press_into_parked_car(_straight(contact=Contact(charge="step")))
+    contact = [r for r in out if r.events.collision_vehicle]
+    assert contact and all(r.reward_terms["collision"] == -50.0 for r in contact)
+    assert sum(r.events.event_vehicle for r in out) < len(contact), "events are still counted"
+
+
+def test_the_papers_rule_ends_the_episode_at_the_first_contact():
+    base = _straight()
+    out = _press_into_parked_car(
+        dataclasses.replace(base, termination=dataclasses.replace(base.termination, on_collision=True))
+    )
+    assert out[-1].terminated and out[-1].events.collision_vehicle
+    assert sum(r.reward_terms["collision"] for r in out) == -50.0
+
+
+def test_a_solid_car_stops_the_ac_where_it_was_and_the_blocked_step_gains_nothing():
+    out = _press_into_parked_car(_straight(), steps=80)
+    hits = [r for r in out if r.events.collision_vehicle]
+    assert hits
+    for r in hits:
+        assert r.events.progress == 0.0 and r.events.speed == 0.0
+        assert r.reward_terms["efficiency"] == 0.0
+    # without solid cars the AC drives through the car for one charge
+    through = _press_into_parked_car(_straight(solid_cars=False), steps=80)
+    assert max(r.x for r in through) > max(r.x for r in out) + 5.0
+    assert sum(r.events.event_vehicle for r in through) == 1
+
+
+def _bare_world(**contact):
+    """A World that is never reset: enough for the per-actor event count."""
+    w = World(_straight(contact=Contact(**contact)), 1, background=False)
+    w._charged = [{}]
+    w._state[0] = (0.0, 0.0, 0.0, 5.0)  # at the origin, facing +x, moving
+    return w
+
+
+def _count(w, t, touching, others=None):
+    ids = [o for _, o in touching] if others is None else list(others)
+    xy = np.array([[4.0, 0.0]] * len(ids)) if others is None else np.array(list(others.values()))
+    w.snapshot = SimpleNamespace(time=t, vehicle_ids=ids, vehicle_xy=xy)
+    ev = Events(touching=list(touching))
+    w._count_events(0, ev)
+    return ev
+
+
+def test_the_same_actor_within_5_s_is_one_event_and_another_actor_is_its_own():
+    w = _bare_world()
+    assert _count(w, 10.0, [("vehicle", "car")]).event_vehicle
+    assert not _count(w, 12.0, [("vehicle", "car")]).event_vehicle, "the same car 2 s later"
+    assert not _count(w, 14.9, [("vehicle", "car")]).event_vehicle
+    two = _count(w, 13.0, [("vehicle", "car"), ("object", "pole_1")])
+    assert two.event_object and not two.event_vehicle, "a pole is another actor"
+    assert _count(w, 13.5, [("vehicle", "other")]).event_vehicle, "another car is another event"
+    assert _count(w, 15.0, [("vehicle", "car")]).event_vehicle, "5 s after its last event"
+    w.close()
+
+
+def test_at_fault_charges_only_the_car_that_drove_into_the_other():
+    w = _bare_world(fault="at_fault")
+    assert _count(w, 1.0, [("vehicle", "ahead")], {"ahead": (4.0, 0.0)}).event_vehicle
+    assert not _count(w, 1.0, [("vehicle", "behind")], {"behind": (-4.0, 0.0)}).event_vehicle
+    w._state[0, 3] = 0.0  # standing: hit, not hitting
+    assert not _count(w, 9.0, [("vehicle", "ahead")], {"ahead": (4.0, 0.0)}).event_vehicle
+    both = _bare_world()
+    both._state[0, 3] = 0.0
+    assert _count(both, 1.0, [("vehicle", "behind")], {"behind": (-4.0, 0.0)}).event_vehicle
+    w.close()
+    both.close()
+
+
+def test_route_completion_counts_the_route_driven():
+    with World(_straight(), 1, background=False) as w:
+        w.reset(seed=0)
+        route = w.route("ac_0")
+        length = route.goal_s - route.spawn_s
+        r = None
+        while True:
+            r = w.step({"ac_0": (0.4, 0.0)})["ac_0"]
+            if r.events.distance_to_goal <= length / 2:
+                break
+        assert r.events.route_completion == pytest.approx(0.5, abs=0.02)
+        assert 0.5 * length - r.events.distance_to_goal == pytest.approx(0.0, abs=1.5)
+        for _ in range(60):  # braking to a stop, then standing: what was driven, no more
+            r = w.step({"ac_0": (-1.0, 0.0)})["ac_0"]
+        assert r.events.speed == 0.0
+        driven = (length - r.events.distance_to_goal) / length
+        assert 0.5 < r.events.route_completion == pytest.approx(driven, abs=1e-6)

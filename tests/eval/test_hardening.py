@@ -1,0 +1,398 @@
+"""Issue 57, "Hardening II": nothing trained is lost or silently replaced on resume, a full
+disk is a named error, no child process outlives its parent.
+
+The resume cases share one short trained run (module fixture: 2 PPO ACs, one checkpoint at
+step 40), copied per test, its budget raised to 80 so that a resume has steps left to train;
+each breaks the copy the way the issue did and resumes it through the command line.
+"""
+
+from __future__ import annotations
+
+import errno
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+import agents
+from agents.checkpoint import CheckpointError, load_checkpoint
+from eval.cli import main
+from eval.training.runfolder import read_state
+from eval.training.train import make_config, train
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory) -> Path:
+    cfg = make_config("ppo", "env_1", "smoke", agents=2, steps=40, validation_episodes=0)
+    return train(cfg, tmp_path_factory.mktemp("runs"), quiet=True, progress=False, keep="all")
+
+
+def _unfinished(trained_run: Path, tmp_path: Path, steps: int = 80, **settings) -> Path:
+    """A copy of the trained run whose budget is ``steps`` (and config.yaml ``settings``): a
+    resume trains on from step 40."""
+    run = tmp_path / trained_run.name
+    shutil.copytree(trained_run, run)
+    path = run / "config.yaml"
+    data = yaml.safe_load(path.read_text())
+    path.write_text(yaml.safe_dump({**data, "steps": steps, **settings}, sort_keys=False))
+    return run
+
+
+def _resume(run: Path, capsys, *extra: str) -> tuple[int, str]:
+    capsys.readouterr()
+    code = main(["train", "--resume", str(run), "--quiet", *extra])
+    return code, capsys.readouterr().err
+
+
+def _one_line_error(err: str) -> str:
+    assert err.count("\n") == 1 and err.startswith(("cosim: error: ", "cosim train: error: ")), err
+    return err
+
+
+def _flip(path: Path, needle: bytes, count: int = 64) -> None:
+    """Invert ``count`` bytes of ``path`` where ``needle`` (bytes of a tensor) is stored."""
+    data = bytearray(path.read_bytes())
+    at = data.find(needle)
+    assert at > 0, "the tensor's bytes are in the file"
+    data[at: at + count] = bytes(b ^ 0xFF for b in data[at: at + count])
+    path.write_bytes(bytes(data))
+
+
+def _biggest(tensors) -> torch.Tensor:
+    return max(tensors, key=lambda t: t.numel())
+
+
+def test_a_missing_latest_pt_is_refused_on_resume_not_replaced_by_random_weights(trained_run, tmp_path, capsys):
+    """Item 1: before, ac_1 was rebuilt from random weights while the run counted 40 steps done."""
+    run = _unfinished(trained_run, tmp_path)
+    (run / "checkpoints" / "ac_1" / "latest.pt").unlink()
+    code, err = _resume(run, capsys)
+    assert code == 2
+    _one_line_error(err)
+    assert "ac_1/latest.pt is missing" in err and "state.json" in err
+    assert read_state(run)["env_steps"] == 40, "nothing was trained"
+    assert not (run / "checkpoints" / "ac_1" / "latest.pt").exists()
+
+
+def test_a_corrupt_latest_pt_is_refused_on_resume(trained_run, tmp_path, capsys):
+    """Item 2: 64 flipped bytes inside a tensor of latest.pt loaded silently; the checksum
+    stored inside the file refuses it, at load and so on resume."""
+    run = _unfinished(trained_run, tmp_path)
+    latest = run / "checkpoints" / "ac_0" / "latest.pt"
+    weights = agents.load(latest).state_dict()["networks"]
+    big = _biggest([t for net in weights.values() for t in net.values()])
+    _flip(latest, big.contiguous().numpy().tobytes()[:256])
+    with pytest.raises(CheckpointError, match="latest.pt is corrupt: its contents do not match the checksum"):
+        agents.load(latest)
+    code, err = _resume(run, capsys)
+    assert code == 2
+    _one_line_error(err)
+    assert "cannot resume: checkpoint" in err and "ac_0/latest.pt is corrupt" in err
+    assert read_state(run)["env_steps"] == 40
+
+
+def test_a_corrupt_packed_best_pt_is_a_named_one_line_error(trained_run, tmp_path):
+    """Item 2: flipped bytes in a packed (zlib) best.pt gave 'unexpected error error: Error -3
+    while decompressing data'."""
+    best = tmp_path / "best.pt"
+    shutil.copy(trained_run / "checkpoints" / "ac_0" / "best.pt", best)
+    payload = torch.load(best, weights_only=True)
+    packed = [v["data"] for net in payload["state"]["networks"].values() for v in net.values()
+              if isinstance(v, dict)]
+    _flip(best, _biggest(packed).numpy().tobytes()[64:192], count=32)
+    with pytest.raises(CheckpointError) as caught:
+        agents.load(best)
+    assert "best.pt is corrupt" in str(caught.value) and "\n" not in str(caught.value)
+    # and a file without a checksum (saved before checksums) whose zlib data is broken
+    del payload["checksum"]
+    name = next(iter(payload["state"]["networks"]))
+    entry = next(v for v in payload["state"]["networks"][name].values() if isinstance(v, dict))
+    entry["data"] = torch.frombuffer(bytearray(b"\x78\x9c garbage"), dtype=torch.uint8)
+    torch.save(payload, best)
+    with pytest.raises(CheckpointError, match=r"best.pt \(ppo\) does not match .*error: Error -3"):
+        agents.load(best)
+
+
+def test_another_algorithms_latest_pt_is_refused_on_resume(trained_run, tmp_path, capsys):
+    """Item 3: a DDPG latest.pt in a PPO run loaded, then failed with a worker's ActionError."""
+    import gymnasium
+
+    from agents.registry import get_agent_class
+
+    run = _unfinished(trained_run, tmp_path)
+    box = gymnasium.spaces.Box(-1.0, 1.0, (3,), dtype="float32")
+    get_agent_class("ddpg").from_spaces(box, box).save(run / "checkpoints" / "ac_0" / "latest.pt")
+    code, err = _resume(run, capsys)
+    assert code == 2
+    _one_line_error(err)
+    assert "ac_0/latest.pt holds a 'ddpg' agent, not 'ppo'" in err
+    # and the run's best.pt (a policy file) in its place: refused as not resumable
+    shutil.copy(run / "checkpoints" / "ac_1" / "best.pt", run / "checkpoints" / "ac_0" / "latest.pt")
+    code, err = _resume(run, capsys)
+    assert code == 2 and "holds the policy only" in _one_line_error(err)
+
+
+def test_keep_is_recorded_in_config_yaml_and_honoured_on_resume(trained_run, tmp_path, capsys):
+    """Item 4: a run started with --keep all and resumed without it ended with latest.pt pruned."""
+    assert yaml.safe_load((trained_run / "config.yaml").read_text())["keep"] == "all"
+    run = _unfinished(trained_run, tmp_path)
+    code, err = _resume(run, capsys)  # the CLI's default --keep is best
+    assert code == 0, err
+    assert read_state(run)["env_steps"] == 80
+    for ac in ("ac_0", "ac_1"):
+        assert (run / "checkpoints" / ac / "latest.pt").is_file(), f"{ac}: the run's --keep all held"
+    assert yaml.safe_load((run / "config.yaml").read_text())["keep"] == "all"
+
+
+def test_a_run_started_with_keep_best_is_pruned_when_resumed_to_the_end(trained_run, tmp_path, capsys):
+    run = _unfinished(trained_run, tmp_path)
+    path = run / "config.yaml"
+    path.write_text(yaml.safe_dump({**yaml.safe_load(path.read_text()), "keep": "best"}, sort_keys=False))
+    code, err = _resume(run, capsys)
+    assert code == 0, err
+    assert not (run / "checkpoints" / "ac_0" / "latest.pt").exists()
+    assert (run / "checkpoints" / "ac_0" / "best.pt").is_file()
+    path.write_text(path.read_text().replace("keep: best", "keep: most"))
+    code, err = _resume(run, capsys)
+    assert code == 2 and "'keep' must be one of all, best, got 'most'" in _one_line_error(err)
+
+
+def test_a_full_disk_at_a_checkpoint_save_leaves_the_old_file_and_no_tmp(trained_run, tmp_path, monkeypatch):
+    """Item 6 (the checkpoint write): ENOSPC at the write is a named error, the .tmp is removed,
+    the file already there is untouched and loads."""
+    import builtins
+
+    path = tmp_path / "latest.pt"
+    shutil.copy(trained_run / "checkpoints" / "ac_0" / "latest.pt", path)
+    before = path.read_bytes()
+    agent = agents.load(path)
+    real_open = builtins.open
+
+    def full_disk(file, mode="r", *args, **kwargs):
+        handle = real_open(file, mode, *args, **kwargs)
+        if str(file).endswith(".tmp") and "w" in mode:
+            def write(data):
+                real_write(bytes(data)[: len(data) // 2])
+                raise OSError(errno.ENOSPC, "No space left on device")
+            real_write = handle.write
+            handle.write = write
+        return handle
+
+    monkeypatch.setattr(builtins, "open", full_disk)
+    with pytest.raises(CheckpointError, match=r"cannot write checkpoint .*latest.pt \(No space left on device; "
+                                              r".* MB needed, .* MB free there\); the disk is full"):
+        agent.save(path)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.pt"], "no .tmp left"
+    assert path.read_bytes() == before
+    load_checkpoint(path, expected_algo="ppo", require_full=True)
+
+
+def test_tensorboard_keeps_the_points_at_the_checkpoint_step_after_a_resume(trained_run, tmp_path):
+    """Item 5: SummaryWriter(purge_step=S) dropped the points at step S, which the checkpoint
+    (and episodes.csv) covers; the points after it go, as their CSV rows do."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from eval.training.runfolder import load_run_config
+    from eval.training.runlog import RunLog
+
+    run = _unfinished(trained_run, tmp_path)
+    shutil.rmtree(run / "tb")
+    cfg, state = load_run_config(run), read_state(run)
+    first = RunLog(run, cfg, None)
+    for step in (20, 40, 60):  # 60: after the checkpoint at 40, lost with the kill
+        first.tb.add_scalar("charts/episodic_return/ac_0", step / 10, step)
+    first.close()
+    resumed = RunLog(run, cfg, state)
+    resumed.tb.add_scalar("charts/episodic_return/ac_0", 7.0, 70)
+    resumed.close()
+    events = EventAccumulator(str(run / "tb"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("charts/episodic_return/ac_0")] == [20, 40, 70]
+
+
+def _episode_rows(run: Path) -> list[dict]:
+    import csv
+
+    with open(run / "episodes.csv", newline="") as f:
+        return [{k: v for k, v in row.items() if k != "wall_time_s"} for row in csv.DictReader(f)]
+
+
+@pytest.fixture(scope="module")
+def resumed_reference(trained_run, tmp_path_factory) -> list[dict]:
+    """episodes.csv of the trained run resumed to step 60 without a fault (episodes of 20
+    steps: the one that ends at 60 is a row)."""
+    run = _unfinished(trained_run, tmp_path_factory.mktemp("reference"), steps=60, horizon=20)
+    train(None, resume=run, quiet=True, progress=False)
+    assert read_state(run)["env_steps"] == 60
+    rows = _episode_rows(run)
+    assert [(r["agent"], r["env_step"]) for r in rows] == [("ac_0", "60"), ("ac_1", "60")]
+    return rows
+
+
+def _full_disk_at(name_part: str, nth: int, nth_write: int = 1):
+    """An ``open`` whose ``nth`` opening for writing of a file whose name holds ``name_part``
+    gives a file whose ``nth_write``-th write writes half of what it is given, then raises
+    ENOSPC (as each later write does)."""
+    import builtins
+
+    real_open, seen = builtins.open, [0]
+
+    def fake_open(file, mode="r", *args, **kwargs):
+        handle = real_open(file, mode, *args, **kwargs)
+        if name_part in Path(file).name and ("w" in mode or "a" in mode):
+            seen[0] += 1
+            if seen[0] == nth:
+                real_write, writes = handle.write, [0]
+
+                def write(data):
+                    writes[0] += 1
+                    if writes[0] < nth_write:
+                        return real_write(data)
+                    real_write(data[: len(data) // 2])
+                    raise OSError(errno.ENOSPC, "No space left on device")
+
+                handle.write = write
+        return handle
+
+    return fake_open
+
+
+@pytest.mark.parametrize("where", ["checkpoint file", "state.json", "episodes.csv header", "episodes.csv row"])
+def test_a_full_disk_at_any_write_keeps_the_last_checkpoint_and_resume_continues_exactly(
+        trained_run, resumed_reference, tmp_path, capsys, monkeypatch, where):
+    """Item 6 and "what must be shown" 2: ENOSPC at a checkpoint file (ac_1's, after ac_0's was
+    written), at state.json (the commit), at episodes.csv's header or a row is a named one-line error;
+    no .tmp or pending file is left, the checkpoint at step 40 loads, and once the write works
+    again --resume gives the rows a resume without the fault gives."""
+    import agents.checkpoint
+    import eval.training.runfolder
+    import eval.training.runlog
+
+    module, fake = {"checkpoint file": (agents.checkpoint, _full_disk_at("latest.pending-60.pt", 2)),
+                    "state.json": (eval.training.runfolder, _full_disk_at("state.json", 1)),
+                    "episodes.csv header": (eval.training.runlog, _full_disk_at("episodes.csv", 1)),
+                    "episodes.csv row": (eval.training.runlog, _full_disk_at("episodes.csv", 1, 2))}[where]
+    run = _unfinished(trained_run, tmp_path, steps=60, horizon=20)
+    before = {ac: (run / "checkpoints" / ac / "latest.pt").read_bytes() for ac in ("ac_0", "ac_1")}
+    monkeypatch.setattr(module, "open", fake, raising=False)
+    code, err = _resume(run, capsys)
+    monkeypatch.undo()
+    assert code == 2
+    _one_line_error(err)
+    assert "No space left on device" in err and "the disk is full: free space" in err
+    assert f"--resume {run}" in err
+    assert read_state(run)["env_steps"] == 40
+    left = [p.name for p in run.rglob("*") if ".tmp" in p.name or "pending" in p.name]
+    assert left == [], "no temporary or uncommitted file is left"
+    for ac, data in before.items():
+        latest = run / "checkpoints" / ac / "latest.pt"
+        assert latest.read_bytes() == data
+        load_checkpoint(latest, expected_algo="ppo", require_full=True)
+    code, err = _resume(run, capsys)
+    assert code == 0, err
+    assert read_state(run)["env_steps"] == 60
+    assert _episode_rows(run) == resumed_reference
+
+
+# ------------------------------------------------------------------ no orphan when a parent dies
+
+
+def _children(pid: int) -> dict[int, str]:
+    """The live (not zombie) child processes of ``pid``: pid -> command line."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] not in ("Z", "X"):
+            found[int(stat.parent.name)] = cmdline
+    return found
+
+
+def _wait_for(condition, timeout: float, what: str):
+    """Poll ``condition`` until it gives a true value (returned) or ``timeout`` seconds pass."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def _start(args: list[str], cwd: Path):
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "eval.cli", *args], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _gone(pids) -> bool:
+    from agents.workers import live_pids
+
+    return not live_pids(list(pids))
+
+
+@pytest.mark.parametrize("how", ["KILL", "TERM"])
+def test_cosim_test_workers_end_with_their_parent(tmp_path, how):
+    """Item 7: the two workers (and the resource tracker) of `cosim test --workers 2` stayed
+    alive with ppid 1 after kill -9 or SIGTERM of the parent."""
+    import signal
+
+    proc = _start(["test", "--policy", "random", "--agents", "1", "--envs", "env_1", "env_2",
+                   "--scenario", "2", "--episodes", "1", "--steps", "100000", "--workers", "2",
+                   "--references", "none", "--no-replays", "--quiet", "--out", str(tmp_path)], tmp_path)
+    try:
+        workers = _wait_for(lambda: (lambda c: c if sum("spawn_main" in v for v in c.values()) >= 2 else None)(
+            _children(proc.pid)), 120, "two test workers")
+        proc.send_signal(getattr(signal, f"SIG{how}"))
+        _, err = proc.communicate(timeout=60)
+        if how == "TERM":
+            assert proc.returncode == 130 and err.strip().splitlines()[-1] == "cosim: interrupted", err
+        else:
+            assert proc.returncode == -signal.SIGKILL
+        _wait_for(lambda: _gone(workers), 30, f"the workers {sorted(workers)} to end")
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_train_all_children_end_with_their_parent_and_sigterm_is_an_interrupt(tmp_path):
+    """Item 8: `cosim train --algo all`'s per-algorithm children kept training after kill -9 of
+    the parent; SIGTERM exited 143 with no message and without stopping them."""
+    import signal
+
+    def started(proc):
+        return lambda: (lambda c: c if sum(" train " in v for v in c.values()) >= 2 else None)(
+            _children(proc.pid))
+
+    args = ["train", "--algo", "all", "--preset", "smoke", "--steps", "100000", "--quiet",
+            "--out", str(tmp_path / "runs")]
+    proc = _start(args, tmp_path)
+    try:
+        children = _wait_for(started(proc), 120, "two per-algorithm training processes")
+        proc.terminate()
+        _, err = proc.communicate(timeout=90)
+        assert proc.returncode == 130, err
+        assert "cosim train: stopping" in err and err.strip().splitlines()[-1] == "cosim: interrupted"
+        assert _gone(children), "the parent ended after its children"
+    finally:
+        proc.kill()
+        proc.wait()
+    proc = _start(args, tmp_path)
+    try:
+        children = _wait_for(started(proc), 120, "two per-algorithm training processes")
+        proc.kill()
+        proc.wait()
+        _wait_for(lambda: _gone(children), 60, f"the children {sorted(children)} to end")
+    finally:
+        proc.kill()
+        proc.wait()
