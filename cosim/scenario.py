@@ -265,10 +265,10 @@ class Scenario:
     is, not only for one SUMO has mapped onto their lane as their leader: a car on a lane is held
     (speed 0) while an AC's body, its centre ahead of the car's front, lies on the car's path
     ahead within its stopping distance + SEE_BUFFER m (cosim/sumo_bridge.py
-    ``SumoBridge._cars_seeing``); a walking person is held while an AC's body lies on its next
+    ``SumoBridge._cars_seeing``); a person is held while a moving AC's body lies on its next
     PERSON_AHEAD m of walk (``SumoBridge._people_seeing``). On by default since task version 4
-    (false: task version 3, where an AC standing across or beside a lane is invisible to the
-    cars on it). docs/task.md, "Cars that see an AC anywhere"."""
+    (``false``: task version 3's traffic, to which an AC standing across or beside a lane is
+    invisible). docs/task.md, "Cars that see an AC anywhere"."""
     reward: RewardWeights = field(default_factory=RewardWeights)
     contact: Contact = field(default_factory=Contact)
     """How a contact is charged (once per event by default) and who is charged."""

@@ -5,8 +5,9 @@
 vector instead of its camera image, with the PyBullet mirror never built
 (``CosimParallelEnv(camera=False)``): what MetaDrive and highway-env train on, the benchmark's
 decision-making track and its perception ablation. A policy trained on it that drives one AC
-of a shared test environment (cameras on for the others) builds the same vector with
-:func:`agent_state` (eval/testing/rollout.py ``StatePolicy``).
+of a shared test environment (cameras on where another AC reads them, else off:
+eval/testing/rollout.py ``use_cameras``) builds the same vector with :func:`agent_state`
+(eval/testing/rollout.py ``StatePolicy``).
 
 The vector (:data:`STATE_DIM` = 65 numbers, in this order; :data:`STATE_LAYOUT` names each
 block's slice). Ego frame: x forward, y to the left, origin the AC's centre. Every number is

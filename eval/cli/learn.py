@@ -372,8 +372,16 @@ def _cmd_test(args) -> int:
         _, robust_md = robustness_report.write(out, labels, cross, swept)
         extra_md += robust_md
     phases.say("writing the report (tables, figures) ...")
-    written = write_paper_report(records, out, prov=prov, references=refs, replays=replays,
-                                 extra_md=extra_md)
+    try:
+        written = write_paper_report(records, out, prov=prov, references=refs, replays=replays,
+                                     extra_md=extra_md)
+    except OSError as exc:  # a full disk: the episodes stay in episodes/, the folder incomplete
+        from eval.testing.protocol import ProtocolError
+
+        phases.close()
+        raise ProtocolError(f"cannot write the report in {out} ({exc.strerror or exc}: {exc.filename or out}); "
+                            f"free space (or fix the folder), then the same command with --out {out} "
+                            "writes it from the episodes kept") from exc
     import shutil
 
     shutil.rmtree(out / "episodes", ignore_errors=True)  # in records.parquet now
@@ -404,7 +412,9 @@ def _test_folder(args, stamp: str) -> Path:
     from eval.testing.protocol import ProtocolError
     from eval.training.runfolder import atomic_write
 
-    command = _test_command(args)[:-2]  # without --out: the folder it names differs on a resume
+    command = _test_command(args)
+    at = command.index("--out")
+    del command[at: at + 2]  # without --out: the folder it names differs on a resume
     marker = args.out / INCOMPLETE
     if marker.is_file():
         try:
@@ -570,6 +580,11 @@ def cmd_replay(args) -> int:
         print(f"cosim replay: error: {path}: not a failure replay (give the state.json of a "
               "report's replays/ folder)", file=sys.stderr)
         return 2
+    problem = _replay_problem(path.with_suffix(".json"))
+    if problem:
+        print(f"cosim replay: error: {path.with_suffix('.json')}: {problem}; give the state.json of a "
+              "report's replays/ folder as `cosim test` wrote it (or write the report again)", file=sys.stderr)
+        return 2
     result = replay.reload(path)
     meta = result["meta"]
     print(f"{meta['title']} ({meta['env']}), scenario {meta['scenario']}, {meta['label']} "
@@ -586,6 +601,32 @@ def cmd_replay(args) -> int:
     if args.plot:
         print(f"wrote {replay.plot(result, args.plot)}")
     return 0
+
+
+REPLAY_KEYS = ("title", "env", "scenario", "label", "agent", "episode", "seed", "step", "ttfc", "kind",
+               "hit", "background", "pedestrians", "state", "positions")
+"""What `cosim replay` reads of a failure replay's record (eval/testing/replay.py)."""
+
+
+def _replay_problem(meta: Path) -> str | None:
+    """Why a failure replay's record is not one (unreadable, not JSON, keys missing); None if it is."""
+    import json
+
+    try:
+        data = json.loads(meta.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        return f"unreadable ({type(exc).__name__})"
+    except ValueError as exc:
+        return f"not valid JSON ({exc})"
+    if not isinstance(data, dict):
+        return f"expected a JSON object, got {type(data).__name__}"
+    missing = [k for k in REPLAY_KEYS if k not in data]
+    if missing:
+        return f"not a failure replay's record (no {', '.join(missing)})"
+    positions = data["positions"]
+    if not (isinstance(positions, dict) and all(isinstance(positions.get(k), dict) for k in ("vehicles", "persons"))):
+        return "its 'positions' are not {'vehicles': {...}, 'persons': {...}}"
+    return None
 
 
 def _test_command(args) -> list[str]:

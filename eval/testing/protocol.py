@@ -45,6 +45,7 @@ from eval.testing.rollout import (
     StackedPolicy,
     StatePolicy,
     run_episodes,
+    use_cameras,
 )
 
 log = logging.getLogger(__name__)
@@ -464,6 +465,7 @@ def run_job(plan: ProtocolPlan, make_policy: PolicyFactory, job: ProtocolJob) ->
     try:
         agent_algo = dict(zip(env.possible_agents, job.order, strict=True))
         policies = {a: make_policy(env, a, agent_algo[a]) for a in env.possible_agents}
+        use_cameras(env, policies)  # off when no AC reads an image (state-track / reference ACs only)
         rec = run_episodes(env, policies, [plan.seed + e for e in job.episodes], algorithms=agent_algo)
     finally:
         env.close()

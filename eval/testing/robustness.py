@@ -29,7 +29,7 @@ import pandas as pd
 
 from eval.testing.conditions import TestConditions, action_kinds
 from eval.testing.protocol import ProtocolError
-from eval.testing.rollout import AutopilotPolicy, run_episodes
+from eval.testing.rollout import AutopilotPolicy, run_episodes, use_cameras
 
 SWEEP_KINDS = ("density", "camera_noise", "action_noise", "dropout")
 def parse_sweeps(items: Sequence[str]) -> dict[str, list[float]]:
@@ -61,6 +61,12 @@ class Perturbed:
         self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.last = None
+
+    @property
+    def observes_camera(self) -> bool:
+        from eval.testing.rollout import needs_camera
+
+        return needs_camera(self.policy)  # a camera perturbation of a state policy perturbs nothing it reads
 
     def reset(self) -> None:
         if hasattr(self.policy, "reset"):
@@ -105,6 +111,7 @@ def run_cross_play(plan, make_policy: Callable, algos: Sequence[str], group: int
                                 (AutopilotPolicy(env, a) if partner == "autopilot"
                                  else make_policy(env, a, partner))
                                 for i, a in enumerate(env.possible_agents)}
+                    use_cameras(env, policies)
                     rec = run_episodes(env, policies, seeds, algorithms=names)
                 finally:
                     env.close()
@@ -137,6 +144,7 @@ def run_sweep(plan, make_policy: Callable, algos: Sequence[str], kind: str, leve
                     if kind != "density":
                         p = Perturbed(p, env.action_space(a), kind, level, seed=plan.seed * 1000 + i)
                     policies[a] = p
+                use_cameras(env, policies)
                 rec = run_episodes(env, policies, seeds, algorithms=names)
             finally:
                 env.close()

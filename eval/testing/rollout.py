@@ -6,7 +6,8 @@ or a callable ``policy(obs) -> action``. :class:`RandomPolicy` and
 policy trained on stacked frames its own frame history, :class:`NavPolicy` one trained on
 the ``nav`` observation its own measurements, :class:`StatePolicy` one trained on the state
 track its own state vector, :class:`RepeatPolicy` holds the actions of one
-trained with an action repeat.
+trained with an action repeat. :func:`use_cameras` turns a test env's cameras off when no
+policy driving it reads an image (:func:`needs_camera`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ class RandomPolicy:
     """Uniform random actions from the agent's action space (seeded)."""
 
     name = "random"
+    observes_camera = False
 
     def __init__(self, space, seed: int = 0):
         self.space = space
@@ -37,6 +39,7 @@ class AutopilotPolicy:
     """The scripted lane follower as a policy of one AC of a cosim env (privileged)."""
 
     name = "autopilot"
+    observes_camera = False
 
     def __init__(self, env, agent: str):
         self.env = env
@@ -74,6 +77,10 @@ class StackedPolicy:
     def frame_stack(self) -> int:
         return self.history.k
 
+    @property
+    def observes_camera(self) -> bool:
+        return needs_camera(self.policy)
+
     def reset(self) -> None:
         self.history.clear()
         if hasattr(self.policy, "reset"):
@@ -98,6 +105,10 @@ class RepeatPolicy:
         self.count, self.action = 0, None
         self.algo = getattr(policy, "algo", None)
         self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    @property
+    def observes_camera(self) -> bool:
+        return needs_camera(self.policy)
 
     def reset(self) -> None:
         self.count, self.action = 0, None
@@ -148,6 +159,8 @@ class StatePolicy:
     controls (cosim.state.agent_state), as the training env with its cameras off does.
     """
 
+    observes_camera = False
+
     def __init__(self, policy, env, agent: str):
         self.policy, self.env, self.agent = policy, env, agent
         self.algo = getattr(policy, "algo", None)
@@ -190,6 +203,27 @@ class SampledPolicy:
             return self.agent.act(obs, deterministic=False)
         finally:
             self.agent.generator = own
+
+
+def needs_camera(policy) -> bool:
+    """Whether ``policy`` reads the camera image its AC observes: False for the references
+    (:class:`RandomPolicy`, :class:`AutopilotPolicy`) and a :class:`StatePolicy`, and for a
+    wrapper (``observes_camera`` a property) around one of them; True for anything else (a
+    trained agent, a :class:`NavPolicy`, a policy that does not say)."""
+    return bool(getattr(policy, "observes_camera", True))
+
+
+def use_cameras(env, policies: Mapping[str, object]) -> bool:
+    """Keep ``env``'s cameras (a ``CosimParallelEnv``, before its first reset) only if one of
+    ``policies`` reads an image (:func:`needs_camera`); else turn them off
+    (``CosimParallelEnv.cameras_off``: no PyBullet mirror is built, each AC observes its state
+    vector, which none of these policies reads). The world, hence every record, is the same
+    either way; a state-only or reference-only test runs several times faster. Returns whether
+    the cameras stay on."""
+    if any(needs_camera(p) for p in policies.values()):
+        return True
+    env.cameras_off()
+    return False
 
 
 def _act(policy, obs):
@@ -243,4 +277,5 @@ def mean_return(records: pd.DataFrame) -> float:
     return float(records.groupby(["episode", "agent"])["reward"].sum().mean())
 
 
-__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "RepeatPolicy", "StackedPolicy", "StatePolicy", "mean_return", "run_episodes", "np"]
+__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "RepeatPolicy", "StackedPolicy", "StatePolicy", "mean_return",
+           "needs_camera", "run_episodes", "use_cameras", "np"]

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from cosim.errors import NetError, ScenarioError
-from cosim.scenario import available_scenarios, load_scenario, nets_dir, scenario_data
+from cosim.scenario import Contact, available_scenarios, load_scenario, nets_dir, scenario_data
 
 ENVS = ["env_1", "env_2", "env_3", "env_4", "env_5"]
 
@@ -36,9 +36,18 @@ def _copy_yaml(tmp_path: Path, name="env_3", edit=None) -> Path:
     return out
 
 
-def test_solid_cars_is_read_from_the_yaml_and_off_in_every_bundled_scenario(tmp_path):
-    assert load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(solid_cars=True))).solid_cars
-    assert not any(load_scenario(f"env_{k}").solid_cars for k in range(1, 6))  # task version 3
+def test_solid_cars_and_the_contact_rule_are_read_from_the_yaml_and_the_defaults_everywhere(tmp_path):
+    assert not load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(solid_cars=False))).solid_cars
+    assert all(load_scenario(f"env_{k}").solid_cars for k in range(1, 6))  # task version 4
+    sc = load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(
+        contact={"charge": "step", "window": 2.0, "fault": "at_fault"})))
+    assert (sc.contact.charge, sc.contact.window, sc.contact.fault) == ("step", 2.0, "at_fault")
+    assert all(load_scenario(f"env_{k}").contact == Contact() for k in range(1, 6))
+    assert (Contact().charge, Contact().window, Contact().fault) == ("event", 5.0, "both")
+    with pytest.raises(ScenarioError, match="charge must be one of event, step"):
+        load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(contact={"charge": "once"})))
+    with pytest.raises(ScenarioError, match=r"unknown key\(s\) \['windw'\]"):
+        load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(contact={"windw": 5})))
 
 
 def test_cars_see_acs_is_read_from_the_yaml_and_on_in_every_bundled_scenario(tmp_path):

@@ -221,8 +221,12 @@ def test_the_safe_non_turner_must_not_collide_but_may_score():
     assert failures(_table(**ok, **{"safe-non-turner": (0.33, 1200.0, 0.0, 0.6)})) == []
     assert failures(_table(**ok, **{"safe-non-turner": (0.0, -200.0, 1.5, 0.2)})) == [
         "safe-non-turner collides (1.50 collision steps per AC)"]
+    assert failures(_table(**ok, **{"always-forward": (0.33, 1200.0, 0.0, 0.4)})) == [
+        "always-forward scores DS 0.400 (allowed <= 0.10)",
+        "always-forward reaches 33% of goals (allowed <= 20%)"]
+    # always-coast's DS is the entry roll (eval/testing/validity.py ROLL_POLICY): its goals count
+    assert failures(_table(**ok, **{"always-coast": (0.0, -500.0, 0.0, 0.3)})) == []
     assert failures(_table(**ok, **{"always-coast": (0.33, 1200.0, 0.0, 0.4)})) == [
-        "always-coast scores DS 0.400 (allowed <= 0.10)",
         "always-coast reaches 33% of goals (allowed <= 20%)"]
 
 

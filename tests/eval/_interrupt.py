@@ -13,6 +13,7 @@ signal (KILL or INT) arrives:
 The training code is not changed: the hooks wrap the functions it calls.
 """
 
+import io
 import os
 import signal
 import sys
@@ -54,23 +55,24 @@ def atomic_write(path, text):
         fire()
 
 
-real_save = torch.save
+real_save_file = agents.checkpoint._write  # how a checkpoint file is written (temp name, renamed)
 
 
-def save(obj, f, *args, **kwargs):
+def save_file(payload, path):
     if moment == "saving" and calls["checkpoint"] == nth:
-        real_save(obj, f, *args, **kwargs)
-        with open(f, "r+b") as fh:  # leave the file half written, as a kill mid-write would
-            fh.truncate(os.path.getsize(f) // 2)
+        buffer = io.BytesIO()
+        torch.save(payload, buffer)  # leave the temp file half written, as a kill mid-write would
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_bytes(buffer.getvalue()[: len(buffer.getvalue()) // 2])
         fire()
-    return real_save(obj, f, *args, **kwargs)
+    return real_save_file(payload, path)
 
 
 if __name__ == "__main__":  # worker processes (spawn) import this module again
     moment, nth, sig = sys.argv[1], int(sys.argv[2]), getattr(signal, f"SIG{sys.argv[3]}")
     eval.training.runlog.RunLog.checkpoint = checkpoint
     eval.training.runlog.atomic_write = atomic_write
-    agents.checkpoint.torch.save = save
+    agents.checkpoint._write = save_file
     code = main(sys.argv[sys.argv.index("--") + 1:])
     if not calls["fired"]:  # say why, for the test's failure message
         print(f"_interrupt.py: {sys.argv[3]} at {moment!r} of checkpoint {nth} never fired: this "

@@ -95,10 +95,10 @@ def test_per_environment_verdict_and_contact_bullets_in_the_targets_order(cp, tm
                    "has_turns": False, "turning": "[]", "met": True},
                   {"env": "env_3", "title": "Four-way", "discrete": "[]", "continuous": "[]",
                    "has_turns": True, "turning": "[]", "met": False}]).to_csv(tmp_path / "targets.csv", index=False)
-    pd.DataFrame([{"algorithm": a, "env": e, "n": 3, "return_mean": m, "return_ci_low": m - 10,
-                   "return_ci_high": m + 10, "goal_mean": 0.5, "return_ok": ok, "goal_ok": ok, "passed": ok}
-                  for e, a, m, ok in (("env_1", "dqn", 900.0, True), ("env_1", "ddpg", 800.0, True),
-                                      ("env_3", "dqn", -700.0, False), ("env_3", "ddpg", -900.0, False))]
+    pd.DataFrame([{"algorithm": a, "env": e, "n": 3, "DS_mean": m, "DS_ci_low": m - 0.1,
+                   "DS_ci_high": m + 0.1, "goal_mean": 0.5, "DS_ok": ok, "passed": ok}
+                  for e, a, m, ok in (("env_1", "dqn", 0.9, True), ("env_1", "ddpg", 0.8, True),
+                                      ("env_3", "dqn", 0.07, False), ("env_3", "ddpg", 0.05, False))]
                  ).to_csv(tmp_path / "verdict.csv", index=False)
     pd.DataFrame([{"kind": "reference", "scenario": 1, "metric": "return", "env": e, "name": n, "mean": v}
                   for e, n, v in (("env_1", "always-brake", -545.5), ("env_3", "always-brake", -552.0),

@@ -47,7 +47,9 @@ def _resume(run: Path, capsys, *extra: str) -> tuple[int, str]:
 
 
 def _one_line_error(err: str) -> str:
-    assert err.count("\n") == 1 and err.startswith(("cosim: error: ", "cosim train: error: ")), err
+    import re
+
+    assert err.count("\n") == 1 and re.match(r"cosim( \w+)?: error: ", err), err
     return err
 
 
@@ -396,3 +398,74 @@ def test_train_all_children_end_with_their_parent_and_sigterm_is_an_interrupt(tm
     finally:
         proc.kill()
         proc.wait()
+
+
+# ------------------------------------------------------------------ an interrupted `cosim test`
+
+
+def test_an_interrupted_cosim_test_keeps_its_episodes_is_marked_incomplete_and_goes_on(tmp_path, capsys, monkeypatch):
+    """Item 9: a `cosim test` stopped after its first run left only slots.csv, unmarked, its
+    episodes gone. Now each run's episodes are kept as it ends, the folder says it is incomplete,
+    and the same command with --out that folder runs only the rest, to the records one
+    uninterrupted test gives."""
+    import json
+
+    import pandas as pd
+
+    from eval.testing import protocol
+
+    args = ["test", "--policy", "random", "--agents", "1", "--envs", "env_1", "env_2", "--scenario", "2",
+            "--episodes", "1", "--steps", "20", "--references", "none", "--no-replays", "--quiet"]
+    real_run_job, calls = protocol.run_job, []
+
+    def interrupted_second(plan, make_policy, job):
+        calls.append(job.env)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_run_job(plan, make_policy, job)
+
+    monkeypatch.setattr(protocol, "run_job", interrupted_second)
+    assert main([*args, "--out", str(tmp_path / "reports")]) == 130
+    err = capsys.readouterr().err
+    (folder,) = (tmp_path / "reports").iterdir()
+    assert f"{folder} is incomplete" in err and "episodes of 1 finished run(s) kept" in err
+    assert json.loads((folder / "incomplete.json").read_text())["command"][0] == "test"
+    assert sorted(p.name for p in (folder / "episodes").iterdir()) == ["job-000.parquet", "plan.json"]
+    assert not (folder / "records.parquet").exists()
+
+    monkeypatch.setattr(protocol, "run_job", lambda *a: (calls.append(a[2].env), real_run_job(*a))[1])
+    calls.clear()
+    assert main([*args[:-1], "--episodes", "2", "--quiet", "--out", str(folder)]) == 2, "other options: refused"
+    assert "holds an incomplete test run" in capsys.readouterr().err
+    import eval.reporting.report
+
+    real_report = eval.reporting.report.write_paper_report
+
+    def full_disk(records, out, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(out / "records.parquet"))
+
+    monkeypatch.setattr(eval.reporting.report, "write_paper_report", full_disk)
+    assert main([*args, "--out", str(folder)]) == 2, "a full disk at the report (item 6)"
+    err = _one_line_error(capsys.readouterr().err)
+    assert "cannot write the report" in err and "No space left on device" in err and f"--out {folder}" in err
+    assert calls == ["env_2"], "only the run not kept was run again"
+    assert (folder / "incomplete.json").exists() and len(list((folder / "episodes").glob("job-*"))) == 2
+    monkeypatch.setattr(eval.reporting.report, "write_paper_report", real_report)
+    assert main([*args, "--out", str(folder)]) == 0
+    assert calls == ["env_2"], "every run's episodes were kept: none ran again"
+    assert not (folder / "incomplete.json").exists() and not (folder / "episodes").exists()
+    plan = protocol.ProtocolPlan(envs=("env_1", "env_2"), scenarios=(2,), episodes=1, steps=20, agents=1)
+    reference = protocol.run_protocol(plan, protocol.policy_factory("random"), ["ppo"])
+    pd.testing.assert_frame_equal(pd.read_parquet(folder / "records.parquet"), reference)
+
+
+@pytest.mark.parametrize("text, says", [('{"env": "env_1", ', "not valid JSON"),
+                                        ('{"env": "env_1"}', "not a failure replay's record (no title"),
+                                        ("[1, 2]", "expected a JSON object, got list")])
+def test_cosim_replay_of_a_corrupt_record_is_a_one_line_error(tmp_path, capsys, text, says):
+    """Item 13: `cosim replay` of a corrupt state.json was an unexpected JSONDecodeError/KeyError."""
+    (tmp_path / "state.json").write_text(text)
+    (tmp_path / "state.xml").write_text("<sumo/>")
+    assert main(["replay", str(tmp_path / "state.json")]) == 2
+    err = _one_line_error(capsys.readouterr().err)
+    assert says in err and "state.json" in err

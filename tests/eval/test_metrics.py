@@ -16,6 +16,7 @@ def _info(x, speed=10.0, n_veh=3, n_ped=0, **events):
         "x": x, "y": 0.0, "heading": 0.0, "speed": speed, "distance_to_goal": 100 - x,
         "progress": 1.0, "n_vehicles": n_veh, "n_pedestrians": n_ped,
         "spawn_x": 0.0, "spawn_y": 0.0, "goal_x": 100.0, "goal_y": 0.0, "time": 0.0,
+        "route_completion": x / 100.0,
         "reward_terms": {"collision": 0.0, "efficiency": 1.0, "lane": 0.0, "step": -1.0},
     }
     flags = dict.fromkeys(EVENT_FLAGS, False)

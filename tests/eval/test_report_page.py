@@ -49,6 +49,9 @@ def synthetic_records(episodes: int, steps: int = 20, seed: int = 0, same_scenar
                             "spawn_x": 0.0, "spawn_y": 0.0, "goal_x": 100.0, "goal_y": 0.0, "time": t * 0.1,
                             "collision": coll, "collision_vehicle": coll and scenario == 1,
                             "collision_object": coll and scenario == 2, "collision_pedestrian": False,
+                            "event_vehicle": coll and scenario == 1 and t == hit,
+                            "event_object": coll and scenario == 2 and t == hit, "event_pedestrian": False,
+                            "route_completion": 1.0 if ep == 1 and t == steps - 1 else t / 100.0,
                             "lane_violation": off, "red_light": False,
                             "goal_reached": ep == 1 and t == steps - 1, "reward": reward,
                             "terminated": False, "truncated": t == steps - 1, "env": env,
@@ -71,7 +74,8 @@ def run_folder(root: Path, env: str, algo: str, seed: int = 0) -> Path:
 
 def synthetic_references() -> pd.DataFrame:
     """The whole reference suite's summary (eval.testing.protocol.reference_rows) in ENVS."""
-    return pd.DataFrame([{"policy": p, "return": 100.0 - 10 * i, "goal": 0.5 * (i < 2), "DISTANCE": 10.0,
+    return pd.DataFrame([{"policy": p, "DS": 0.95 - 0.05 * i, "RC": 0.96 - 0.05 * i, "success": 0.5 * (i < 2),
+                          "return": 100.0 - 10 * i, "goal": 0.5 * (i < 2), "DISTANCE": 10.0,
                           "CV": 0.0, "CO": 0.1 * (i % 3), "CP": np.nan if env == "env_1" else 0.0,
                           "OS": 0.2, "RL": 0.0, "collision_steps": 0.0, "TTFC": np.nan, "SPEED": 20.0,
                           "n": 4, "env": env}
@@ -166,6 +170,28 @@ def test_an_asymmetric_interval_prints_its_two_ends(three_episodes):
 NOT_METRICS = {"SUMO", "SHA", "UTC", "PDF", "PNG", "CSV", "HTML", "XML", "YAML", "RQ1", "RQ2", "RGB",
                "NO", "PPO", "DQN", "A3C", "DDPG", "TD3", "IMPALA", "CPU", "GPU"}
 """Upper-case words that are names (tools, formats, algorithms), not metric abbreviations."""
+
+
+def test_the_first_screen_opens_with_the_driving_score(three_episodes):
+    """Before Table RQ1, a table of DS, RC and success rate [95% CI] per environment, scenario and
+    column (then the reference columns); Table RQ1's first rows after n are DS, RC, success rate."""
+    folder, _ = three_episodes
+    md = (folder / "index.md").read_text()
+    assert md.index("## Driving score") < md.index("## Table RQ1") < md.index("### Legend")
+    table = [line for line in _section(md, "## Driving score").splitlines() if line.startswith("| ")]
+    assert table[0] == "| environment | scenario | policy | DS | RC | success rate | n |"
+    long = pd.read_csv(folder / "rq1_long.csv", keep_default_na=False).set_index(
+        ["env", "scenario", "algorithm", "metric"])["cell"]
+    assert (f"| Straight | S1 | ppo | {long[('env_1', 1, 'ppo', 'DS')]} | {long[('env_1', 1, 'ppo', 'RC')]} | "
+            f"{long[('env_1', 1, 'ppo', 'success')]} | 3 |") in table
+    assert re.match(r"^\d\.\d{3} \[\d\.\d{3}, \d\.\d{3}\]$", long[("env_1", 1, "ppo", "DS")])
+    assert "| Four-way | S1 | autopilot (ref) | 0.950 | 0.960 | 0.50 | 4 AC-episodes |" in table
+    assert "| Four-way | S2 | dqn |" in "\n".join(table)
+    wide = pd.read_csv(folder / "rq1_wide.csv", keep_default_na=False)
+    for env in ("Straight", "Four-way"):
+        assert wide[wide.Environment == env].Metric.tolist()[:4] == ["n (episodes)", "DS", "RC", "success rate"]
+    html = (folder / "index.html").read_text()
+    assert html.index("<h2>Driving score</h2>") < html.index("<h2>Table RQ1</h2>")
 
 
 def test_every_abbreviation_on_the_page_has_its_definition(one_episode):

@@ -104,7 +104,14 @@ def test_records_without_the_score_columns_give_nan_and_say_why():
 
 def test_table_rq1_and_the_pages_first_screen_open_with_ds_rc_and_success():
     from eval.reporting import page
-    from eval.reporting.report import HEADLINE, TABLE_METRICS, long_table, per_episode, row_name, wide_rows
+    from eval.reporting.report import (
+        HEADLINE,
+        TABLE_METRICS,
+        long_table,
+        per_episode,
+        row_name,
+        wide_rows,
+    )
 
     assert TABLE_METRICS[:3] == HEADLINE == ("DS", "RC", "success")
     records = score_records().assign(scenario=1, env="env_1")
