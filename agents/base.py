@@ -224,6 +224,9 @@ class Agent(abc.ABC):
                 f"{type(self).__name__} needs a {self.config_class.__name__}, got {type(config).__name__}"
             )
         self.check_spaces(observation_space, action_space)
+        if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed < 2**64:
+            raise ValueError(f"{type(self).__name__}(seed=...): the seed must be a whole number "
+                             f"0..2**64-1 (numpy's and torch's generators), got {seed!r}")
         self.config = config
         self.observation_space = observation_space
         self.action_space = action_space

@@ -19,6 +19,7 @@ the command line to the optimiser").
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -73,6 +74,11 @@ class AgentConfig:
         check_range("action_repeat", self.action_repeat, 1)
         if int(self.action_repeat) != self.action_repeat:
             raise ValueError(f"action_repeat={self.action_repeat!r} must be a whole number of steps")
+        hidden = getattr(self, "hidden", None)  # every algorithm's MLP sizes (issue 57 item 12)
+        if hidden is not None and (not isinstance(hidden, tuple | list) or not hidden or any(
+                isinstance(h, bool) or not isinstance(h, numbers.Integral) or h < 1 for h in hidden)):
+            raise ValueError(f"hidden={hidden!r} must be a non-empty list of layer sizes >= 1, "
+                             "e.g. [64, 64]")
 
     @classmethod
     def preset(cls, name: str = "default", **overrides: Any) -> AgentConfig:
@@ -418,8 +424,6 @@ class A3CConfig(AgentConfig):
         check_range("ent_coef", self.ent_coef, 0.0)
         check_range("max_grad_norm", self.max_grad_norm, 0.0, low_inclusive=False)
         check_range("adam_eps", self.adam_eps, 0.0, low_inclusive=False)
-        if not self.hidden or any(int(h) < 1 for h in self.hidden):
-            raise ValueError(f"hidden={self.hidden!r} must be a non-empty tuple of positive sizes")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -490,5 +494,3 @@ class IMPALAConfig(AgentConfig):
         check_range("c_bar", self.c_bar, 0.0, low_inclusive=False)
         check_range("max_grad_norm", self.max_grad_norm, 0.0, low_inclusive=False)
         check_range("adam_eps", self.adam_eps, 0.0, low_inclusive=False)
-        if not self.hidden or any(int(h) < 1 for h in self.hidden):
-            raise ValueError(f"hidden={self.hidden!r} must be a non-empty tuple of positive sizes")

@@ -115,6 +115,7 @@ class CosimParallelEnv(ParallelEnv):
     ):
         # everything pickle / deepcopy need to rebuild this env (see __getstate__)
         self._init_kwargs = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
+        _check_seed(seed, "parallel_env(seed=...)")
         if not (isinstance(reward_scale, int | float) and 0.0 < float(reward_scale) < float("inf")):
             raise ValueError(f"reward_scale must be a finite number > 0, got {reward_scale!r}")
         sc = load_scenario(scenario) if not isinstance(scenario, Scenario) else scenario
@@ -178,6 +179,7 @@ class CosimParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         if self._closed:
             raise EnvStateError("the environment is closed; create a new one")
+        _check_seed(seed, "reset(seed=...)")
         options = options or {}
         _check_reset_options(options)
         # these two take effect at this reset and stay until changed again
@@ -395,6 +397,14 @@ class CosimParallelEnv(ParallelEnv):
 
 
 RESET_OPTIONS = ("background", "pedestrians")
+
+
+def _check_seed(seed, where: str) -> None:
+    """Refuse a seed numpy and SUMO cannot take (Gymnasium's rule: None or a whole number >= 0)."""
+    whole = isinstance(seed, int | np.integer) and not isinstance(seed, bool)
+    if seed is not None and not (whole and seed >= 0):
+        raise OptionError(f"{where}: the seed must be a whole number >= 0 (or None: a fresh one), "
+                          f"got {seed!r}")
 
 
 def _check_reset_options(options) -> None:

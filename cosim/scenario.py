@@ -358,12 +358,20 @@ def scenario_file(name_or_path: str | Path) -> Path:
         path = candidate
     if not path.exists():
         raise ScenarioError(f"scenario file {path} does not exist")
+    if path.is_dir():
+        raise ScenarioError(f"scenario file {path} is a folder; pass the path of a scenario .yaml file")
     return path
 
 
 def _read_mapping(path: Path) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ScenarioError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}); save the "
+                            "file as UTF-8") from exc
+    except OSError as exc:  # unreadable: permissions, a folder, an I/O error
+        raise ScenarioError(f"{path}: cannot read the scenario file ({exc.strerror or exc}); "
+                            "pass a readable scenario .yaml file") from exc
     except yaml.YAMLError as exc:
         raise ScenarioError(f"{path}: malformed YAML: {exc}") from exc
     if not isinstance(data, dict):
@@ -427,7 +435,7 @@ def _vehicle(data: Any, where: str) -> VehicleParams:
         raise ScenarioError(f"{where}: expected a mapping of VehicleParams fields, got "
                             f"{type(data).__name__}")
     names = [f.name for f in dataclasses.fields(VehicleParams)]
-    unknown = sorted(set(data) - set(names))
+    unknown = sorted(set(data) - set(names), key=str)
     if unknown:
         raise ScenarioError(f"{where}: unknown key(s) {unknown}; valid keys: {sorted(names)} "
                             f"({', '.join(VEHICLE_ANGLES)} in degrees, the rest in SI units)")
@@ -456,7 +464,7 @@ def _build(cls: type, data: Any, where: str) -> Any:
     if not isinstance(data, dict):
         raise ScenarioError(f"{where}: expected a mapping, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
+    unknown = sorted(set(data) - set(fields), key=str)  # a YAML key may be a number
     if unknown:
         raise ScenarioError(
             f"{where}: unknown key(s) {unknown}; valid keys: {sorted(fields)}"
@@ -479,6 +487,9 @@ def _build(cls: type, data: Any, where: str) -> Any:
             value = float(value)
         if ftype in ("float", "int", "bool") and not _type_ok(value, ftype):
             raise ScenarioError(f"{where}: '{key}' must be {ftype}, got {value!r}")
+        if ftype == "str" and not isinstance(value, str):  # a list or mapping would not hash
+            raise ScenarioError(f"{where}: '{key}' must be text, got {value!r}; write it as "
+                                f"{key}: \"...\"")
         if ftype == "float" and not math.isfinite(value):
             raise ScenarioError(f"{where}: '{key}' must be finite, got {value!r}")
         kwargs[key] = value

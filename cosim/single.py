@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from cosim.env import CosimParallelEnv
+from cosim.env import CosimParallelEnv, _check_seed
 from cosim.scenario import Scenario
 
 GYM_IDS = {
@@ -55,6 +55,7 @@ class SingleAgentEnv(gym.Env):
         self.render_mode = render_mode
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        _check_seed(seed, "reset(seed=...)")  # before Gymnasium's own, which names no call
         super().reset(seed=seed)
         obs, infos = self._env.reset(seed=seed, options=options)
         return obs[self.agent], infos[self.agent]

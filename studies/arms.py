@@ -12,7 +12,7 @@ each in its own slot with its own selected checkpoint (studies/pilot_task.py ``t
 the test's rules, ``--episodes`` held-out seeds from 10,000, the scenario's horizon in steps), each slot's mean
 return and goal rate. Files under ``--out``: ``training.csv``, ``test.csv``,
 ``records/<arm>.parquet`` (a rerun reuses these: delete one to test that arm again) and
-``slots.md``, the table. Results: docs/results/ (the page that ran it names it).
+``slots.md``, the table. Results: the stall pilot, task version 3; in git history at 1b59d82, docs/results/2026-11-26-stall-pilot.
 """
 from __future__ import annotations
 

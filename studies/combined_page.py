@@ -1,5 +1,6 @@
-"""The docs/results page of a `studies/science.py --combine` folder (the 6x5 study's exported
-parts joined): copies its summary.md, results.md, verdict.md, iqm.md, budget.csv, convergence.png,
+"""The docs/results page of a `studies/science.py --combine` folder (a grid's exported parts
+joined; task version 3's 6x5 study: in git history at 1b59d82, docs/results/2026-11-28-science-v3-seeds012):
+copies its summary.md, results.md, verdict.md, iqm.md, budget.csv, convergence.png,
 verdict.png and iqm.png into the page folder and writes README.md around them: the training seeds per
 environment, the command, the verdict grid (summary.md's, the README's results table) and its
 figure, issue 27's target per environment, per environment the verdict (the passes, or what the
@@ -8,8 +9,8 @@ bullets), the convergence figure, the IQM (and its figure), the return with and 
 (studies/contact_table.py over the same parts) and the budgets.
 
     python studies/science.py --combine <the parts' study/ exports> --out comb
-    python studies/combined_page.py comb --page docs/results/<date>-science-v3-seeds012 \\
-        --title "The 6x5 study on task version 3, seeds 0, 1 and 2"
+    python studies/combined_page.py comb --page docs/results/<date>-<study> \\
+        --title "The 6x5 study, seeds 0, 1 and 2"
 
 The page's prose beyond that (what moved a mean, what did not work) is written by hand.
 """

@@ -1,17 +1,21 @@
-"""The 6x5 study's return with and without the contact charge, over training seeds.
+"""A grid's return with and without the contact charge, over training seeds.
 
-A test episode charges every contact step (-50 each; collisions do not end it), so one AC that
-stands against a car or a wall to the episode's end costs its algorithm's mean thousands, and a
-seed's Scenario 1 mean moves with how many such runs its 24 episodes hold. This puts beside the
-study's return (mean [95% bootstrap CI over seeds]) the same mean without the contact charge: how
-the cars drove when they were not standing in contact. A diagnostic beside the study's tables, not
-one of its metrics (the verdict uses the return as the test charges it).
+Under task version 3 a test episode charged every contact step (-50 each; collisions do not end
+it), so one AC that stood against a car or a wall to the episode's end cost its algorithm's mean
+thousands, and a seed's Scenario 1 mean moved with how many such runs its 24 episodes held (the
+6x5 study on task version 3; in git history at 1b59d82, docs/results/2026-11-28-science-v3-seeds012).
+Since task version 4 a contact is charged once per collision event (docs/task.md, "Collision
+rule"). This puts beside the study's return (mean [95% bootstrap CI over seeds]) the same mean
+without the contact charge (the records' ``r_collision``, under whichever rule they were tested):
+how the cars drove apart from their collisions. A diagnostic beside the study's tables, not one of
+its metrics (the verdict is by driving score: docs/task.md, "Driving score"; docs/scenarios.md,
+"The check" for the references).
 
 Reads each study part's ``contact.csv`` (``studies/stops.py --policy-out``: one line per policy,
 environment, scenario and training seed) or the ``study/`` folder that holds it:
 
     python studies/stops.py sci_2s1/test/*.parquet --policy-out docs/results/<page>/study/contact.csv
-    python studies/contact_table.py docs/results/*science-v3-*-[2s]*/study docs/results/*test-episodes/env_*/study
+    python studies/contact_table.py docs/results/<date>-<part>/study docs/results/<date>-<other part>/study
 """
 from __future__ import annotations
 

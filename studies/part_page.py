@@ -1,4 +1,4 @@
-"""The tables of one part of the 6x5 study (one environment, one training seed, as a
+"""The tables of one part of a grid run in parts (one environment, one training seed, as a
 `studies/science.py --envs env_N --first-seed K --seeds 1` study trains) for its docs/results page:
 each algorithm's budget, best validation return, Scenario 1 and 2 return and goal rate, beside
 the same environment's other seeds (their exports' seeds.csv) and, with ``--combined``, the
@@ -9,8 +9,8 @@ the commit each trial started at (its manifest.json) and whether the training co
 with ``--combined``, the verdict over the seeds and the environment's target (its verdict.csv and
 targets.csv); with ``--contact``, the seeds' return without the contact charge (their contact.csv).
 
-    python studies/part_page.py sci_2s1 --earlier docs/results/2026-11-27-science-v3-threeway-2/study \\
-        --combined comb_2 --contact docs/results/2026-11-27-science-v3-threeway-2/study \\
+    python studies/part_page.py sci_2s1 --earlier docs/results/<seed 0's page>/study \\
+        --combined comb_2 --contact docs/results/<seed 0's page>/study \\
         docs/results/<this part's page>/study > page-tables.md
 
 The page's prose (what moved a mean, what did not work) is written by hand around it.

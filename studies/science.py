@@ -26,7 +26,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
    seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``/``verdict.png``,
    ``iqm.csv``/``iqm.md``/``iqm.png``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``), ``budget.csv``
    (did each run's training return still rise at the end of its budget?),
-   ``summary.md`` (printed: a study's results section, as in docs/results/*/README.md), ``report/`` (the `cosim test`
+   ``summary.md`` (printed: a study's results section, for its docs/results/<date>-<study>/ page), ``report/`` (the `cosim test`
    report of the held-out records, seeds pooled) and ``science.json`` (plan, checkpoints).
 
 ``--combine`` replaces stages 1-3: finished studies of different environments (run as

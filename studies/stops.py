@@ -24,7 +24,7 @@ forward camera), and what share of all contact steps such runs hold.
 
 A report of a reference driver (``cosim test --policy autopilot``) is labelled with the
 driver's name (its provenance.json), a report of trained checkpoints with the algorithm.
-Results: docs/results/2026-11-26-turning-alone.
+Results: task version 3; in git history at 1b59d82, docs/results/2026-11-26-turning-alone.
 """
 from __future__ import annotations
 

@@ -143,7 +143,8 @@ def main() -> None:
         results = [evaluate_run(run, args.episodes, eval_env) for run in args.eval]
     hyper = parse_set(args.set)
     for algo in [] if args.eval is not None else args.algos:
-        # agents=3: the figures in docs/results/2026-11-22-train-env1/README.md were taken with the quick preset's 3 ACs of the
+        # agents=3: this study's figures (task version 1; in git history at 1b59d82, docs/results/2026-11-22-train-env1)
+        # were taken with the quick preset's 3 ACs of the
         # time (the preset now trains 6, eval/training/hyperparams/runs.yaml).
         cfg = make_config(algo, args.env, "quick", agents=3, seed=args.seed, steps=args.steps, hyper=hyper)
         t0 = time.monotonic()

@@ -12,7 +12,7 @@ Scenario 2's return and goal rate where the arm has it:
         see=rep_grid_see/20261129-060435 trained-see=rep_pilot_see/20261129-070657 \\
         --figure docs/results/<page> --reference always-brake=-552.0
 
-Results: docs/results/2026-11-29-cars-see-trained.
+Results: task version 3; in git history at 1b59d82, docs/results/2026-11-29-cars-see-trained.
 """
 from __future__ import annotations
 
@@ -27,6 +27,9 @@ from eval.labels import algo_label, algo_order
 from eval.reporting.page import md_table
 from eval.reporting.science import with_turning
 
+
+SYMLOG_RETURN = 1_000.0
+"""Return axis: linear within +-1,000, logarithmic beyond (returns run from -10^4 to 10^3)."""
 
 def arm_lines(label: str, report: Path, long: int = LONG) -> pd.DataFrame:
     """One line per algorithm of one arm's records (a `cosim test` report folder or a records
@@ -80,7 +83,6 @@ def figure(lines: pd.DataFrame, out: Path, reference: float | None = None,
     contact), against ``reference`` (dashed red: what a mean must clear); the return axis linear
     within +-1,000 and logarithmic beyond, as the verdict figure's. PDF and PNG, stem ``arms``."""
     from eval.reporting.figures import COLUMN_IN, _plt, _save
-    from eval.reporting.science import SYMLOG_RETURN
 
     plt = _plt()
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -103,7 +105,7 @@ def figure(lines: pd.DataFrame, out: Path, reference: float | None = None,
         ax.plot(without, ys, "o", mfc="white", mec=c, ms=4, zorder=3)
     if reference is not None:
         ax.axvline(reference, color="#C00000", ls="--", lw=0.8, zorder=1, label=reference_name)
-    ax.set_xscale("symlog", linthresh=SYMLOG_RETURN)
+    ax.set_xscale("symlog", linthresh=SYMLOG_RETURN)  # returns span -10^4..10^3
     ax.set_yticks(range(len(algos)), [algo_label(a) for a in algos])
     ax.invert_yaxis()
     ax.grid(axis="x", lw=0.3)

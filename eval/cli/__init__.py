@@ -173,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
     t.add_argument("--steps", type=int, default=None,
                    help="environment steps (default: from the preset); with --resume, the run's new budget")
-    t.add_argument("--seed", type=int, default=0, help="seed of the run (environments, weights, exploration)")
+    t.add_argument("--seed", type=_seed, default=0, help="seed of the run (environments, weights, exploration)")
     t.add_argument("--preset", default="quick", choices=presets or None,
                    help=f"run preset, from eval/training/hyperparams/runs.yaml: {', '.join(presets)}")
     t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
@@ -260,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="1: the ACs together in traffic; 2: each AC alone; both")
     e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
     e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
-    e.add_argument("--seed", type=int, default=0, help="seed of the first episode (episode e: seed + e)")
+    e.add_argument("--seed", type=_seed, default=0, help="seed of the first episode (episode e: seed + e)")
     e.add_argument("--fixed-slots", action="store_true",
                    help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
                         "turns at the spawn slots, one step per episode)")
@@ -370,7 +370,7 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
                    help=f"algorithms of the grid: {' '.join(ALGORITHMS)}")
     b.add_argument("--seeds", type=_int_in(1), default=1, metavar="K",
                    help="seeds 0..K-1 per (algorithm, environment), or from --first-seed")
-    b.add_argument("--first-seed", type=_int_in(0), default=0, metavar="S",
+    b.add_argument("--first-seed", type=_seed, default=0, metavar="S",
                    help="train seeds S..S+K-1 (default 0): a grid in parts, e.g. seed 1 alone; "
                         "each cell is the one a benchmark from seed 0 trains")
     b.add_argument("--steps", type=_int_in(1), default=None,
@@ -419,7 +419,7 @@ def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
     p.add_argument("--agents", type=_int_in(1, 6), default=None,
                    help="learning cars (default: every spawn point of the scenario)")
     p.add_argument("--steps", type=_int_in(1), default=steps, help="simulation steps")
-    p.add_argument("--seed", type=int, default=0, help="seed of the episode (traffic, spawn order)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the episode (traffic, spawn order)")
     p.add_argument("--no-background", action="store_true", help="no background cars")
     p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
 
@@ -427,6 +427,16 @@ def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
 def _names(envs) -> str:
     """``env_1..env_5`` for the bundled environments (a run of names), else the names listed."""
     return f"{envs[0]}..{envs[-1]}" if len(envs) > 2 else ", ".join(envs)
+
+
+MAX_SEED = 2**31 - 1
+"""The largest ``--seed``: SUMO's seeds are below 2^31 (and torch's generators take < 2^64)."""
+
+
+def _seed(text: str) -> int:
+    """An argparse type: a seed, a whole number 0..MAX_SEED (issue 57: -1 and 10^22 were
+    unexpected errors from numpy and torch)."""
+    return _int_in(0, MAX_SEED)(text)
 
 
 def _int_in(low: int, high: int | None = None):

@@ -56,7 +56,7 @@ SAMPLED = registry.STOCHASTIC
 """Algorithms whose learned policy is a distribution (the catalogue's ``stochastic``: PPO,
 A3C, IMPALA): the test samples it (their training maximised the return of the sampled
 policy; its mode is a different policy: two IMPALA modes crawled at 8-14 km/h and reached no goal where their samples drove;
-docs/results/2026-11-23-greedy-vs-sampled/README.md). DQN, DDPG and TD3 learn a
+task version 1; in git history at 1b59d82, docs/results/2026-11-23-greedy-vs-sampled). DQN, DDPG and TD3 learn a
 deterministic policy and act greedily (no epsilon, no action noise). ``cosim test
 --greedy`` takes every policy's mode."""
 

@@ -43,7 +43,7 @@ contact step is charged (task version 3); ``end``: a collision ends the AC's tra
 
 DEMO_UPDATES = 2000
 """Pre-training gradient steps per AC of the demonstration variant (`cosim benchmark
---demo-steps`), as the demonstration pilot's (docs/results/2026-11-26-demo-pilot)."""
+--demo-steps`), as the demonstration pilot's (task version 3; in git history at 1b59d82, docs/results/2026-11-26-demo-pilot)."""
 
 DEMO_HYPER: dict[str, dict[str, str]] = {
     "dqn": {"demo_margin": "0.8", "exploration_initial_eps": "0.1"},

@@ -7,7 +7,7 @@ quantisation for DQN) for whole episodes until at least N env steps are done, an
 every AC's transitions to that AC's agent as demonstrations (Agent.observe_demonstration:
 stored in its replay, not counted in its steps). The point is the turning slots: no
 learner's own exploration had reached a turning goal on task version 3, so no goal reward
-ever entered their replays (docs/results/2026-11-26-stall-pilot); the autopilot reaches
+ever entered their replays (task version 3; in git history at 1b59d82, docs/results/2026-11-26-stall-pilot); the autopilot reaches
 almost all of them. With ``--demo-updates K`` the learner then takes K gradient steps on
 them alone (DQfD's pre-training, Hester et al. 2018); DQN's ``--set demo_margin=M`` adds
 DQfD's large-margin loss, DDPG's and TD3's ``--set demo_bc=W`` a behaviour-cloning term on
@@ -86,7 +86,7 @@ def demonstrate(cfg: TrainConfig, build_agents, make_env, *, env_index: int = 0,
 def pretrain(agents: dict, updates: int, progress: bool = False) -> dict[str, dict[str, float]]:
     """Pre-training on the demonstrations (``--demo-updates``): ``updates`` gradient steps
     per network (one for a run with shared parameters), under a progress bar with ``progress``
-    (2,000 per AC took 12 minutes for 6 ACs on 2 busy cores: docs/results/2026-11-26-demo-pilot)."""
+    (2,000 per AC took 12 minutes for 6 ACs on 2 busy cores: task version 3; in git history at 1b59d82, docs/results/2026-11-26-demo-pilot)."""
     from agents.shared import shared_core
 
     core = shared_core(agents)

@@ -97,6 +97,16 @@ CASES = [
         t, region={"center": ["zero", 0], "size": [290.0, 90.0]}))],
      ["bad.yaml", "'region'", "'center'", "'zero' is not a number"]),
     ("drive-steps-negative", lambda t: ["drive", "--steps", "-5"], ["--steps", "got -5"]),
+    # issue 57 item 11: a seed numpy, torch or SUMO cannot take, refused by argparse
+    ("drive-seed-negative", lambda t: ["drive", "--seed", "-1"], ["--seed", "0..2147483647, got -1"]),
+    ("view-seed-negative", lambda t: ["view", "--seed", "-1"], ["--seed", "0..2147483647, got -1"]),
+    ("test-seed-negative", lambda t: ["test", "--seed", "-1"], ["--seed", "0..2147483647, got -1"]),
+    ("train-seed-negative", lambda t: ["train", "--seed", "-1", "--out", str(t / "runs")],
+     ["--seed", "0..2147483647, got -1"]),
+    ("train-seed-huge", lambda t: ["train", "--seed", "99999999999999999999999", "--out", str(t / "runs")],
+     ["--seed", "0..2147483647, got 99999999999999999999999"]),
+    ("benchmark-first-seed-huge", lambda t: ["benchmark", "--first-seed", "2147483648"],
+     ["--first-seed", "0..2147483647, got 2147483648"]),
     ("drive-agents-7", lambda t: ["drive", "--agents", "7"], ["--agents", "1..6, got 7"]),
     ("demand-probability-lots", lambda t: ["drive", str(_lots_yaml(t)), "--steps", "1", "--quiet"],
      ["scenario 'lots'", "probability", "lots"]),
@@ -160,6 +170,40 @@ def test_out_under_a_file_fails_before_the_protocol_runs(tmp_path, capfd, monkey
     assert code != 0 and not ran and "--out" in err
 
 
+def _not_utf8(tmp_path: Path) -> Path:
+    path = scenario_yaml(tmp_path, "latin1")
+    path.write_bytes(b"description: caf\xe9\n" + path.read_bytes())  # Latin-1, not UTF-8
+    return path
+
+
+def _folder_yaml(tmp_path: Path) -> Path:
+    path = tmp_path / "x.yaml"
+    path.mkdir()
+    return path
+
+
+# issue 57 item 10: each was a bare UnicodeDecodeError, IsADirectoryError or TypeError (title:
+# a list, unhashable in roadmap's cache); now a ScenarioError naming the file, exit 2, no run folder
+@pytest.mark.parametrize("make, says", [
+    (_not_utf8, ["latin1.yaml", "not UTF-8", "save the file as UTF-8"]),
+    (_folder_yaml, ["x.yaml", "is a folder", "scenario .yaml file"]),
+    (lambda t: scenario_yaml(t, title=[1, 2]), ["bad.yaml", "'title' must be text", "[1, 2]"]),
+], ids=["not-utf8", "a-folder", "title-a-list"])
+def test_an_unreadable_or_mistyped_scenario_file_is_a_scenario_error_naming_it(make, says, tmp_path,
+                                                                               capfd):
+    path = make(tmp_path)
+    with pytest.raises(ScenarioError) as raised:
+        from cosim.roadmap import road_map
+
+        road_map(load_scenario(path))
+    assert all(text in str(raised.value) for text in says), raised.value
+    code, err = run_cli(["train", "--env", str(path), "--steps", "10", "--out", str(tmp_path / "runs")],
+                        capfd)
+    assert code == 2 and err.count("\n") == 1 and "unexpected error" not in err, err
+    assert all(text in err for text in says), err
+    assert not (tmp_path / "runs").exists(), "no run folder for a refused scenario"
+
+
 def test_drive_and_view_default_to_the_scenarios_ac_count(tmp_path, capfd):
     two = scenario_yaml(tmp_path, "two", acs=[
         {"route": ["st_e"], "depart_pos": 15, "arrival_pos": -15, "lane": 0},
@@ -192,6 +236,28 @@ def test_box_action_of_the_wrong_kind_names_the_agent_and_its_space(mixed_env, a
         mixed_env.step({"ac_0": 0, "ac_1": action})
     text = str(info.value)
     assert "'ac_1'" in text and "Box(-1" in text and "\n" not in text
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, "7", True])
+def test_a_seed_that_is_not_a_whole_number_from_0_is_refused_naming_seed(mixed_env, seed):
+    """issue 57 item 11: reset(seed=-1) and reset(seed=1.5) were numpy's errors, naming no seed."""
+    import cosim
+
+    with pytest.raises(OptionError, match=r"reset\(seed=\.\.\.\): the seed must be a whole number >= 0"):
+        mixed_env.reset(seed=seed)
+    with pytest.raises(OptionError, match=r"parallel_env\(seed=\.\.\.\)"):
+        cosim.parallel_env("env_1", num_agents=1, seed=seed)
+    single = cosim.single_env("env_1", background=False, pedestrians=False)
+    with pytest.raises(OptionError, match=r"reset\(seed=\.\.\.\)"):  # before Gymnasium's own error
+        single.reset(seed=seed)
+    single.close()
+    assert set(mixed_env.reset(seed=np.int64(3))[0]) == {"ac_0", "ac_1"}  # a numpy integer is fine
+
+
+@pytest.mark.parametrize("seed", [-1, 2**64, 1.5])
+def test_an_agent_seed_torch_or_numpy_cannot_take_names_seed(seed):
+    with pytest.raises(ValueError, match=r"A3C\(seed=\.\.\.\): the seed must be a whole number 0..2\*\*64-1"):
+        A3C.from_spaces(OBS, gymnasium.spaces.Discrete(9), seed=seed)
 
 
 def test_reset_option_typo_is_refused_naming_the_valid_keys(mixed_env, caplog):

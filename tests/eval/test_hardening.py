@@ -446,7 +446,9 @@ def test_an_interrupted_cosim_test_keeps_its_episodes_is_marked_incomplete_and_g
 
     monkeypatch.setattr(eval.reporting.report, "write_paper_report", full_disk)
     assert main([*args, "--out", str(folder)]) == 2, "a full disk at the report (item 6)"
-    err = _one_line_error(capsys.readouterr().err)
+    going_on, err = capsys.readouterr().err.splitlines(keepends=True)
+    assert going_on.startswith(f"cosim test: going on with the incomplete test in {folder}")
+    _one_line_error(err)
     assert "cannot write the report" in err and "No space left on device" in err and f"--out {folder}" in err
     assert calls == ["env_2"], "only the run not kept was run again"
     assert (folder / "incomplete.json").exists() and len(list((folder / "episodes").glob("job-*"))) == 2
@@ -469,3 +471,15 @@ def test_cosim_replay_of_a_corrupt_record_is_a_one_line_error(tmp_path, capsys, 
     assert main(["replay", str(tmp_path / "state.json")]) == 2
     err = _one_line_error(capsys.readouterr().err)
     assert says in err and "state.json" in err
+
+
+@pytest.mark.parametrize("algo", ["ppo", "dqn", "ddpg", "td3", "a3c"])
+@pytest.mark.parametrize("hidden", ["[0]", "[-3]", "[]", "[64.5]"])
+def test_set_hidden_that_builds_no_network_is_refused_for_every_algorithm(algo, hidden, tmp_path, capsys):
+    """Item 12: hidden=[0] trained silently for ppo, dqn, ddpg and td3 (a3c and impala checked it);
+    hidden=[-3] and hidden=[] were unexpected errors. Now a one-line error before any run folder."""
+    code = main(["train", "--algo", algo, "--set", f"hidden={hidden}", "--steps", "10",
+                 "--out", str(tmp_path / "runs"), "--quiet"])
+    err = _one_line_error(capsys.readouterr().err)
+    assert code == 2 and f"{algo} hyperparameters: hidden=" in err and "layer sizes >= 1" in err, err
+    assert not (tmp_path / "runs").exists()

@@ -364,7 +364,7 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
             continue
         minutes = standard.steps[algo] / rate / 60
         assert 14 <= minutes <= 16, (algo, standard.steps[algo], rate, minutes)
-    # DQN: one gradient step per 8 transitions, 48,000 env steps (docs/results/2026-11-26-utd-pilot)
+    # DQN: one gradient step per 8 transitions, 48,000 env steps (task version 3; in git history at 1b59d82, docs/results/2026-11-26-utd-pilot)
     dqn = config.make_config("dqn", preset="standard")
     assert (dqn.steps, dqn.agent_config.train_freq) == (48000, 8)
     assert "| 8 (adopted, with 48,000 env steps) |" in doc

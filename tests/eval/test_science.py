@@ -470,18 +470,55 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
 
 
-def test_a_study_tested_alone_too_has_the_alone_table(tmp_path):
-    """A part of the 6x5 study in git (tested in Scenarios 1 and 2), combined on its own: its
-    summary.md has the Scenario 2 table, each algorithm's cell its one seed's mean and goal rate."""
-    export = ROOT / "docs/results/2026-11-28-science-v3-straight-s2/study"
+def test_a_study_tested_alone_too_has_the_alone_table(smoke, tmp_path):
+    """A part of a grid tested in Scenarios 1 and 2 (the smoke study's seed-0 runs, linked with
+    --runs), exported and, as a clone has it, without its held-out records, combined on its own:
+    its summary.md has the Scenario 2 table, each algorithm's cell its one seed's mean and goal rate."""
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    runs = tmp_path / "runs" / "runs"
+    runs.mkdir(parents=True)
+    for name in (p.name for p in (study / "bench" / "runs").iterdir()):
+        (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
+    part = tmp_path / "part"
+    tested = _run(part, "--seeds", "1", "--scenarios", "1", "2", "--runs", str(tmp_path / "runs"))
+    assert tested.returncode == 0, tested.stderr[-2000:]
+    export = tmp_path / "page" / "study"
+    exported = subprocess.run([sys.executable, str(SCRIPT), "--out", str(part), "--export", str(export)],
+                              capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    for records in (export / "test").glob("*.parquet"):  # generated data, not in git
+        records.unlink()
+    assert (pd.read_csv(export / "seeds.csv")["scenario"] == 2).any()
     done = subprocess.run([sys.executable, str(SCRIPT), "--combine", str(export), "--out", str(tmp_path / "c")],
                           capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-2000:]
+    assert "holds no held-out records" in done.stderr  # the seed means came from seeds.csv
     summary = (tmp_path / "c" / "summary.md").read_text()
     alone = summary.split("Alone (Scenario 2, each algorithm's `ac_0` with no other AC)")[1].split("\n\n")[1]
     means = pd.read_csv(export / "seeds.csv").query("scenario == 2").set_index("algorithm")
     for algo, r in means.iterrows():
         assert f"| {algo.upper()} | {r['return']:,.1f} ({r['goal']:.2f}; 1 seed) |" in alone
+
+
+def test_combined_page_finds_every_section_of_a_five_environment_summary(smoke, load_study, tmp_path):
+    """studies/combined_page.py reads the sections it shows from the summary.md that
+    studies/science.py --combine writes: here the smoke study (Straight) combined with copies of
+    it as the other four environments, every environment of a grid. The smoke study tests
+    Scenario 1 only, so there is no alone table."""
+    study, done = smoke
+    assert done.returncode == 0, done.stderr[-2000:]
+    parts = [study]
+    for env in ("env_2", "env_3", "env_4", "env_5"):
+        _as_env(study, tmp_path / env, env, seeds=1)
+        parts.append(tmp_path / env)
+    comb = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "all"), "--combine",
+                           *map(str, parts)], capture_output=True, text=True, timeout=400, cwd=ROOT)
+    assert comb.returncode == 0, comb.stderr[-2000:]
+    s = load_study("combined_page").sections((tmp_path / "all" / "summary.md").read_text())
+    assert s["grid"].startswith("| algorithm | Straight | Three-way | Four-way | Roundabout | Merge |")
+    assert "*best degenerate*" in s["grid"] and "| DQN |" in s["iqm"] and "| Merge |" in s["target"]
+    assert s["budget"].startswith("|") and "alone" not in s
 
 
 def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
