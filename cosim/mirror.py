@@ -45,13 +45,18 @@ Measured facts this design rests on (pybullet 3.2.7 TinyRenderer; docs/mirror.md
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import logging
 import math
 import os
 import re
+import shutil
+import stat
 import sys
 import tempfile
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +68,7 @@ from cosim.meshes import Mesh, build_static, obj_text
 from cosim.roadmap import RoadMap
 from cosim.scenario import MAX_ACS
 from cosim.sumo_bridge import Snapshot
+from cosim.tempfiles import private_folder
 
 log = logging.getLogger(__name__)
 
@@ -346,7 +352,57 @@ def _quat_z(heading: float) -> tuple[float, float, float, float]:
 
 # -- static meshes as files -----------------------------------------------------------------
 
-_MESH_DIR: tuple[int, tempfile.TemporaryDirectory] | None = None  # (owner pid, directory)
+_MESH_DIR: tuple[int, Path] | None = None  # (owner pid, this process's mesh folder)
+_MESH_USERS = 0  # mirrors of this process that are open: the last one's close removes the folder
+_MESH_LOCK = threading.Lock()
+STALE_MESH_AGE = 600.0
+"""Seconds: a ``cosim_meshes_<pid>`` folder of this user's that old, of a process that has ended
+(a worker killed with its owner), is removed when a process makes its own."""
+
+
+def mesh_folder() -> Path:
+    """This process's mesh folder, ``<temp>/cosim_meshes_<pid>``: private to this user
+    (``cosim.tempfiles.private_folder``), removed when the process's last mirror closes
+    (``Mirror.close``, so ``env.close()``) and made again at the same path by the next mirror, so
+    that pybullet's cache of mesh files by path still hits (:func:`mesh_file`)."""
+    global _MESH_DIR
+    pid = os.getpid()
+    if _MESH_DIR is None or _MESH_DIR[0] != pid:  # this process's first (a forked child makes its own)
+        _remove_stale_mesh_folders()
+        _MESH_DIR = (pid, private_folder(f"cosim_meshes_{pid}"))
+        atexit.register(_remove_mesh_folder, pid)  # mesh files made without a mirror (tests)
+    elif not _MESH_DIR[1].is_dir():
+        _MESH_DIR = (pid, private_folder(f"cosim_meshes_{pid}"))
+    return _MESH_DIR[1]
+
+
+def _use_meshes(add: int) -> None:
+    """Count a mirror in (+1) or out (-1); the last one out removes this process's mesh folder."""
+    global _MESH_USERS
+    with _MESH_LOCK:
+        _MESH_USERS = max(0, _MESH_USERS + add)
+        if add < 0 and _MESH_USERS == 0:
+            _remove_mesh_folder(os.getpid())
+
+
+def _remove_mesh_folder(pid: int) -> None:
+    if _MESH_DIR is not None and _MESH_DIR[0] == pid == os.getpid():
+        shutil.rmtree(_MESH_DIR[1], ignore_errors=True)
+
+
+def _remove_stale_mesh_folders() -> None:
+    for folder in Path(tempfile.gettempdir()).glob("cosim_meshes_*"):
+        pid = folder.name.removeprefix("cosim_meshes_")
+        try:
+            info = os.lstat(folder)
+            if (not pid.isdigit() or not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid()
+                    or time.time() - info.st_mtime < STALE_MESH_AGE):
+                continue
+            os.kill(int(pid), 0)  # raises for a process that has ended
+        except ProcessLookupError:
+            shutil.rmtree(folder, ignore_errors=True)
+        except OSError:  # gone meanwhile, or a process of another user's: not ours to remove
+            continue
 
 
 def mesh_file(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray) -> Path:
@@ -360,14 +416,11 @@ def mesh_file(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray) 
     (issue 10; ``bench/env_memory.py``). pybullet caches each mesh file it loads by
     path for the life of the process, so the name is the content's hash: rebuilding
     the same region hits that cache and adds nothing, and the cache is bounded by
-    the distinct meshes of the scenarios used. The directory lives as long as the
-    process (a forked child makes its own).
+    the distinct meshes of the scenarios used. The folder is :func:`mesh_folder`: one path
+    for the life of the process (a forked child makes its own), removed while no mirror is open.
     """
-    global _MESH_DIR
-    if _MESH_DIR is None or _MESH_DIR[0] != os.getpid():
-        _MESH_DIR = (os.getpid(), tempfile.TemporaryDirectory(prefix="cosim_meshes_"))
     text = obj_text(vertices, triangles, normals)
-    path = Path(_MESH_DIR[1].name) / f"{hashlib.sha1(text.encode()).hexdigest()}.obj"
+    path = mesh_folder() / f"{hashlib.sha1(text.encode()).hexdigest()}.obj"
     if not path.exists():
         tmp = path.with_suffix(f".{os.getpid()}.{id(text)}.tmp")
         tmp.write_text(text)
@@ -421,6 +474,7 @@ class Mirror:
                 "`pip install --force-reinstall 'pybullet>=3.2.6'`"
             )
         self._client = cid
+        self._uses_meshes = False
         try:
             self.renderer = self._select_renderer(renderer)
             size = (self.vehicle.length / 2, self.vehicle.width / 2, CAR_HEIGHT / 2)
@@ -431,6 +485,8 @@ class Mirror:
             self._ground_bodies: dict[int, tuple] = {}
             self._ground_triangles = 0
             meshes = build_static(roadmap)
+            _use_meshes(+1)
+            self._uses_meshes = True
             self._static_triangles = self._build_static(meshes)
             self._ground = None
             if self.renderer == "tiny":
@@ -525,7 +581,11 @@ class Mirror:
         return rgba[..., :3].copy()
 
     def close(self) -> None:
-        """Disconnect the pybullet client; safe to call twice."""
+        """Disconnect the pybullet client; safe to call twice. The process's last open mirror
+        removes the mesh folder (:func:`mesh_folder`)."""
+        if getattr(self, "_uses_meshes", False):
+            self._uses_meshes = False
+            _use_meshes(-1)
         if self._client is None:
             return
         cid, self._client = self._client, None

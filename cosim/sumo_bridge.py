@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 # libsumo is one simulation per process: remember which bridge owns it, to fail clearly.
 _owner: weakref.ReferenceType | None = None
 _labels = itertools.count()  # unique TraCI connection labels
-_warned_traci = False  # the TraCI warning was logged in this process
+_warned_second = False  # the second-simulation warning was logged in this process
 
 PERSON_RADIUS = 0.3  # metres; a person's footprint is a circle
 _VAR_POSITION, _VAR_ANGLE, _VAR_SPEED, _VAR_TYPE = 0x42, 0x43, 0x40, 0x4F
@@ -238,9 +238,11 @@ class SumoBridge:
         """Start (or restart with a new seed) the simulation and subscribe to the region.
 
         The first simulation of a process runs in-process through libsumo (fast). libsumo
-        holds one simulation per process, so with ``backend="auto"`` a second one runs
-        SUMO as a child process through TraCI instead (same results, several times
-        slower; a warning says so). ``backend="libsumo"`` refuses a second one.
+        holds one simulation per process, so with ``backend="auto"`` a second one runs in
+        a child process's libsumo instead, each call sent over a private socket pair
+        (``cosim/sumo_process.py``: same results, slower; a warning says so), never through
+        TraCI, whose SUMO listens on a TCP port of every interface. ``backend="libsumo"``
+        refuses a second one; ``"traci"`` and ``"gui"`` (sumo-gui) use TraCI as asked.
         """
         if self._running:
             try:
@@ -267,10 +269,11 @@ class SumoBridge:
                 "process still has one open; close() it first, use backend='traci', or run "
                 "environments in worker processes (one simulation per process)"
             )
-        use_traci = self.backend in ("traci", "gui") or libsumo_busy
         try:
-            if use_traci:
+            if self.backend in ("traci", "gui"):
                 self._start_traci(seed)
+            elif libsumo_busy:
+                self._start_process(seed)
             else:
                 ls = _libsumo()
                 self._ls, self._errors = ls, (ls.TraCIException,)
@@ -295,6 +298,23 @@ class SumoBridge:
         self.time = 0.0
         self._steps = 0
 
+    def _start_process(self, seed: int) -> None:
+        """A second simulation of this process: libsumo in a child process (cosim/sumo_process.py)."""
+        _libsumo()  # sets SUMO_HOME from the wheel (the child inherits it), reports a missing install
+        from cosim.sumo_process import SumoCallError, SumoProcess
+
+        global _warned_second
+        if not _warned_second:  # once per process: a training run's validation env is one at
+            _warned_second = True  # every checkpoint
+            log.warning(
+                "a second SUMO simulation in this process runs in a child process (slower than "
+                "in-process libsumo); use one environment per process for speed"
+            )
+        self._errors = (SumoCallError,)
+        self._running = True  # set first: a failed start still needs close()
+        self._ls = SumoProcess()
+        self._ls.start(self.command(seed))
+
     def _start_traci(self, seed: int) -> None:
         _libsumo()  # sets SUMO_HOME from the wheel, reports a missing install
         import sumo
@@ -302,13 +322,6 @@ class SumoBridge:
         import traci.connection
         from traci.exceptions import FatalTraCIError, TraCIException
 
-        global _warned_traci
-        if self.backend == "auto" and not _warned_traci:  # once per process: a training run's
-            _warned_traci = True                          # validation env is one at every checkpoint
-            log.warning(
-                "a second SUMO simulation in this process runs through TraCI (slower than "
-                "libsumo); use one environment per process for speed"
-            )
         gui = self.backend == "gui"
         binary = str(Path(sumo.__file__).parent / "bin" / ("sumo-gui" if gui else "sumo"))
         label = f"cosim-{id(self)}-{next(_labels)}"

@@ -33,7 +33,8 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=1)
     args = parser.parse_args()
 
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    # this machine only: Ray binds its ports to 127.0.0.1, as `cosim benchmark` does
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, _node_ip_address="127.0.0.1")
     register_env("cosim_env_1", make_env)
     config = (
         PPOConfig()

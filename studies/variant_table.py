@@ -31,6 +31,7 @@ from eval.reporting.science import with_turning
 SYMLOG_RETURN = 1_000.0
 """Return axis: linear within +-1,000, logarithmic beyond (returns run from -10^4 to 10^3)."""
 
+
 def arm_lines(label: str, report: Path, long: int = LONG) -> pd.DataFrame:
     """One line per algorithm of one arm's records (a `cosim test` report folder or a records
     parquet): Scenario 1 means over its AC-episodes and Scenario 2's where present."""

@@ -75,15 +75,36 @@ can cause (bad input, a refused option or resume, a missing optional dependency)
 or a failed check, so a script can tell "fix the input" from "cosim failed"."""
 
 
-def _write_log(text: str) -> Path:
-    """Write `text` to a fresh log file under the temp folder and return its path."""
+KEPT_LOGS = 20
+"""Error logs kept in the log folder (:func:`_write_log`): the newest; older ones are removed."""
+
+
+def _write_log(text: str) -> Path | str:
+    """Write `text` to a fresh log file and return its path: in this user's private folder
+    ``<temp>/cosim-errors-<uid>`` (``cosim.tempfiles.private_folder``: mode 0700, never a link),
+    created exclusively under a name no one can take first; the :data:`KEPT_LOGS` newest are kept."""
     import datetime as dt
     import tempfile
 
-    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    path = Path(tempfile.gettempdir()) / f"cosim-error-{stamp}-{os.getpid()}.log"
-    path.write_text(f"cosim {' '.join(sys.argv[1:])}\n{text}")
-    return path
+    from cosim.tempfiles import private_folder
+
+    def age(path: Path) -> int:
+        try:
+            return -path.stat().st_mtime_ns
+        except OSError:  # removed meanwhile by another cosim
+            return 0
+
+    try:
+        folder = private_folder(f"cosim-errors-{os.getuid()}")
+        stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        fd, name = tempfile.mkstemp(prefix=f"cosim-error-{stamp}-{os.getpid()}-", suffix=".log", dir=folder)
+        with os.fdopen(fd, "w") as f:
+            f.write(f"cosim {' '.join(sys.argv[1:])}\n{text}")
+        for old in sorted(folder.glob("cosim-error-*.log"), key=age)[KEPT_LOGS:]:
+            old.unlink(missing_ok=True)
+    except OSError as exc:  # a full disk: the message must still come out
+        return f"no log file: {exc.strerror or exc}"
+    return Path(name)
 
 
 DESCRIPTION = (

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from collections import Counter
+from pathlib import Path
 
 from eval.training.runfolder import output_folder
 
@@ -156,6 +157,8 @@ def cmd_check_scenarios(args) -> int:
         if any(not 1 <= n <= sc.max_agents for n in args.agents):
             raise CosimError(f"--agents {args.agents}: scenario {sc.name!r} has 1..{sc.max_agents} "
                              "spawn points; pass counts in that range")
+    if args.out:  # a place it cannot write fails now, not after the whole suite ran
+        output_file(args.out, "--out")
     failed, frames = [], []
     for sc in scenarios:
         for n in args.agents:
@@ -176,14 +179,35 @@ def cmd_check_scenarios(args) -> int:
     if args.out:
         import pandas as pd
 
+        from eval.training.runfolder import atomic_write
+
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        pd.concat(frames).to_csv(args.out, index=False)
+        atomic_write(args.out, pd.concat(frames).to_csv(index=False))  # a full disk: a named error
         print(f"wrote {args.out}")
     if failed:
         print(f"\n{len(failed)} validity criteria failed", file=sys.stderr)
         return 1
     print("\nevery scenario passed the validity criteria")
     return 0
+
+
+def output_file(path: Path, flag: str) -> Path:
+    """Check now that the file `path` can be written (its folder is created and probed, the file
+    itself, where it exists, must be a writable file), so a bad --out fails before any work."""
+    import os
+
+    from cosim.errors import OptionError
+    from eval.training.runfolder import unwritable_reason
+
+    if path.is_dir():
+        raise OptionError(f"{flag} {path}: is a folder; name a file in it, e.g. {flag} {path / 'rows.csv'}")
+    reason = unwritable_reason(path.parent)
+    if reason:
+        raise OptionError(f"{flag} {path}: cannot write there ({reason} in {path.parent}); choose "
+                          f"another {flag}")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OptionError(f"{flag} {path}: cannot write there (the file is read-only); choose another {flag}")
+    return path
 
 
 def cmd_nets(args) -> int:

@@ -43,7 +43,7 @@ class Validator:
     """Runs a config's validation episodes with the current weights of its ACs.
 
     The environment is built on first use and kept (:meth:`close` ends it); it runs beside
-    the training environment (a second SUMO in one process goes through TraCI).
+    the training environment (a second SUMO in one process runs in a child process: cosim/sumo_process.py).
     """
 
     def __init__(self, cfg: TrainConfig):

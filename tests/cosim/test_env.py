@@ -26,7 +26,7 @@ def test_pettingzoo_parallel_api(scenario, n, types):
 
 
 def test_pettingzoo_seed_test_mixed():
-    # two environments alive at once in one process: the second runs SUMO through TraCI
+    # two environments alive at once in one process: the second runs SUMO in a child process
     parallel_seed_test(
         lambda: cosim.parallel_env("env_3", num_agents=3, action_types=["discrete", "continuous", "discrete"],
                                    horizon=15, image_size=32),

@@ -273,7 +273,7 @@ def test_malformed_demand_names_the_file(tmp_path):
         w.reset(seed=0)
 
 
-def test_a_second_simulation_in_one_process_uses_traci_with_identical_results():
+def test_a_second_simulation_in_one_process_runs_in_a_child_process_with_identical_results():
     def run(world):
         world.reset(seed=5)
         pilot = Autopilot(world, "ac_0")
@@ -283,7 +283,7 @@ def test_a_second_simulation_in_one_process_uses_traci_with_identical_results():
         xs_a = run(a)
         with pytest.raises(SumoError, match="one SUMO simulation per process"):
             World("env_1", 1, backend="libsumo").reset(seed=0)
-        with World("env_1", 1) as b:  # auto: libsumo is busy, so TraCI
+        with World("env_1", 1) as b:  # auto: libsumo is busy, so a child process's libsumo
             xs_b = run(b)
             assert b.bridge._ls is not a.bridge._ls
         assert a.step({"ac_0": (0.0, 0.0)})  # the first one is untouched

@@ -483,3 +483,267 @@ def test_set_hidden_that_builds_no_network_is_refused_for_every_algorithm(algo, 
     err = _one_line_error(capsys.readouterr().err)
     assert code == 2 and f"{algo} hyperparameters: hidden=" in err and "layer sizes >= 1" in err, err
     assert not (tmp_path / "runs").exists()
+
+
+def _read_only_folder(tmp_path: Path) -> Path:
+    import os
+
+    if os.geteuid() == 0:
+        pytest.skip("root writes into a read-only folder (the /sys case covers root)")
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o500)
+    return folder / "rows.csv"
+
+
+def _sys_path(tmp_path: Path) -> Path:
+    if not Path("/sys/kernel").is_dir():
+        pytest.skip("no /sys/kernel here")
+    return Path("/sys/kernel/cosim-rows.csv")  # read-only, even for root
+
+
+@pytest.mark.parametrize("make, says", [
+    (_read_only_folder, "Permission denied"),
+    (_sys_path, "cannot write there"),
+    (lambda t: t, "is a folder; name a file in it"),
+    (lambda t: (t / "a_file").write_text("x") and t / "a_file" / "rows.csv", "cannot write there"),
+], ids=["read-only-folder", "sys", "a-folder", "under-a-file"])
+def test_check_scenarios_out_to_a_read_only_place_fails_before_the_suite(make, says, tmp_path, capsys,
+                                                                         monkeypatch):
+    """Item 13: `cosim check-scenarios --out` to a read-only place failed only after the whole suite."""
+    import eval.testing.validity
+
+    ran = []
+    monkeypatch.setattr(eval.testing.validity, "check_scenario", lambda *a, **k: ran.append(a))
+    out = make(tmp_path)
+    code = main(["check-scenarios", "env_1", "--agents", "1", "--episodes", "1", "--out", str(out)])
+    err = _one_line_error(capsys.readouterr().err)
+    assert code == 2 and not ran, "refused before the suite ran"
+    assert f"--out {out}" in err and says in err, err
+
+
+def test_check_scenarios_out_on_a_full_disk_is_a_named_error_and_leaves_no_tmp(tmp_path, capsys, monkeypatch):
+    import os
+
+    import pandas as pd
+
+    import eval.testing.validity
+
+    rows = pd.DataFrame({"policy": ["coast"], "episode": [0], "return": [0.0]})
+    validity = eval.testing.validity
+    monkeypatch.setattr(validity, "check_scenario", lambda *a, **k: rows)  # the suite, done at once
+    for name, value in (("summarize", rows), ("failures", []), ("format_table", ""), ("score_line", "")):
+        monkeypatch.setattr(validity, name, lambda *a, value=value, **k: value)
+    real_fsync = os.fsync
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    out = tmp_path / "rows.csv"
+    code = main(["check-scenarios", "env_1", "--agents", "1", "--episodes", "1", "--out", str(out)])
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert code == 2 and "cannot write" in err and "No space left" in err, err
+    assert list(tmp_path.iterdir()) == [], "no .tmp and no half file"
+
+
+# ------------------------------------------------------------------ item 14: local only
+
+
+def _tcp_inodes() -> set[str]:
+    """The socket inodes of every TCP socket (listening or connected) of this network namespace."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        if Path(table).exists():
+            inodes |= {line.split()[9] for line in Path(table).read_text().splitlines()[1:]}
+    return inodes
+
+
+def _socket_inodes(pid: int) -> set[str]:
+    found = set()
+    for fd in Path(f"/proc/{pid}/fd").glob("*"):
+        try:
+            target = fd.readlink().name
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            found.add(target[len("socket:["):-1])
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="reads Linux /proc")
+def test_a_second_simulation_in_a_process_opens_no_tcp_port():
+    """Item 14: a second SUMO of a process (a training run's validation env) ran through TraCI,
+    whose SUMO listens on 0.0.0.0 (TraCI has no authentication) and talks over TCP. Now it runs
+    in a child process's libsumo over a socket pair: no TCP socket at all."""
+    import os
+
+    from cosim.sumo_process import SumoProcess
+    from cosim.world import World
+
+    with World("env_1", 1, background=False) as first, World("env_1", 1, background=False) as second:
+        first.reset(seed=0)
+        before = set(_children(os.getpid()))
+        second.reset(seed=0)
+        assert isinstance(second.bridge._ls, SumoProcess)
+        children = set(_children(os.getpid())) - before
+        assert children, "the second simulation runs in a child process"
+        tcp = _tcp_inodes()
+        for pid in children | {os.getpid()}:
+            assert not _socket_inodes(pid) & tcp, f"process {pid} holds a TCP socket"
+        child = second.bridge._ls.pid
+        assert second.step({"ac_0": (0.5, 0.0)})["ac_0"].x == pytest.approx(first.step({"ac_0": (0.5, 0.0)})["ac_0"].x)
+    _wait_for(lambda: _gone([child]), 10, "the SUMO child to end with close()")
+
+
+def test_the_sumo_child_ends_when_its_parent_is_killed(tmp_path):
+    """No orphan: the child of a second simulation ends when its parent dies with SIGKILL."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    code = ("from cosim.world import World\n"
+            "a = World('env_1', 1, background=False); a.reset(seed=0)\n"
+            "b = World('env_1', 1, background=False); b.reset(seed=0)\n"
+            "print(b.bridge._ls.pid, flush=True)\n"
+            "import time; time.sleep(600)\n")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        child = int(parent.stdout.readline())
+        assert child in _children(parent.pid)
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(timeout=30)
+        _wait_for(lambda: _gone([child]), 15, "the SUMO child to end with its parent")
+    finally:
+        parent.kill()
+        parent.wait()
+
+
+def test_a_failed_call_in_the_sumo_child_is_the_bridges_sumo_error():
+    from cosim.errors import SumoError
+    from cosim.world import World
+
+    with World("env_1", 1, background=False) as first, World("env_1", 1, background=False) as second:
+        first.reset(seed=0)
+        second.reset(seed=0)
+        bridge = second.bridge
+        with pytest.raises(bridge._errors, match="nobody"):
+            bridge._ls.vehicle.getWidth("nobody")
+        assert bridge._car_half("nobody") is None  # caught as libsumo's own error would be
+        bridge._ls._proc.kill()  # SUMO's process dies: the next step is a SumoError naming it
+        with pytest.raises(SumoError, match="SUMO process ended"):
+            second.step({"ac_0": (0.0, 0.0)})
+
+
+def test_ray_is_started_on_this_machine_only_in_every_example_and_module():
+    """Item 14: examples/rllib_ppo.py started Ray on all interfaces; every ``ray.init`` that starts
+    a local Ray (no address=) binds it to 127.0.0.1."""
+    import ast
+
+    root = Path(__file__).resolve().parents[2]
+    calls = []
+    for path in [*root.glob("examples/*.py"), *root.glob("eval/**/*.py"), *root.glob("cosim/*.py")]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr == "init" and getattr(node.func.value, "id", "") == "ray"):
+                keywords = {k.arg: k.value for k in node.keywords}
+                if "address" not in keywords:
+                    calls.append(path.name)
+                    ip = keywords.get("_node_ip_address")
+                    assert isinstance(ip, ast.Constant) and ip.value == "127.0.0.1", f"{path}:{node.lineno}"
+    assert "rllib_ppo.py" in calls and "raysession.py" in calls
+
+
+def test_error_logs_go_to_a_private_folder_never_through_a_link_and_are_pruned(tmp_path, monkeypatch):
+    """Item 14: the log was /tmp/cosim-error-<second>-<pid>.log, a predictable name whose write
+    followed a link, and logs were never removed."""
+    import os
+    import stat
+    import tempfile
+
+    import eval.cli
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    folder = tmp_path / f"cosim-errors-{os.getuid()}"
+    victim = tmp_path / "victim"
+    victim.write_text("precious")
+    folder.symlink_to(tmp_path, target_is_directory=True)  # a link where the folder goes
+    log = Path(eval.cli._write_log("boom"))
+    assert "boom" in log.read_text() and victim.read_text() == "precious"
+    assert log.parent != folder and log.parent.parent == tmp_path, "the link is not followed"
+    assert stat.S_IMODE(log.parent.stat().st_mode) == 0o700
+    folder.unlink()
+    logs = [Path(eval.cli._write_log(f"error {i}")) for i in range(eval.cli.KEPT_LOGS + 5)]
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700 and not folder.is_symlink()
+    assert sorted(folder.iterdir()) == sorted(logs[-eval.cli.KEPT_LOGS:]), "the newest are kept"
+
+
+def test_env_close_removes_its_mesh_folder_and_a_new_env_builds_it_again():
+    """Item 14: the /tmp/cosim_meshes_* folder stayed until the interpreter exited (never, for a
+    killed worker)."""
+    import os
+    import stat
+
+    import cosim
+    from cosim import mirror
+
+    first = cosim.parallel_env("env_1", num_agents=1, background=False, pedestrians=False, image_size=16)
+    first.reset(seed=0)
+    folder = mirror.mesh_folder()
+    assert folder.name == f"cosim_meshes_{os.getpid()}" and any(folder.glob("*.obj"))
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    second = cosim.parallel_env("env_1", num_agents=1, background=False, pedestrians=False, image_size=16)
+    second.reset(seed=0)
+    first.close()
+    assert folder.is_dir(), "kept while another environment of the process is open"
+    second.close()
+    assert not folder.exists()
+    third = cosim.parallel_env("env_1", num_agents=1, background=False, pedestrians=False, image_size=16)
+    try:
+        third.reset(seed=0)
+        assert mirror.mesh_folder() == folder and any(folder.glob("*.obj"))  # the same path: pybullet's cache
+    finally:
+        third.close()
+    assert not folder.exists()
+
+
+@pytest.mark.slow  # ~15 s: a short training run with a validation env
+@pytest.mark.skipif(shutil.which("ss") is None, reason="needs ss (iproute2)")
+def test_no_listener_outside_localhost_during_a_training_run_with_validation(tmp_path):
+    import os
+    import re
+    import subprocess
+    import threading
+
+    def tree() -> set[int]:
+        pids, frontier = {os.getpid()}, [os.getpid()]
+        while frontier:
+            kids = set(_children(frontier.pop()))
+            frontier += kids - pids
+            pids |= kids
+        return pids
+
+    seen, stop = [], threading.Event()
+
+    def poll():
+        while not stop.is_set():
+            mine = tree()
+            for line in subprocess.run(["ss", "-ltnpH"], capture_output=True, text=True).stdout.splitlines():
+                local = line.split()[3]
+                owners = {int(p) for p in re.findall(r"pid=(\d+)", line)}
+                if owners & mine and not local.startswith(("127.0.0.1:", "[::1]:")):
+                    seen.append(line)
+            stop.wait(0.05)
+
+    watcher = threading.Thread(target=poll)
+    watcher.start()
+    try:
+        cfg = make_config("ppo", "env_1", "smoke", agents=1, steps=20, validation_episodes=1, validation_steps=5)
+        run = train(cfg, tmp_path, quiet=True, progress=False)
+    finally:
+        stop.set()
+        watcher.join()
+    assert (run / "selection.json").exists(), "the run validated"
+    assert not seen, seen
