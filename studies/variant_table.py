@@ -27,7 +27,6 @@ from eval.labels import algo_label, algo_order
 from eval.reporting.page import md_table
 from eval.reporting.science import with_turning
 
-
 SYMLOG_RETURN = 1_000.0
 """Return axis: linear within +-1,000, logarithmic beyond (returns run from -10^4 to 10^3)."""
 

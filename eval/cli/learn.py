@@ -11,7 +11,6 @@ from pathlib import Path
 
 from eval.training.runfolder import output_folder
 
-
 OWNER_ENV = "COSIM_OWNER_PID"
 """Set by ``cosim train --algo all`` for its per-algorithm commands: the pid they die with."""
 
@@ -115,8 +114,6 @@ def _train_all(args, configs) -> int:
 
     from tqdm import tqdm
 
-    from eval.training.config import ASYNC_ALGOS
-
     parallel = max(1, os.cpu_count() or 1)
     print(f"training {len(configs)} algorithms, {parallel} at a time", flush=True)
     steps = {c.algo: c.steps for c in configs}
@@ -165,9 +162,7 @@ def _train_all(args, configs) -> int:
         while pending or running:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
-                envs = [] if args.envs is None else ["--envs", str(args.envs)]
-                own = [a for a in base if a != "--share-params" or algo not in ASYNC_ALGOS]
-                running[algo] = subprocess.Popen(own + envs + ["--algo", algo], stdout=subprocess.PIPE,
+                running[algo] = subprocess.Popen(_algo_command(args, base, algo), stdout=subprocess.PIPE,
                                                  text=True, env=env)
                 pumps[algo] = threading.Thread(target=pump, args=(algo, running[algo].stdout), daemon=True)
                 pumps[algo].start()
@@ -186,14 +181,28 @@ def _train_all(args, configs) -> int:
                     failed.append(algo)
     except BaseException:  # Ctrl-C, SIGTERM: the runs still training stop resumably
         bar.close()
-        if running:
-            print(f"cosim train: stopping {', '.join(running)}; their runs resume with "
-                  f"`cosim train --resume RUN` (run folders under {args.out})", file=sys.stderr, flush=True)
+        _say_stopping(list(running), args.out)
         raise
     finally:
         _stop_children(list(running.values()))
         bar.close()
     return 1 if failed else 0
+
+
+def _say_stopping(algos: list[str], out) -> None:
+    """What an interrupted ``--algo all`` says of the runs it stops (nothing when none runs)."""
+    if algos:
+        print(f"cosim train: stopping {', '.join(algos)}; their runs resume with "
+              f"`cosim train --resume RUN` (run folders under {out})", file=sys.stderr, flush=True)
+
+
+def _algo_command(args, base: list[str], algo: str) -> list[str]:
+    """One algorithm's `cosim train` of ``--algo all`` (A3C and IMPALA share no parameters)."""
+    from eval.training.config import ASYNC_ALGOS
+
+    envs = [] if args.envs is None else ["--envs", str(args.envs)]
+    own = [a for a in base if a != "--share-params" or algo not in ASYNC_ALGOS]
+    return own + envs + ["--algo", algo]
 
 
 def _stop_children(procs, grace_s: float = 30.0) -> None:

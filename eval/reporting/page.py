@@ -188,7 +188,7 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
 
 def legend(terms: Sequence[str]) -> str:
     """Every metric and abbreviation on the page, spelled out."""
-    from eval.reporting.report import row_name
+    from eval.reporting.cells import row_name
 
     rows = [[row_name(t), DEFINITIONS[t]] for t in terms if t in DEFINITIONS]
     rows += [[t, d] for t, d in PAGE_TERMS.items()]
@@ -209,7 +209,7 @@ def headline_markdown(long: pd.DataFrame | None, references: pd.DataFrame | None
     """The page's first table: per environment, scenario and column (then the reference columns
     of Table RQ1) the driving score, route completion and success rate with their intervals, as
     Table RQ1's cells (eval.reporting.report.long_table); empty without a table."""
-    from eval.reporting.report import HEADLINE, reference_cells, reference_columns, row_name
+    from eval.reporting.cells import HEADLINE, reference_cells, reference_columns, row_name
 
     if long is None or long.empty or not set(HEADLINE) & set(long["metric"]):
         return ""

@@ -505,16 +505,21 @@ def _kept_jobs(save: Path, plan: ProtocolPlan, jobs: list[ProtocolJob]) -> dict[
     import dataclasses
     import json
 
-    from eval.training.runfolder import atomic_write
+    from eval.testing.files import atomic_write, write_message
+
+    def error(p: Path, exc: OSError) -> ProtocolError:
+        return ProtocolError(write_message(p, exc, "the episodes already kept are not run again"))
 
     want = json.loads(json.dumps({"plan": dataclasses.asdict(plan), "jobs": [dataclasses.asdict(j) for j in jobs]}))
     path = save / "plan.json"
     try:
         save.mkdir(parents=True, exist_ok=True)
         if not path.exists():
-            atomic_write(path, json.dumps(want, indent=1))
+            atomic_write(path, json.dumps(want, indent=1), error)
             return {}
         saved = json.loads(path.read_text())
+    except ProtocolError:
+        raise
     except (OSError, ValueError) as exc:
         raise ProtocolError(f"{path}: {exc}; delete {save} to run the test afresh") from None
     if saved != want:
@@ -542,11 +547,9 @@ def _keep_job(save: Path | None, k: int, records: pd.DataFrame) -> None:
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
-        from eval.training.runfolder import write_error
+        from eval.testing.files import write_message
 
-        raise ProtocolError(str(write_error(path, exc)).replace(
-            "a training run continues from its last checkpoint with `cosim train --resume RUN`",
-            "the episodes already kept are not run again")) from exc
+        raise ProtocolError(write_message(path, exc, "the episodes already kept are not run again")) from exc
 
 
 def run_protocol(plan: ProtocolPlan, make_policy: PolicyFactory, algos: Sequence[str] = ALGO_ORDER,

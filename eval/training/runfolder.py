@@ -57,6 +57,7 @@ from typing import Any
 
 import yaml
 
+from eval.testing import files
 from eval.training.config import ALGORITHMS, OBS_VARIANTS, TrainConfig, TrainError
 
 log = logging.getLogger(__name__)
@@ -316,42 +317,21 @@ the moment (``git``) and this one (``git_at_start``)."""
 
 
 def atomic_write(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` so a reader sees the old file or the new, never half: the
-    text goes to ``<name>.tmp`` (fsync'ed), renamed over ``path``. A failed write (a full disk)
-    removes the ``.tmp``, leaves ``path`` as it was and raises :func:`write_error`'s error.
+    """Replace ``path`` with ``text`` so a reader sees the old file or the new, never half
+    (eval/testing/files.py ``atomic_write``).
 
     Raises:
         TrainError: the file could not be written, naming it, the reason and the fix.
     """
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise write_error(path, exc) from exc
+    files.atomic_write(path, text, write_error)
 
 
 def write_error(path: Path, exc: OSError) -> TrainError:
     """The one-line error of a write to ``path`` that failed with ``exc``: what failed, why, the
     free space there, and what to do (a full disk: free space, then resume; training runs
-    resume from their last checkpoint, eval/training/runfolder.py)."""
-    import errno
-    import shutil
-
-    try:
-        free = f"{shutil.disk_usage(Path(path).parent).free / 1e6:.1f} MB free there"
-    except OSError:
-        free = "free space unknown"
-    full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
-    fix = ("the disk is full: free space, then run the command again (a training run continues from "
-           "its last checkpoint with `cosim train --resume RUN`)" if full else
-           "make the folder writable or choose another --out")
-    return TrainError(f"cannot write {path} ({exc.strerror or exc}; {free}); {fix}")
+    resume from their last checkpoint)."""
+    return TrainError(files.write_message(
+        path, exc, "a training run continues from its last checkpoint with `cosim train --resume RUN`"))
 
 
 def pending_name(name: str, env_step: int) -> str:

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.env import EPISODE_EVENTS
-from cosim.events import REWARD_TERMS
 from agents.errors import AgentError
+from cosim.env import EPISODE_EVENTS
 from cosim.errors import CosimError
+from cosim.events import REWARD_TERMS
 from eval.training.config import TrainConfig, TrainError
 from eval.training.runfolder import atomic_write, pending_name, write_error
 
@@ -164,7 +164,7 @@ class RunLog:
                                                           for a, v in scores.items()},
                                "seconds": round(time.monotonic() - t0, 2)})
         staged = []
-        for agent_id, agent in agents.items():
+        for agent_id in agents:
             folder = self.run / "checkpoints" / agent_id
             folder.mkdir(parents=True, exist_ok=True)
             names = ["latest.pt"]

@@ -370,7 +370,6 @@ def test_cosim_test_workers_end_with_their_parent(tmp_path, how):
 def test_train_all_children_end_with_their_parent_and_sigterm_is_an_interrupt(tmp_path):
     """Item 8: `cosim train --algo all`'s per-algorithm children kept training after kill -9 of
     the parent; SIGTERM exited 143 with no message and without stopping them."""
-    import signal
 
     def started(proc):
         return lambda: (lambda c: c if sum(" train " in v for v in c.values()) >= 2 else None)(
