@@ -256,8 +256,8 @@ class Scenario:
     solid_cars: bool = True
     """Whether cars are solid for an AC, as road objects are: an AC whose move brings it into
     contact with a vehicle ahead of it (its centre in front of the AC's; one the AC did not
-    already touch before the move) is put back where it was before the step, standing, with no
-    progress credited for that step. On by default since task version 4, so that no AC drives
+    already touch before the move) is put back 1 m behind where it was before the step
+    (cosim.world.BACK_OFF), standing, with no progress credited for that step. On by default since task version 4, so that no AC drives
     through a car for one charge (docs/task.md, "Collision rule"); off: an AC can drive through
     a car (task version 3)."""
     cars_see_acs: bool = True

@@ -15,8 +15,8 @@ The order of one step (docs/guide.md#the-order-of-one-step), done in :meth:`Worl
 7. reward: named terms + weighted sum
    (before the reward: each contact with another actor is a collision event once per
    Contact.window; static road objects, and with Scenario.solid_cars (the default) a car
-   ahead that the move drove into, are solid: the AC is put back where it was before the
-   step, standing, and that step credits no progress; docs/task.md, "Collision rule")
+   ahead that the move drove into, are solid: the AC is put back BACK_OFF behind where it was
+   before the step, standing, and that step credits no progress; docs/task.md, "Collision rule")
 8. termination / truncation; finished ACs leave SUMO
 (the env then syncs the PyBullet mirror to the snapshot and renders one camera per AC)
 """
@@ -42,6 +42,10 @@ from cosim.sumo_bridge import GATE_AHEAD, Snapshot, SumoBridge
 log = logging.getLogger(__name__)
 
 SPAWN_CLEARANCE = 12.0  # metres around each spawn point cleared of background cars
+BACK_OFF = 1.0
+"""Metres a blocked AC is put back behind its pose before the step (where that spot is clear):
+room to steer away from what stopped it, which a car put back exactly where it was, standing,
+with no reverse, never gets (docs/task.md, "Collision rule")."""
 STALL_SPEED = 0.1
 """m/s: an AC slower than this stands (Termination.stall_truncate)."""
 STALL_SIGNAL_M = 30.0
@@ -255,6 +259,28 @@ class World:
                 memory[(kind, other)] = now
                 setattr(ev, f"event_{kind}", True)
 
+    def _backed_off(self, i: int, before: np.ndarray) -> tuple[float, float, float]:
+        """AC `i`'s pose BACK_OFF metres behind `before` (x, y, heading, ...) along its heading
+        when its footprint there touches no road object and no other vehicle, else `before`."""
+        x, y, h = (float(v) for v in before[:3])
+        bx, by = x - BACK_OFF * math.cos(h), y - BACK_OFF * math.sin(h)
+        mine = rect_corners(bx, by, h, self.vehicle.length, self.vehicle.width)
+        reach = 0.5 * float(np.hypot(self.vehicle.length, self.vehicle.width))
+        for _, k in self.roadmap.objects_near_many(np.array([[bx, by]]), reach):
+            if convex_overlap(mine, self.roadmap.objects[k].polygon):
+                return x, y, h
+        snap = self.snapshot
+        if len(snap.vehicle_xy):
+            near = np.hypot(snap.vehicle_xy[:, 0] - bx, snap.vehicle_xy[:, 1] - by) <= 2 * reach + 1.0
+            for j in np.flatnonzero(near):
+                if snap.vehicle_ids[j] == self.ac_ids[i]:
+                    continue
+                theirs = rect_corners(snap.vehicle_xy[j, 0], snap.vehicle_xy[j, 1], snap.vehicle_heading[j],
+                                      snap.vehicle_length[j], snap.vehicle_width[j])
+                if convex_overlap(mine, theirs):
+                    return x, y, h
+        return bx, by, h
+
     def _blocked(self, i: int, ev: Events, before: np.ndarray) -> bool:
         """Whether AC `i`'s move is undone: it touches a static road object or a pedestrian
         (counted only while the AC moves), or (with Scenario.solid_cars) a vehicle ahead of it
@@ -332,8 +358,9 @@ class World:
             else:
                 self._count_events(i, ev)
                 if before is not None and self._blocked(i, ev, before[k]):
-                    # solid: the car stops where it was before the step, which gains nothing
-                    self._state[i] = (*before[k, :3], 0.0)
+                    # solid: the car stops BACK_OFF behind where it was before the step, which
+                    # gains nothing this step (the metre lost is progress to drive again)
+                    self._state[i] = (*self._backed_off(i, before[k]), 0.0)
                     ev.progress = ev.route_speed = ev.speed = 0.0
                     ev.distance_to_goal = float(self._distance[i])
                     ev.goal_reached = ev.red_light = False

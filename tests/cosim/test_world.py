@@ -81,9 +81,9 @@ def test_driving_into_a_background_car_and_passing_beside_it():
 
 @pytest.mark.parametrize("solid", [False, True])
 def test_solid_cars_stop_an_ac_at_a_car_ahead(solid):
-    """Scenario.solid_cars: an AC that drives into a parked car is put back where it was
-    before that step, standing, and never gets past it; without the option it drives
-    through (each contact step charged)."""
+    """Scenario.solid_cars: an AC that drives into a parked car is put back 1 m behind where it
+    was before that step, standing, and never gets past it; without the option it drives
+    through."""
     sc = dataclasses.replace(load_scenario("env_1"), spawn_jitter=SpawnJitter(), solid_cars=solid)
     with World(sc, 1, background=False) as w:
         w.reset(seed=0)
@@ -97,8 +97,10 @@ def test_solid_cars_stop_an_ac_at_a_car_ahead(solid):
     hits = [(b, r, a) for b, r, a in out if r.events.collision_vehicle]
     assert hits and all(r.events.hit == "stopped" for _, r, _ in hits)
     if solid:
-        for before, _r, after in hits:  # put back, standing
-            assert after[:3] == pytest.approx(before[:3]) and after[3] == 0.0
+        for before, _r, after in hits:  # put back 1 m behind where it was (World.BACK_OFF), standing
+            assert after[2] == pytest.approx(before[2]) and after[3] == 0.0
+            back = (before[0] - after[0]) * math.cos(h) + (before[1] - after[1]) * math.sin(h)
+            assert back == pytest.approx(1.0, abs=1e-6)
         assert max(a[0] for _, _, a in out) < x + 30 - 4.0, "it never reached past the car's tail"
     else:
         assert max(a[0] for _, _, a in out) > x + 35, "it drove through the parked car"
