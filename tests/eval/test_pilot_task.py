@@ -161,9 +161,12 @@ def test_tables_say_whether_a_run_clears_always_brake_and_a_turning_slot_reaches
     md, met = pilot.env_summary(table, "env_3")
     lines = {line.split(" | ")[0][2:]: line for line in md.splitlines()[2:]}
     # ppo: mean return (100 + 50 - 20 + 10) / 4 = 35 > 20; goals 3/4; turning slot ac_1 0.5
-    assert lines["new ppo"] == "| new ppo | 35.0 | 0.75 | 0.50 | 1.00 | 0.50 | 1.0 | yes | yes (ac_1) |"
-    assert lines["new dqn"] == "| new dqn | 10.0 | 0.50 | 0.00 | 1.00 | 0.00 | 0.0 | no | no |"
-    assert lines["ref: always-brake"].endswith("| - | no |")
+    # then DS, RC of the turning slots, events (records without the driving score: -), every
+    # turning slot >= 0.5 goals, DS above the safe non-turner's (none here: -)
+    assert lines["new ppo"] == ("| new ppo | 35.0 | 0.75 | 0.50 | 1.00 | 0.50 | 1.0 | yes | yes (ac_1) "
+                                "| - | - | - | yes | - |")
+    assert lines["new dqn"] == "| new dqn | 10.0 | 0.50 | 0.00 | 1.00 | 0.00 | 0.0 | no | no | - | - | - | no | - |"
+    assert lines["ref: always-brake"].endswith("| - | no | - | - | - | no | - |")
     assert "ac_1 left*" in md.splitlines()[0] and "ac_0 straight |" in md.splitlines()[0]
     assert met == ["new ppo"]
     args = _args(pilot, tmp_path, "--envs", "env_3", "--arms", "new")
@@ -171,6 +174,38 @@ def test_tables_say_whether_a_run_clears_always_brake_and_a_turning_slot_reaches
     args = _args(pilot, tmp_path, "--envs", "env_3", "env_4", "--arms", "new")
     text = pilot.summary(table, args)
     assert "**not met** (met in {'new ppo': ['env_3']})" in text and "nothing tested yet" in text
+
+
+def test_a_state_arm_meets_its_target_with_every_turning_slot_at_half_its_goals_and_ds_above_safe(pilot):
+    """Issue 61's target for the state arms: every turning slot >= 0.5 goals on the test and the
+    driving score above the safe non-turner's; the per-slot DS and RC come from the records."""
+    routes = pd.DataFrame({"slot": ["ac_0", "ac_1"], "movement": ["straight", "left"],
+                           "turning": [False, True]})
+
+    def records(goal_1: list[bool], rc_1: float) -> pd.DataFrame:
+        rec = _records({"ac_0": [100, 100], "ac_1": [50, 50]},
+                       {"ac_0": [True, True], "ac_1": goal_1})
+        return rec.assign(event_vehicle=False, event_pedestrian=False, event_object=False,
+                          red_light=False, route_completion=np.where(rec["agent"] == "ac_1", rc_1, 0.5))
+
+    good = pilot.slot_table(pilot.per_slot(records([True, False], 0.4)), routes, env="env_2",
+                            arm="state", algo="dqn", car="new", row="state dqn")
+    bad = pilot.slot_table(pilot.per_slot(records([False, False], 0.4)), routes, env="env_2",
+                           arm="state-step", algo="dqn", car="new", row="state-step dqn")
+    safe = pilot.slot_table(pd.DataFrame({"episode": [0, 0], "slot": ["ac_0", "ac_1"], "return": [1.0, 1.0],
+                                          "goal": [1.0, 0.0], "contact_steps": [0.0, 0.0],
+                                          "DS": [1.0, 0.1], "RC": [1.0, 0.1], "events": [0.0, 0.0]}),
+                            routes, env="env_2", arm="reference", algo="safe-non-turner", car="new",
+                            row="ref: safe-non-turner")
+    table = pd.concat([good, bad, safe], ignore_index=True)
+    by = table.set_index(["row", "slot"])
+    # ac_1: goal in one episode (RC 1), RC 0.4 in the other: DS 0.7; ac_0 reaches both goals: 1.0
+    assert by.loc[("state dqn", "ac_1"), "DS"] == pytest.approx(0.7)
+    md, met = pilot.env_summary(table, "env_2")
+    assert met == ["state dqn"]  # 0.85 > 0.55 and its turner at 0.5; state-step's turner at 0
+    lines = {line.split(" | ")[0][2:]: line for line in md.splitlines()[2:]}
+    assert lines["state dqn"].endswith("| 0.85 | 0.70 | 0.00 | yes | yes |")
+    assert lines["state-step dqn"].endswith("| no | yes |")
 
 
 def test_slot_routes_read_the_turns_from_the_scenario(pilot):
