@@ -270,11 +270,11 @@ def test_a_full_disk_at_any_write_keeps_the_last_checkpoint_and_resume_continues
     no .tmp or pending file is left, the checkpoint at step 40 loads, and once the write works
     again --resume gives the rows a resume without the fault gives."""
     import agents.checkpoint
-    import eval.training.runfolder
+    import eval.testing.files
     import eval.training.runlog
 
     module, fake = {"checkpoint file": (agents.checkpoint, _full_disk_at("latest.pending-60.pt", 2)),
-                    "state.json": (eval.training.runfolder, _full_disk_at("state.json", 1)),
+                    "state.json": (eval.testing.files, _full_disk_at("state.json", 1)),
                     "episodes.csv header": (eval.training.runlog, _full_disk_at("episodes.csv", 1)),
                     "episodes.csv row": (eval.training.runlog, _full_disk_at("episodes.csv", 1, 2))}[where]
     run = _unfinished(trained_run, tmp_path, steps=60, horizon=20)
