@@ -25,6 +25,9 @@ correctly, so the pin is now ``MKL_CBWR=AVX2`` (x86-64 CPUs with AVX2, every mac
 project runs on): the Xeon and the emulated Haswell then give the same PPO checkpoints
 (docs/design.md, beside the layout of eval/), and the fixture was rewritten under it by
 commit 5bb2a4a, whose code had matched the previous fixture in CI on the previous machine.
+Task version 4 (2026-12-01: one charge per collision event, solid cars with a back-off, traffic
+that sees ACs, the driving score's columns) changed what the runs record, so the fixture was
+rewritten on purpose under the same pin.
 Regenerate, only on purpose: ``COSIM_WRITE_SAME_RESULTS=1 pytest tests/eval/test_same_results.py``.
 """
 

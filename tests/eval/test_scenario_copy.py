@@ -13,9 +13,9 @@ def copier(load_study):
 
 
 def test_a_copy_elsewhere_loads_with_the_change_and_the_same_files(copier, tmp_path):
-    out = copier.copy_scenario("env_3", tmp_path / "far" / "env_3_solid.yaml", {"solid_cars": True})
+    out = copier.copy_scenario("env_3", tmp_path / "far" / "env_3_soft.yaml", {"solid_cars": False})
     copy, bundled = load_scenario(out), load_scenario("env_3")
-    assert copy.solid_cars and not bundled.solid_cars
+    assert bundled.solid_cars and not copy.solid_cars  # solid by default since task version 4
     assert copy.net == bundled.net and copy.demand == bundled.demand and copy.additional == bundled.additional
     assert copy.acs == bundled.acs
 

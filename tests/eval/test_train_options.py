@@ -29,7 +29,7 @@ def test_a3c_and_impala_take_envs_and_default_to_the_presets_workers():
     ({"algo": "td3", "device": "tpu"}, "--device"),
     ({"algo": "ppo", "torch_threads": -1}, "--torch-threads"),
     ({"algo": "dqn", "frame_stack": 0}, "--frame-stack must be >= 1"),
-    ({"algo": "ppo", "collisions": "stop"}, "--collisions must be continue or end"),
+    ({"algo": "ppo", "collisions": "stop"}, "--collisions must be event or step or end"),
 ])
 def test_bad_values_are_refused_naming_the_option(kwargs, match):
     algo = kwargs.pop("algo")
