@@ -470,16 +470,20 @@ def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
 
 
+def _link_runs(study, runs) -> None:
+    """``runs/<run>`` links to each of the smoke study's run folders (what ``--runs`` takes)."""
+    runs.mkdir(parents=True)
+    for name in (p.name for p in (study / "bench" / "runs").iterdir()):
+        (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
+
+
 def test_a_study_tested_alone_too_has_the_alone_table(smoke, tmp_path):
     """A part of a grid tested in Scenarios 1 and 2 (the smoke study's seed-0 runs, linked with
     --runs), exported and, as a clone has it, without its held-out records, combined on its own:
     its summary.md has the Scenario 2 table, each algorithm's cell its one seed's mean and goal rate."""
     study, done = smoke
     assert done.returncode == 0, done.stderr[-2000:]
-    runs = tmp_path / "runs" / "runs"
-    runs.mkdir(parents=True)
-    for name in (p.name for p in (study / "bench" / "runs").iterdir()):
-        (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
+    _link_runs(study, tmp_path / "runs" / "runs")
     part = tmp_path / "part"
     tested = _run(part, "--seeds", "1", "--scenarios", "1", "2", "--runs", str(tmp_path / "runs"))
     assert tested.returncode == 0, tested.stderr[-2000:]
@@ -804,10 +808,7 @@ def test_a_study_from_a_first_seed_trains_and_tests_only_its_seeds(smoke, tmp_pa
     seed means are the smoke study's seed-1 rows."""
     study, done = smoke
     assert done.returncode == 0, done.stderr[-2000:]
-    runs = tmp_path / "runs" / "runs"
-    runs.mkdir(parents=True)
-    for name in (p.name for p in (study / "bench" / "runs").iterdir()):
-        (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
+    _link_runs(study, tmp_path / "runs" / "runs")
     out = tmp_path / "part"
     part = _run(out, "--first-seed", "1", "--seeds", "1", "--runs", str(tmp_path / "runs"))
     assert part.returncode == 0, part.stderr[-2000:]
@@ -836,9 +837,7 @@ def test_a_finished_study_grows_by_seeds(smoke, tmp_path):
     shutil.copytree(study / "references", out / "references")
     shutil.copy(study / "test" / "env_1__seed0.parquet", out / "test")
     runs = tmp_path / "runs" / "runs"
-    runs.mkdir(parents=True)
-    for name in (p.name for p in (study / "bench" / "runs").iterdir()):
-        (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
+    _link_runs(study, runs)
     # the 1-seed study as it was left: its plan, its seed-0 runs, its seed-0 records
     plan = json.loads((study / "science.json").read_text())
     plan["benchmark"]["seeds"] = 1
