@@ -74,7 +74,7 @@ from cosim.dynamics import action_to_control
 from cosim.errors import ActionError, EnvStateError, OptionError, ScenarioError
 from cosim.events import EVENT_FLAGS
 from cosim.scenario import CONTACT_CHARGES, Scenario, load_scenario
-from cosim.score import driving_score, infraction_penalty
+from cosim.score import episode_score
 from cosim.state import state_space as _state_space
 from cosim.state import state_vectors
 from cosim.world import World
@@ -383,12 +383,12 @@ class CosimParallelEnv(ParallelEnv):
             gx, gy, sx, sy = info["goal_x"], info["goal_y"], info["spawn_x"], info["spawn_y"]
             ep["DISTANCE"] = float(np.hypot(gx - sx, gy - sy) - np.hypot(gx - info["x"], gy - info["y"]))
             # the driving score (cosim/score.py; docs/task.md, "Driving score")
+            score = episode_score(info["route_completion"], ep["goal_reached"], ep["n_event_vehicle"],
+                                  ep["n_event_pedestrian"], ep["n_event_object"], ep["n_red_light"])
             ep["route_completion"] = float(info["route_completion"])
-            ep["infraction_penalty"] = infraction_penalty(
-                ep["n_event_vehicle"], ep["n_event_pedestrian"], ep["n_event_object"], ep["n_red_light"]
-            )
-            ep["driving_score"] = driving_score(ep["route_completion"], ep["infraction_penalty"])
-            ep["success"] = ep["goal_reached"] and ep["infraction_penalty"] == 1.0
+            ep["infraction_penalty"] = score["IP"]
+            ep["driving_score"] = score["DS"]
+            ep["success"] = bool(score["success"])
             info[EPISODE_INFO] = ep
 
     def _check_agent(self, agent: str) -> None:

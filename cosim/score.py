@@ -39,6 +39,16 @@ def driving_score(route_completion: float, penalty: float) -> float:
     return min(max(float(route_completion), 0.0), 1.0) * float(penalty)
 
 
+def episode_score(route_completion: float, goal: bool, vehicle: int = 0, pedestrian: int = 0,
+                  obj: int = 0, red_light: int = 0) -> dict[str, float]:
+    """One AC-episode's ``DS``, ``RC`` (1.0 at the goal, else clipped to 0..1), ``IP`` and
+    ``success`` (the goal with no infraction) from its route completion and event counts."""
+    rc = 1.0 if goal else min(max(float(route_completion), 0.0), 1.0)
+    ip = infraction_penalty(vehicle, pedestrian, obj, red_light)
+    clean = vehicle + pedestrian + obj + red_light == 0
+    return {"DS": driving_score(rc, ip), "RC": rc, "IP": ip, "success": float(bool(goal) and clean)}
+
+
 class RouteCompletion:
     """The running route completion of one AC-episode from the per-step credited progress.
 

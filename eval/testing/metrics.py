@@ -39,7 +39,7 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from cosim.score import driving_score, infraction_penalty
+from cosim.score import episode_score
 
 SCORE_METRICS = ("DS", "RC", "success", "IP", "CV_events", "CO_events", "CP_events")
 """The driving score's metrics (cosim/score.py), the report's first rows."""
@@ -98,13 +98,11 @@ def score_of(episode: pd.DataFrame) -> dict:
           for k in ("vehicle", "pedestrian", "object")}
     red = int(episode["red_light"].astype(bool).sum()) if "red_light" in episode else 0
     goal = bool(episode["goal_reached"].any())
-    rc = 1.0 if goal else float(np.clip(episode["route_completion"].max(), 0.0, 1.0))
-    ip = infraction_penalty(vehicle=ev["vehicle"], pedestrian=ev["pedestrian"], obj=ev["object"],
-                            red_light=red)
+    score = episode_score(float(episode["route_completion"].max()), goal, ev["vehicle"],
+                          ev["pedestrian"], ev["object"], red)
     others = "n_vehicles" not in episode or bool((episode["n_vehicles"] > 0).any())
     peds = "n_pedestrians" not in episode or bool((episode["n_pedestrians"] > 0).any())
-    return {"DS": driving_score(rc, ip), "RC": rc,
-            "success": float(goal and sum(ev.values()) == 0 and red == 0), "IP": ip,
+    return {**score,
             "CV_events": float(ev["vehicle"]) if others else np.nan,
             "CO_events": float(ev["object"]),
             "CP_events": float(ev["pedestrian"]) if peds else np.nan}

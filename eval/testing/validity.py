@@ -180,14 +180,10 @@ def score_row(a: dict, saw: dict) -> dict:
     """DS, RC, success, IP and the event counts of one AC-episode from :func:`run_policy`'s
     sums (``ev``/``eo``/``ep``: collision events, ``rl``: red lights, ``rc``: the largest
     running route completion, ``goal``)."""
-    from cosim.score import driving_score, infraction_penalty
+    from cosim.score import episode_score
 
-    ip = infraction_penalty(vehicle=int(a["ev"]), pedestrian=int(a["ep"]), obj=int(a["eo"]),
-                            red_light=int(a["rl"]))
-    rc = 1.0 if a["goal"] else min(max(a["rc"], 0.0), 1.0)
-    clean = a["ev"] + a["eo"] + a["ep"] + a["rl"] == 0
-    return {"DS": driving_score(rc, ip), "RC": rc, "success": float(bool(a["goal"]) and clean),
-            "IP": ip, "CV_events": a["ev"] if saw["vehicles"] else np.nan, "CO_events": a["eo"],
+    score = episode_score(a["rc"], bool(a["goal"]), int(a["ev"]), int(a["ep"]), int(a["eo"]), int(a["rl"]))
+    return {**score, "CV_events": a["ev"] if saw["vehicles"] else np.nan, "CO_events": a["eo"],
             "CP_events": a["ep"] if saw["persons"] else np.nan,
             "collision_events": a["ev"] + a["eo"] + a["ep"]}
 
