@@ -280,6 +280,11 @@ class Autopilot:
         """Give way to lower-index ACs whose routes cross or merge with ours, until they pass."""
         gaps = []
         me = self.world.index[self.ac]
+        half = self.world.vehicle.length / 2
+        # inside a junction's crossings it is committed, as it is for people (_off_crossings):
+        # a stop point already behind it would leave it standing on a crossing, where SUMO's
+        # people walk into it and then wait for it to leave (a gridlock with the AC it yields to)
+        committed = any(c0 - half <= s <= c1 + half for c0, c1 in self._crossings)
         for other in self.world.active:
             j = self.world.index[other]
             if j >= me:
@@ -296,6 +301,8 @@ class Autopilot:
             if they_approach and s < my_s - 1.0 and my_s - s < 40.0:
                 if vj < 0.2 and self._waits_for_us(other, sj):
                     continue  # they stand because our nose is in their way: yielding deadlocks
+                if committed and my_s - s - 4.0 < 0.0:
+                    continue
                 gaps.append(my_s - s - 4.0)
         return gaps
 
