@@ -1,19 +1,21 @@
 """A3C: asynchronous advantage actor-critic (Mnih et al. 2016, arXiv:1602.01783).
 
-Two ways to run the same algorithm:
+One algorithm on the one loop (:func:`agents.loop.run_loop`), its hooks the
+batch pair and ``update``: every ``n_steps`` transitions of an environment
+(a segment) the agent computes the gradients of the loss and applies them to
+the *shared* network with a *shared* Adam (:meth:`SharedAdam.apply_gradients`).
 
-* **Asynchronous** (:func:`train_a3c`), the real thing: one actor-learner
-  thread per environment of ONE vector env (``agents/vector.py``, the code
-  path every algorithm steps its environments through; thread k owns env
-  index k). Each thread keeps a local copy of the network, runs n-step
-  segments, computes gradients locally and applies them to the *shared*
-  network with a *shared* Adam, lock-free ("Hogwild", Recht et al. 2011;
-  :meth:`SharedAdam.apply_gradients`). One shared model per agent id: the
-  driving benchmark trains N cars, each with its own network, all A3C.
-* **In-process** (:class:`A3C` through the :class:`~agents.base.Agent`
-  interface): n-step advantage actor-critic on the caller's own transitions.
-  This is how a trained policy acts in the test protocol, and how the common
-  loop and the smoke tests drive it.
+* **Asynchronous** (:func:`train_a3c`, ``cosim train --algo a3c``), the real
+  thing: the loop runs one actor-learner thread per environment of ONE vector
+  env (``agents/vector.py``; thread k owns env index k), each with its
+  :meth:`A3C.worker` per agent: a private copy of the network that acts,
+  computes its segment's gradients and applies them to the shared network,
+  lock-free ("Hogwild", Recht et al. 2011), then reads the shared weights. One
+  shared model per agent id: the driving benchmark trains N cars, each with its
+  own network, all A3C.
+* **In process** (the loop without ``actors``): the agent is its own worker,
+  n-step advantage actor-critic on its own transitions. A trained policy acts
+  in the test protocol through the derived ``act``.
 
 Loss per rollout (means over the T steps; RLlib 0.8, which the paper used,
 sums, so the paper's lr is not directly comparable):
@@ -25,8 +27,11 @@ norm clipped before the shared step.
 
 from __future__ import annotations
 
+import contextlib
+import copy
 import logging
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
 import gymnasium
@@ -34,14 +39,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from agents.async_env import ThreadRun, run_threads, vector_env
+from agents import observations
+from agents.async_env import vector_env
 from agents.base import Agent, check_observation_space
 from agents.configs import A3CConfig, AgentConfig
+from agents.loop import Progress, run_loop
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import gae
-from agents.workers import Rollout, RolloutBuilder, TrainProgress, agents_for
+from agents.workers import Rollout, RolloutBuilder, agents_for, private_copy, worker_seed
 
-__all__ = ["A3C", "A3CConfig", "SharedAdam", "a3c_loss", "train_a3c"]
+__all__ = ["A3C", "A3CConfig", "SharedAdam", "a3c_loss", "actor_learners", "train_a3c"]
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +63,7 @@ class SharedAdam(torch.optim.Adam):
     :meth:`apply_gradients` steps it with gradients computed elsewhere (a
     thread's local copy of the network), so no thread ever writes another's
     ``.grad``: Hogwild (Recht et al. 2011), lock-free, as ikostrikov/pytorch-a3c
-    does across processes. ``step()`` (in-process A3C) is plain Adam.
+    does across processes. ``step()`` is plain Adam, with the same arithmetic.
     """
 
     def __init__(self, params, lr: float = 1e-3, eps: float = 1e-8):
@@ -156,11 +163,18 @@ def compute_gradients(model: nn.Module, rollout: Rollout, config: A3CConfig) -> 
 
 
 class A3C(Agent):
-    """A3C agent: acts on one observation; learns in-process as n-step A2C.
+    """A3C agent: n-step advantage actor-critic whose gradients go to a shared model.
+
+    In process (the loop's hooks on this agent) the shared model is its own: one update
+    per ``n_steps`` transitions of an environment. :meth:`worker` gives one of
+    :func:`train_a3c`'s actor-learners: a copy that acts and computes gradients with a
+    private copy of the network and applies them to this agent's model with the shared
+    Adam, lock-free (:meth:`SharedAdam.apply_gradients`), then reads the shared weights.
 
     Attributes:
-        model: The ``ActorCritic`` network (the one :func:`train_a3c`'s threads share).
-        optimizer: Its :class:`SharedAdam`.
+        model: The ``ActorCritic`` network this agent acts with (a worker's private copy).
+        optimizer: The :class:`SharedAdam` of the shared model.
+        num_updates: Updates applied to the shared model (a worker counts on the shared agent).
     """
 
     optimizer_learning_rates: ClassVar[dict[str, str]] = {"adam": "learning_rate"}
@@ -183,28 +197,61 @@ class A3C(Agent):
         self.optimizer = SharedAdam(self.model.parameters(), lr=config.learning_rate, eps=config.adam_eps)
         self.networks = {"actor_critic": self.model}
         self.optimizers = {"adam": self.optimizer}
-        self._builder = RolloutBuilder("self")
+        self._builders: dict[int, RolloutBuilder] = {}  # env -> its segment so far
+        self._shared: A3C = self  # the agent whose model the gradients go to
+        self._lock: threading.Lock | None = None  # guards the shared update counter (workers)
+        self._seen = 0  # the shared update count when this agent's weights were read
         self.num_updates = 0
 
-    @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> int:
-        logits, _ = self.model(self.obs_batch(obs))
-        if deterministic:
-            return int(logits[0].argmax())
-        # Sampled on the model's device with the agent's own generator (same device).
-        probs = torch.softmax(logits[0], dim=-1)
-        return int(torch.multinomial(probs, 1, generator=self.generator))
+    def worker(self, generator: torch.Generator, lock: threading.Lock) -> A3C:
+        """An actor-learner of this agent: a private copy of the network, sampling with
+        ``generator``; its updates go to this agent's model, counted under ``lock``."""
+        worker = copy.copy(self)
+        worker.model, worker.generator, worker._builders = private_copy(self.model), generator, {}
+        worker._shared, worker._lock = self, lock
+        with lock:
+            worker._seen = self.num_updates
+        return worker
 
-    def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
-        self._builder.add(obs, action, reward * self.config.reward_scale, next_obs, terminated, truncated)
+    @torch.no_grad()
+    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        logits, _ = self.model(obs_to_tensor(obs, self.device))
+        if deterministic:
+            return logits.argmax(-1).cpu().numpy()
+        # Sampled on the model's device with the agent's own generator (same device).
+        probs = torch.log_softmax(logits, dim=-1).exp()
+        return torch.multinomial(probs, 1, generator=self.generator)[:, 0].cpu().numpy()
+
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        rewards = np.asarray(rewards, np.float32) * self.config.reward_scale
+        for j, column in enumerate(np.asarray(columns).tolist()):
+            builder = self._builders.setdefault(column, RolloutBuilder("self"))
+            builder.add(observations.take(obs, j), actions[j], rewards[j], observations.take(next_obs, j),
+                        terminated[j], truncated[j])
 
     def update(self) -> dict[str, float]:
-        if len(self._builder) < self.config.n_steps:
-            return {}
-        metrics = compute_gradients(self.model, self._builder.build(), self.config)
-        self.optimizer.step()
-        self.num_updates += 1
-        metrics["charts/num_updates"] = float(self.num_updates)
+        """One shared update per environment whose segment holds ``n_steps`` transitions."""
+        metrics: dict[str, float] = {}
+        for column in sorted(self._builders):
+            if len(self._builders[column]) >= self.config.n_steps:
+                metrics = self._learn(self._builders[column].build())
+        return metrics
+
+    def _learn(self, rollout: Rollout) -> dict[str, float]:
+        config, shared = self.config, self._shared
+        lr = config.learning_rate * (self.progress_remaining if config.anneal_lr else 1.0)
+        metrics = compute_gradients(self.model, rollout, config)
+        shared.optimizer.apply_gradients([p.grad for p in self.model.parameters()], lr)
+        with self._lock or contextlib.nullcontext():
+            shared.num_updates += 1
+            # shared updates other workers applied since this one's weights were read
+            staleness = shared.num_updates - 1 - self._seen
+            self._seen = shared.num_updates
+        if shared is not self:
+            self.model.load_state_dict(shared.model.state_dict())
+            metrics["charts/staleness"] = float(staleness)
+        metrics["charts/learning_rate"] = lr
+        metrics["charts/num_updates"] = float(shared.num_updates)
         return metrics
 
     def _extra_state(self) -> dict[str, Any]:
@@ -214,25 +261,20 @@ class A3C(Agent):
         self.num_updates = int(state.get("num_updates", 0))
 
 
+def actor_learners(agents: Mapping[str, A3C], seed: int) -> Callable[[int], dict[str, A3C]]:
+    """The actor-learners of environment k (one :meth:`A3C.worker` per agent), what
+    :func:`agents.loop.run_loop` runs one thread of per environment (``actors=``); thread
+    k samples with one generator seeded ``worker_seed(seed, k)``."""
+    lock = threading.Lock()
+
+    def actors(k: int) -> dict[str, A3C]:
+        generator = torch.Generator().manual_seed(worker_seed(seed, k))
+        return {aid: agent.worker(generator, lock) for aid, agent in agents.items()}
+
+    return actors
+
+
 # ----------------------------------------------------------------------------- asynchronous training
-
-
-def _segment_learner(config: A3CConfig):
-    """How a learner thread learns from a segment: local gradients, then one lock-free shared step."""
-
-    def learn(run: ThreadRun, aid: str, local: nn.Module, rollout: Rollout, done: int, seen: int) -> dict:
-        lr = config.learning_rate * (max(0.0, 1.0 - done / run.total_steps) if config.anneal_lr else 1.0)
-        metrics = compute_gradients(local, rollout, config)
-        agent = run.agents[aid]
-        agent.optimizer.apply_gradients([p.grad for p in local.parameters()], lr)
-        with run.lock:
-            agent.num_updates += 1
-            # shared updates other threads applied since this segment's weights were read
-            metrics["charts/staleness"] = float(agent.num_updates - 1 - seen)
-        metrics["charts/learning_rate"] = lr
-        return metrics
-
-    return learn
 
 
 def train_a3c(
@@ -244,21 +286,21 @@ def train_a3c(
     total_steps: int = 100_000,
     num_envs: int | None = None,
     seed: int = 0,
-    callback: Callable[[TrainProgress], bool | None] | None = None,
+    callback: Callable[[Progress], bool | None] | None = None,
     start_method: str = "spawn",
     agents: dict[str, A3C] | None = None,
     processes: bool | None = None,
 ) -> dict[str, A3C]:
     """Train one A3C agent per agent id: one actor-learner thread per environment of one vector env.
 
-    Thread k owns env index k of the vector env (``agents/vector.py``; the env
-    steps in its worker process, or in process for N = 1), keeps a local copy of
-    each agent's network, runs n-step segments, and applies their gradients to
-    the shared network with the shared Adam (:meth:`SharedAdam.apply_gradients`),
-    lock-free, whenever it is done: asynchronous, as in the paper. Torch releases
-    the GIL inside its ops and a thread waiting for its env holds no lock, so the
-    threads overlap. Runs are not reproducible step for step for N > 1 (the order
-    of the threads' updates varies); with N = 1 they are.
+    :func:`agents.loop.run_loop` with ``actors=``:func:`actor_learners`: thread k steps env
+    k of the vector env (``agents/vector.py``; the env steps in its worker process, or in
+    process for N = 1) through the loop's schedule with its workers (:meth:`A3C.worker`),
+    which apply their gradients to the shared network with the shared Adam, lock-free,
+    whenever a segment of ``n_steps`` transitions is in: asynchronous, as in the paper. Torch
+    releases the GIL inside its ops and a thread waiting for its env holds no lock, so the
+    threads overlap. Runs are not reproducible step for step for N > 1 (the order of the
+    threads' updates varies); with N = 1 they are.
 
     Args:
         env_fn: Picklable zero-argument factory (a ParallelEnv, or a Gymnasium env
@@ -267,14 +309,13 @@ def train_a3c(
         action_space: Space of one agent's action (Discrete).
         agent_ids: The learning agents in the env; each gets its own network.
         config: Hyperparameters (default preset if None).
-        total_steps: Env steps to take, all environments counted (the last
-            segments may overshoot by less than ``n_steps`` per thread).
+        total_steps: Env steps to take, all environments counted.
         num_envs: Environments, one learner thread each (default: 2, or one per
             factory in ``env_fn``).
         seed: Seeds network init (agent k: ``seed + k``), the resets (env i,
             episode k: ``seed + i + k * N``) and thread i's sampling.
-        callback: Called in this thread after each segment report with a
-            :class:`TrainProgress`; return True to stop early.
+        callback: Called in this thread after each env step a thread took and learnt
+            from, with the loop's :class:`~agents.loop.Progress`; return True to stop early.
         start_method: ``"spawn"`` or ``"forkserver"`` for the env worker processes.
         agents: Agents to continue training (e.g. loaded from checkpoints to resume);
             default: fresh agents built from ``config`` and ``seed``.
@@ -292,5 +333,9 @@ def train_a3c(
     if total_steps < 1:
         raise ValueError(f"need total_steps >= 1, got {total_steps}")
     agents = agents_for(A3C, observation_space, action_space, agent_ids, config, seed, agents)
-    run = ThreadRun(agents, config.n_steps, config.reward_scale, total_steps, seed, _segment_learner(config))
-    return run_threads(run, vector_env(env_fn, num_envs, start_method, processes), callback, "a3c-learner")
+    venv = vector_env(env_fn, num_envs, start_method, processes)
+    try:
+        run_loop(agents, venv, total_steps, callback, seed=seed, actors=actor_learners(agents, seed))
+    finally:
+        venv.close()
+    return agents

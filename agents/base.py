@@ -1,24 +1,24 @@
 """The common agent interface and the shared config plumbing.
 
 Every algorithm (PPO, DQN, DDPG, TD3, A3C, IMPALA) is an :class:`Agent`, so one
-loop (``agents/loop.py``) can drive any mix of them:
+loop (:func:`agents.loop.run_loop`) can drive any mix of them over N environments
+(``agents/vector.py``). The batch pair is what an algorithm implements:
 
-1. ``act(obs)`` picks an action for ONE observation and caches what learning
-   needs (log prob, value);
-2. ``observe(obs, action, reward, next_obs, terminated, truncated)`` records the
-   transition that followed;
-3. ``update()`` is called after every ``observe``; the agent learns when it is
-   time (a full rollout, every ``train_freq`` steps, ...) and returns namespaced
-   metrics (``losses/...``, ``charts/...``), else ``{}``.
+1. ``act_batch(obs, columns)`` picks the actions for a batch of observations in
+   one forward pass, row j from environment ``columns[j]``, and keeps what
+   learning needs (log prob, value) per environment;
+2. ``observe_batch(obs, actions, rewards, next_obs, terminated, truncated,
+   columns)`` records the transitions that followed, one per row;
+3. ``update()`` is called once per vector step; the agent does every learning
+   step that the transitions observed since the last call are due (a full
+   rollout, every ``train_freq`` steps, ...; so an update-to-data ratio such as
+   DQN's ``gradient_steps / train_freq`` per transition holds for any N) and
+   returns namespaced metrics (``losses/...``, ``charts/...``), else ``{}``.
 
-With N environments (``agents/vector.py``, :func:`agents.loop.run_vector_loop`)
-the same agent acts for its slot in all of them in one forward pass:
-``act_batch(obs, columns)`` takes a batch of observations, row j from
-environment ``columns[j]``; ``observe_batch(...)`` records the transitions that
-followed (one per row, with their environment index); ``update()`` is then
-called once per vector step and does every learning step that the transitions
-observed since the last call are due (so an update-to-data ratio such as DQN's
-``gradient_steps / train_freq`` per transition holds for any N).
+``act(obs)`` and ``observe(...)`` for ONE observation are derived from the batch
+pair here, once: ``act`` is a batch of one outside any environment (it keeps
+nothing for ``observe``, so acting between training steps, as a validation
+does, leaves training alone), ``observe`` a batch of one in environment 0.
 
 Hyperparameters live in one frozen :class:`AgentConfig` dataclass per
 algorithm, with named presets (``"default"``, ``"paper"``), in ``agents/configs.py``
@@ -42,7 +42,6 @@ from agents import observations
 from agents.buffers import ReplayBuffer
 from agents.configs import AgentConfig, check_range
 from agents.errors import AgentError
-from agents.networks import obs_to_tensor
 from agents.observations import image_space, is_nav_space
 
 __all__ = ["Agent", "AgentConfig", "ObservationError", "check_frames", "check_observation_space",
@@ -184,10 +183,11 @@ def seeded_init(seed: int):
 
 
 class Agent(abc.ABC):
-    """A learning agent: acts on one observation at a time, learns from what it observes.
+    """A learning agent: acts on a batch of observations, learns from what it observes.
 
-    Subclasses set ``algo`` and ``config_class`` and implement ``act``,
-    ``observe``, ``update`` and ``_build``. The default ``state_dict`` saves every
+    Subclasses set ``algo`` and ``config_class`` and implement ``check_spaces``, ``_build``,
+    ``act_batch``, ``observe_batch`` and ``update`` (the single-row ``act``/``observe`` are
+    derived here). The default ``state_dict`` saves every
     module in ``self.networks``, every optimizer in ``self.optimizers`` and the
     dict returned by ``_extra_state`` (counters, schedules); override all three
     only when that is not enough.
@@ -251,41 +251,48 @@ class Agent(abc.ABC):
         """Create networks and optimizers (runs under the agent's seed)."""
 
     @abc.abstractmethod
-    def act(self, obs: np.ndarray, deterministic: bool = False):
-        """Choose an action for one observation.
+    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        """Actions for a batch of observations in one forward pass; row j comes from environment
+        ``columns[j]``, and what learning needs of it is kept for that environment's next
+        :meth:`observe_batch`. ``columns=None``: acting outside training, nothing is kept.
+
+        Returns:
+            An int64 array of shape (B,) for Discrete spaces, float32 (B, *shape) for Box spaces.
+        """
+
+    @abc.abstractmethod
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        """Record the transitions that followed :meth:`act_batch`, one per row (environment
+        ``columns[j]``); ``next_obs`` of a finished episode is its true final observation."""
+
+    @abc.abstractmethod
+    def update(self) -> dict[str, float]:
+        """Learn what is due; return namespaced metrics, or ``{}`` if nothing was learned."""
+
+    def prepare_envs(self, num_envs: int) -> None:  # noqa: B027 - optional hook
+        """Called once before a loop steps ``num_envs`` environments (e.g. replay rings)."""
+
+    progress_remaining: float = 1.0
+    """Fraction of the loop's budget of environment steps still to take when ``update()`` runs
+    (1 -> 0), set by :func:`agents.loop.run_loop` before each call (SB3's
+    ``_current_progress_remaining``): what a learning-rate anneal reads (A3C, IMPALA)."""
+
+    # ---- the single-row pair, derived from the batch pair ---------------------------
+    def act(self, obs, deterministic: bool = False):
+        """The action for ONE observation (checked against the agent's space): a batch of one
+        outside any environment, so nothing is kept for :meth:`observe`.
 
         Returns:
             An ``int`` for Discrete spaces, a float32 array for Box spaces.
         """
+        action = np.asarray(self.act_batch(self.one_row(obs), None, deterministic=deterministic))[0]
+        return int(action) if isinstance(self.action_space, gymnasium.spaces.Discrete) else action
 
-    @abc.abstractmethod
     def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
-        """Record the transition that followed the last ``act``."""
-
-    @abc.abstractmethod
-    def update(self) -> dict[str, float]:
-        """Learn if it is time; return namespaced metrics, or ``{}`` if nothing was learned."""
-
-    # ---- batched acting (vector envs); the defaults loop over one row at a time ----------
-    def prepare_envs(self, num_envs: int) -> None:  # noqa: B027 - optional hook
-        """Called once before a vector loop steps ``num_envs`` environments (e.g. replay rings)."""
-
-    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        """Actions for a batch of observations; row j comes from environment ``columns[j]``.
-
-        The default calls :meth:`act` per row; algorithms override it with one forward pass.
-        """
-        return np.stack([np.asarray(self.act(observations.take(obs, j), deterministic=deterministic))
-                         for j in range(len(columns))])
-
-    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
-        """Record the transitions that followed :meth:`act_batch`, one per row (environment ``columns[j]``).
-
-        The default calls :meth:`observe` per row.
-        """
-        for j in range(len(columns)):
-            self.observe(observations.take(obs, j), actions[j], float(rewards[j]), observations.take(next_obs, j),
-                         bool(terminated[j]), bool(truncated[j]))
+        """Record one transition of environment 0 (a batch of one for :meth:`observe_batch`)."""
+        self.observe_batch(self.one_row(obs), np.asarray([action]), np.asarray([reward], np.float32),
+                           self.one_row(next_obs), np.asarray([terminated]), np.asarray([truncated]),
+                           np.zeros(1, np.int64))
 
     def observe_demonstration(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool,
                               column: int = 0) -> None:
@@ -362,9 +369,14 @@ class Agent(abc.ABC):
         """Build an untrained agent for these spaces (the constructor, by name)."""
         return cls(observation_space, action_space, config=config, seed=seed, device=device)
 
-    def obs_batch(self, obs) -> torch.Tensor:
-        """One observation -> a batch of one on the agent's device, checking its variant and
-        shape (an image array, or a dict of image and measurements for a nav space)."""
+    def one_row(self, obs):
+        """One observation -> a batch of one (numpy), checking its variant and shape (an image
+        array, or a dict of image and measurements for a nav space).
+
+        Raises:
+            ObservationError: another variant or frame stack than the agent was built for.
+            ValueError: another shape (e.g. a batch where one observation is expected).
+        """
         check_variant(self.observation_space, obs, f"{self.algo} agent")
         obs = observations.asarray(obs)
         for key, space in observations.parts(self.observation_space).items():
@@ -376,7 +388,7 @@ class Agent(abc.ABC):
                     f"{self.algo} agent expected {f'{key} ' if key else 'an observation '}of shape "
                     f"{space.shape}, got {array.shape}; pass one observation at a time"
                 )
-        return obs_to_tensor(observations.take(obs, np.newaxis), self.device)
+        return observations.take(obs, np.newaxis)
 
     def __repr__(self) -> str:
         return (

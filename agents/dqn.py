@@ -97,25 +97,15 @@ class DQN(ReplayAgent):
         return linear_schedule(cfg.exploration_initial_eps, cfg.exploration_final_eps, cfg.exploration_steps, self.steps)
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> int:
-        if not deterministic and self.rng.random() < self.epsilon:
-            return int(self.rng.integers(self.action_space.n))
-        return int(self.q_network(self.obs_batch(obs)).argmax(-1).item())
-
-    @torch.no_grad()
-    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
+    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
         actions = self.q_network(obs_to_tensor(obs, self.device)).argmax(-1).cpu().numpy()
         if not deterministic:
             explore = self.rng.random(len(actions)) < self.epsilon
             actions = np.where(explore, self.rng.integers(self.action_space.n, size=len(actions)), actions)
         return actions
 
-    def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
-        # A truncated step is stored as non-terminal, so its target bootstraps.
-        self.buffer.add(obs, int(action), reward * self.config.reward_scale, next_obs, terminated, truncated)
-        self.steps += 1
-
     def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        # A truncated step is stored as non-terminal, so its target bootstraps.
         scale = self.config.reward_scale
         for j, column in enumerate(np.asarray(columns).tolist()):
             self.buffer.add(observations.take(obs, j), int(actions[j]), float(rewards[j]) * scale,

@@ -1,24 +1,19 @@
 """IMPALA: importance-weighted actor-learner architecture (Espeholt et al. 2018, arXiv:1802.01561).
 
-Two ways to run the same algorithm:
-
-* **Actor-learner** (:func:`train_impala`), the real thing: the learner
-  (this process) drives ONE vector env of N environments (``agents/vector.py``,
-  the code path every algorithm steps its environments through). It acts for
-  each agent in all the envs of a group with one forward pass, keeps the
-  behaviour log-probs ``log mu(a|x)``, cuts per-(env, agent) unrolls of
-  ``unroll_length``, batches ``batch_size`` unrolls per agent and corrects the
-  off-policy gap with V-trace (:func:`agents.returns.vtrace`). With worker
-  processes the envs form two groups (double buffering): one steps while the
-  learner acts and learns for the other. Either way the actions of a step are
-  chosen before the learner learns from the previous one, so an unroll's first
-  actions come from weights some updates older than the learner's
-  (``charts/policy_lag``); V-trace corrects that gap. One learner network per agent id (the driving benchmark trains N cars,
-  each with its own network, all IMPALA).
-* **In-process** (:class:`IMPALA` through the :class:`~agents.base.Agent`
-  interface): the same learner fed with the agent's own transitions. This is
-  how a trained policy acts in the test protocol and how the smoke tests
-  drive it.
+One algorithm on the one loop (:func:`agents.loop.run_loop`), its hooks the
+batch pair and ``update``: ``act_batch`` acts for the agent in all the envs of
+a group with one forward pass and keeps the behaviour log-probs
+``log mu(a|x)``; ``observe_batch`` cuts per-env unrolls of ``unroll_length``;
+``update`` batches ``batch_size`` unrolls and corrects the off-policy gap with
+V-trace (:func:`agents.returns.vtrace`). :func:`train_impala` (``cosim train
+--algo impala``) runs the loop on ONE vector env of N environments
+(``agents/vector.py``): with worker processes the envs form two groups (double
+buffering), one steps while the learner acts and learns for the other. Either
+way the actions of a step are chosen before the learner learns from the
+previous one, so an unroll's first actions come from weights some updates
+older than the learner's (``charts/policy_lag``); V-trace corrects that gap.
+One learner network per agent id (the driving benchmark trains N cars, each
+with its own network, all IMPALA).
 
 Loss per batch (means over steps; RLlib 0.8, which the paper used, sums):
 ``pg_loss = -mean(rho_t (r_t + gamma v_{t+1} - V(x_t)) log pi(a_t|x_t))``,
@@ -28,8 +23,8 @@ Loss per batch (means over steps; RLlib 0.8, which the paper used, sums):
 
 from __future__ import annotations
 
+import collections
 import logging
-import time
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
@@ -38,19 +33,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from agents.async_env import EpisodeTracker, Unrolls, act_for, check_agents, record, vector_env
+from agents import observations
+from agents.async_env import Unrolls, vector_env
 from agents.base import Agent, check_observation_space
 from agents.configs import AgentConfig, IMPALAConfig
+from agents.loop import Progress, run_loop
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import vtrace
-from agents.workers import (
-    Rollout,
-    RolloutBuilder,
-    TrainProgress,
-    agents_for,
-    linear_learning_rate,
-    rates,
-)
+from agents.workers import Rollout, agents_for
 
 __all__ = ["IMPALA", "IMPALAConfig", "impala_loss", "train_impala"]
 
@@ -112,7 +102,7 @@ def impala_loss(model: nn.Module, batch: Rollout, config: IMPALAConfig) -> tuple
 
 
 class IMPALA(Agent):
-    """IMPALA agent: acts on one observation; in-process it is the learner of its own data.
+    """IMPALA agent: the learner of the transitions it acted for, in every environment of the loop.
 
     Attributes:
         model: The learner's ``ActorCritic``.
@@ -139,41 +129,64 @@ class IMPALA(Agent):
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate, eps=config.adam_eps)
         self.networks = {"actor_critic": self.model}
         self.optimizers = {"adam": self.optimizer}
-        self._builder = RolloutBuilder("self")
-        self._pending: list[Rollout] = []
-        self._last_action: tuple[int, float] | None = None  # (action, log mu) of the last act()
+        self._unrolls = Unrolls()  # per env, the unroll being cut
+        # act_batch's (action, log mu, update count) per env, oldest first: the loop acts at
+        # t + 1 before it observes t, so up to two are pending
+        self._behaviour: dict[int, collections.deque] = {}
+        self._pending: list[Rollout] = []  # full unrolls waiting for a batch
+        self._lags: list[int] = []  # per pending unroll, learner updates since its first action
         self.num_updates = 0
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> int:
-        logits, _ = self.model(self.obs_batch(obs))
-        log_probs = torch.log_softmax(logits[0], dim=-1)
+    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        logits, _ = self.model(obs_to_tensor(obs, self.device))
+        log_probs = torch.log_softmax(logits, dim=-1)
         if deterministic:
-            action = int(log_probs.argmax())
+            chosen = log_probs.argmax(-1, keepdim=True)
         else:
-            action = int(torch.multinomial(log_probs.exp(), 1, generator=self.generator))
-        self._last_action = (action, float(log_probs[action]))
-        return action
+            chosen = torch.multinomial(log_probs.exp(), 1, generator=self.generator)
+        behaviour = log_probs.gather(1, chosen).squeeze(1).cpu().numpy().astype(np.float32)
+        actions = chosen.squeeze(1).cpu().numpy().astype(np.int64)
+        for j, column in enumerate([] if columns is None else np.asarray(columns).tolist()):
+            pending = self._behaviour.setdefault(column, collections.deque(maxlen=2))
+            pending.append((int(actions[j]), float(behaviour[j]), self.num_updates))
+        return actions
 
-    def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
-        # V-trace needs log mu(a|x) of the policy that acted; act() cached it.
-        if self._last_action is not None and self._last_action[0] == int(action):
-            behaviour_log_prob = self._last_action[1]
-        else:  # the caller acted on its own: score its action under our policy
+    def prepare_envs(self, num_envs: int) -> None:
+        self._behaviour.clear()  # nothing acted before (e.g. an evaluation) is waiting for observe
+
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
+        columns = np.asarray(columns).tolist()
+        cached = [self._behaviour[c].popleft() if self._behaviour.get(c) else None for c in columns]
+        missing = [j for j, c in enumerate(cached) if c is None or c[0] != int(actions[j])]
+        if missing:  # V-trace needs log mu(a|x); the caller acted on its own: score under our policy
             with torch.no_grad():
-                logits, _ = self.model(self.obs_batch(obs))
-            behaviour_log_prob = float(torch.log_softmax(logits[0], dim=-1)[int(action)])
-        self._last_action = None
-        self._builder.add(obs, action, reward * self.config.reward_scale, next_obs, terminated, truncated,
-                          behaviour_log_prob)
+                logits, _ = self.model(obs_to_tensor(observations.take(obs, missing), self.device))
+            log_probs = torch.log_softmax(logits, dim=-1)
+            for row, j in enumerate(missing):
+                cached[j] = (int(actions[j]), float(log_probs[row, int(actions[j])]), self.num_updates)
+        rewards = np.asarray(rewards, np.float32) * self.config.reward_scale
+        for j, column in enumerate(columns):
+            _, log_mu, version = cached[j]
+            self._unrolls.add("self", column, observations.take(obs, j), actions[j], rewards[j],
+                              observations.take(next_obs, j), terminated[j], truncated[j], log_mu, version)
 
     def update(self) -> dict[str, float]:
-        if len(self._builder) >= self.config.unroll_length:
-            self._pending.append(self._builder.build())
-        if len(self._pending) < self.config.batch_size:
-            return {}
-        metrics = self.learn(self._pending)
-        self._pending = []
+        """Move full unrolls to the batch; one learner step per ``batch_size`` of them."""
+        config = self.config
+        metrics: dict[str, float] = {}
+        for _aid, _env, rollout, version in self._unrolls.take_ready(config.unroll_length):
+            self._pending.append(rollout)
+            self._lags.append(self.num_updates - version)  # updates since the unroll's first action
+            if len(self._pending) < config.batch_size:
+                continue
+            if config.anneal_lr:
+                for group in self.optimizer.param_groups:
+                    group["lr"] = config.learning_rate * self.progress_remaining
+            metrics = self.learn(self._pending)
+            metrics["charts/learning_rate"] = self.optimizer.param_groups[0]["lr"]
+            metrics["charts/policy_lag"] = float(np.mean(self._lags))
+            self._pending, self._lags = [], []
         return metrics
 
     def learn(self, trajectories: Sequence[Rollout]) -> dict[str, float]:
@@ -207,20 +220,20 @@ def train_impala(
     total_steps: int = 100_000,
     num_envs: int | None = None,
     seed: int = 0,
-    callback: Callable[[TrainProgress], bool | None] | None = None,
+    callback: Callable[[Progress], bool | None] | None = None,
     start_method: str = "spawn",
     agents: dict[str, IMPALA] | None = None,
     processes: bool | None = None,
 ) -> dict[str, IMPALA]:
     """Train one IMPALA agent per agent id: the learner here acts in N environments of one vector env.
 
-    Each vector step, every agent samples its actions in all the envs of a group
-    with one forward pass and keeps ``log mu(a|x)``; the transitions of each
-    (env, agent) are cut into unrolls of ``unroll_length``; ``batch_size`` unrolls
-    of an agent make one V-trace update. With worker processes the envs form two
-    groups: one steps while the learner acts and learns for the other, so
-    actions lag the weights (reported as ``charts/policy_lag``, in updates);
-    V-trace corrects that lag.
+    :func:`agents.loop.run_loop` on the vector env of ``env_fn``: each vector step, every
+    agent samples its actions in all the envs of a group with one forward pass and keeps
+    ``log mu(a|x)``; the transitions of each env are cut into unrolls of ``unroll_length``;
+    ``batch_size`` unrolls of an agent make one V-trace update. With worker processes the
+    envs form two groups: one steps while the learner acts and learns for the other, so
+    actions lag the weights (reported as ``charts/policy_lag``, in updates); V-trace
+    corrects that lag.
 
     Args:
         env_fn: Picklable zero-argument factory (a ParallelEnv, or a Gymnasium env
@@ -234,7 +247,7 @@ def train_impala(
         seed: Seeds network init (agent k: ``seed + k``) and the resets (env i,
             episode k: ``seed + i + k * N``). Same seed and N: same run.
         callback: Called after each group of envs stepped and was learnt from,
-            with a :class:`TrainProgress`; return True to stop early.
+            with the loop's :class:`~agents.loop.Progress`; return True to stop early.
         start_method: ``"spawn"`` or ``"forkserver"`` for the env worker processes.
         agents: Agents to continue training (e.g. loaded from checkpoints to resume);
             default: fresh agents built from ``config`` and ``seed``.
@@ -249,79 +262,12 @@ def train_impala(
         KeyboardInterrupt: On Ctrl-C/SIGTERM; every env worker is stopped first.
     """
     config = config if config is not None else IMPALAConfig()
-    agent_ids = list(agent_ids)
     if total_steps < 1:
         raise ValueError(f"need total_steps >= 1, got {total_steps}")
-    agents = agents_for(IMPALA, observation_space, action_space, agent_ids, config, seed, agents)
-    models = {aid: agent.model for aid, agent in agents.items()}
-    generators = {aid: agent.generator for aid, agent in agents.items()}
-    start = time.monotonic()
+    agents = agents_for(IMPALA, observation_space, action_space, list(agent_ids), config, seed, agents)
     venv = vector_env(env_fn, num_envs, start_method, processes)
     try:
-        check_agents(venv, agent_ids)
-        n = venv.num_envs
-        logger.info("IMPALA: %d environments (pids %s), %d steps", n, venv.pids, total_steps)
-        groups = [np.asarray(g) for g in venv.groups]
-        unrolls, tracker = Unrolls(), EpisodeTracker(venv.possible_agents, n)
-        pending: dict[str, list[Rollout]] = {aid: [] for aid in agent_ids}
-        lags: dict[str, list[int]] = {aid: [] for aid in agent_ids}
-
-        def act_and_send(group: np.ndarray, state) -> tuple:
-            acted, actions = act_for({a: models[a] for a in venv.possible_agents}, generators, group,
-                                     state.obs, state.alive, n)
-            venv.step_async(actions, group)
-            return acted, {aid: agents[aid].num_updates for aid in agent_ids}
-
-        loop_start = time.perf_counter()
-        state = venv.reset(seed=seed)
-        in_flight: dict[int, tuple] = {}
-        sent = env_steps = agent_steps = 0
-        for gi, group in enumerate(groups):
-            if sent < total_steps:
-                in_flight[gi] = act_and_send(group, state)
-                sent += group.size
-        stopping, gi = False, 0
-        while in_flight:
-            if gi not in in_flight:
-                gi = (gi + 1) % len(groups)
-                continue
-            group, (acted, versions) = groups[gi], in_flight.pop(gi)
-            state = venv.step_wait(group)
-            env_steps += group.size
-            agent_steps += record(unrolls, acted, state, config.reward_scale, versions)
-            episodes = tracker.record(state, group)
-            if not stopping and sent < total_steps:  # act before learning: the lag V-trace corrects
-                in_flight[gi] = act_and_send(group, state)
-                sent += group.size
-            metrics = _learn_ready(agents, unrolls, pending, lags, config, env_steps, total_steps)
-            progress = TrainProgress(env_steps, episodes, agents, venv.pids, time.monotonic() - start, metrics,
-                                     rates(env_steps, agent_steps, loop_start))
-            if callback is not None and callback(progress) and not stopping:
-                logger.info("IMPALA: callback stopped training at %d steps", env_steps)
-                stopping = True
-            gi = (gi + 1) % len(groups)
+        run_loop(agents, venv, total_steps, callback, seed=seed)
     finally:
         venv.close()
-        for agent in agents.values():  # in-process learning after this starts from the configured lr
-            linear_learning_rate(agent.optimizer, config.learning_rate, 0, total_steps)
-    logger.info("IMPALA: done, %d env steps in %.1f s", env_steps, time.monotonic() - start)
     return agents
-
-
-def _learn_ready(agents: dict[str, IMPALA], unrolls: Unrolls, pending: dict[str, list[Rollout]],
-                 lags: dict[str, list[int]], config: IMPALAConfig, env_steps: int,
-                 total_steps: int) -> dict[str, dict[str, float]]:
-    """Move full unrolls to their agent's batch; one learner step per agent whose batch is full."""
-    metrics: dict[str, dict[str, float]] = {}
-    for aid, _env, rollout, version in unrolls.take_ready(config.unroll_length):
-        pending[aid].append(rollout)
-        lags[aid].append(agents[aid].num_updates - version)  # updates since the unroll's first action
-        if len(pending[aid]) < config.batch_size:
-            continue
-        if config.anneal_lr:
-            linear_learning_rate(agents[aid].optimizer, config.learning_rate, env_steps, total_steps)
-        metrics[aid] = agents[aid].learn(pending[aid])
-        metrics[aid]["charts/learning_rate"] = agents[aid].optimizer.param_groups[0]["lr"]
-        metrics[aid]["charts/policy_lag"] = float(np.mean(lags[aid]))
-        pending[aid], lags[aid] = [], []
-    return metrics

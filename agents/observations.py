@@ -110,6 +110,13 @@ def copy(obs):
     return np.array(obs, copy=True)
 
 
+def rows(batch) -> int:
+    """The number of rows of a batch (of its first array, for a dict)."""
+    if isinstance(batch, Mapping):
+        batch = next(iter(batch.values()))
+    return len(batch)
+
+
 def asarray(obs):
     """``np.asarray(obs)``, key by key for a dict."""
     if isinstance(obs, Mapping):

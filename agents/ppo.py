@@ -1,6 +1,6 @@
 """Proximal Policy Optimisation (Schulman et al. 2017) for Discrete action spaces.
 
-Reads top to bottom: config, agent (act / observe / update), loss. The loss is
+Reads top to bottom: config, agent (act_batch / observe_batch / update), loss. The loss is
 the clipped surrogate PLUS an adaptive KL penalty, as in RLlib (which the
 paper used): ``coef *= 1.5`` when the KL exceeds twice its target, ``*= 0.5``
 when it falls below half of it. Advantages come from GAE over one rollout of
@@ -61,30 +61,17 @@ class PPO(Agent):
         self.kl_coef = cfg.kl_coef
         self.iterations = 0
         self.steps = 0
-        self._cache: tuple[int, float, float, np.ndarray] | None = None
         # act_batch's (action, log prob, value, logits) per env, oldest first: the vector loop acts
         # at t + 1 before it observes t, so up to two are pending (bounded for evaluation-only use)
         self._column_cache: dict[int, collections.deque] = {}
         self._column_next: dict[int, np.ndarray] = {}  # env -> next_obs of its last transition, if it went on
 
     # ---- acting -----------------------------------------------------------------------
-    @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> int:
-        logits, value = self.net(self.obs_batch(obs))
-        if deterministic:
-            action = int(logits.argmax(-1).item())
-        else:
-            probs = torch.softmax(logits, -1)
-            action = int(torch.multinomial(probs, 1, generator=self.generator).item())
-        log_prob = torch.log_softmax(logits, -1)[0, action].item()
-        self._cache = (action, log_prob, value.item(), logits[0].cpu().numpy())
-        return action
-
     def prepare_envs(self, num_envs: int) -> None:
         self._column_cache.clear()  # nothing acted before (e.g. an evaluation) is waiting for observe
 
     @torch.no_grad()
-    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
+    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
         logits, values = self.net(obs_to_tensor(obs, self.device))
         if deterministic:
             actions = logits.argmax(-1)
@@ -93,7 +80,7 @@ class PPO(Agent):
         log_probs = torch.log_softmax(logits, -1).gather(1, actions[:, None])[:, 0]
         actions_np, log_probs, values = actions.cpu().numpy(), log_probs.cpu().numpy(), values.cpu().numpy()
         logits = logits.cpu().numpy()
-        for j, column in enumerate(np.asarray(columns).tolist()):
+        for j, column in enumerate([] if columns is None else np.asarray(columns).tolist()):
             pending = self._column_cache.setdefault(column, collections.deque(maxlen=2))
             pending.append((int(actions_np[j]), float(log_probs[j]), float(values[j]), logits[j]))
         return actions_np
@@ -131,31 +118,6 @@ class PPO(Agent):
     @torch.no_grad()
     def _values(self, obs) -> np.ndarray:
         return self.net(obs_to_tensor(obs, self.device))[1].cpu().numpy()
-
-    @torch.no_grad()
-    def _value(self, obs: np.ndarray) -> float:
-        return self.net(self.obs_batch(obs))[1].item()
-
-    def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
-        action = int(action)
-        if self._cache is None or self._cache[0] != action:
-            # Transition did not come from our last act() (e.g. demonstrations): score it now.
-            with torch.no_grad():
-                logits, value = self.net(self.obs_batch(obs))
-            log_prob = torch.log_softmax(logits, -1)[0, action].item()
-            self._cache = (action, log_prob, value.item(), logits[0].cpu().numpy())
-        _, log_prob, value, logits = self._cache
-        self._cache = None
-        t = self.buffer.add(obs, action, log_prob, value, reward * self.config.reward_scale,
-                            terminated, truncated, logits)
-        self.steps += 1
-        if truncated and not terminated:
-            # Time limit, not a real end: bootstrap from the final observation (Pardo et al. 2018).
-            self.buffer.next_values[t] = self._value(next_obs)
-        if terminated or truncated:
-            self._column_next.pop(0, None)
-        elif self.buffer.full:
-            self._column_next[0] = observations.copy(next_obs)
 
     # ---- learning ---------------------------------------------------------------------
     def update(self) -> dict[str, float]:

@@ -14,7 +14,7 @@ import importlib
 from dataclasses import dataclass
 
 __all__ = ["ALGORITHMS", "ASYNC", "CATALOGUE", "CONTINUOUS", "DETERMINISTIC", "DISCRETE", "POLICY_NETWORKS", "STOCHASTIC", "TARGET_NETWORKS",
-           "Algorithm", "available", "get", "get_agent_class", "get_async_trainer", "get_config_class"]
+           "Algorithm", "available", "get", "get_agent_class", "get_actors", "get_async_trainer", "get_config_class"]
 
 
 @dataclass(frozen=True)
@@ -28,8 +28,9 @@ class Algorithm:
     action: str
     """``"discrete"`` (Discrete(9)) or ``"continuous"`` (Box(-1, 1, (2,)))."""
     loop: str
-    """``"sync"``: one process steps the environments (agents.loop.run_vector_loop);
-    ``"async"``: worker/actor processes, each with its own environment."""
+    """``"sync"`` or ``"async"`` (actors and learner apart, in the algorithm's design: IMPALA's
+    learner behind its actors' lag, A3C's actor-learners); both train on the one loop,
+    agents.loop.run_loop, with the same hooks."""
     policy: tuple[str, ...]
     """The networks (keys of ``agent.networks``) that choose actions: all a policy
     checkpoint keeps (agents/checkpoint.py; run folders' ``best.pt``)."""
@@ -45,11 +46,17 @@ class Algorithm:
     """The hyperparameter dataclass, ``"agents.configs:Class"`` (torch-free, so the layers above
     hold a typed config without importing the algorithm); the agent class's ``config_class``."""
     async_trainer: str = ""
-    """``loop == "async"``: the training function, ``"module:function"``, that runs its
-    worker processes (``agents.a3c:train_a3c``)."""
-    thread_per_env: bool = False
-    """``loop == "async"``: one learner thread per environment updates shared weights (A3C),
-    so each thread takes one torch thread; False: one learner (IMPALA)."""
+    """``loop == "async"``: the library's training function, ``"module:function"``, that
+    builds its vector env and runs the loop on it (``agents.a3c:train_a3c``)."""
+    actors: str = ""
+    """``"module:function"`` giving the loop's actor-learner threads (``run_loop(actors=...)``,
+    one thread per environment updating shared weights: A3C's ``actor_learners(agents, seed)``);
+    empty: the loop's agents act and learn in the loop's thread."""
+
+    @property
+    def thread_per_env(self) -> bool:
+        """One actor-learner thread per environment (:attr:`actors`), each taking one torch thread."""
+        return bool(self.actors)
 
 
 # ---------------------------------------------------------------------------------------
@@ -58,7 +65,7 @@ CATALOGUE: tuple[Algorithm, ...] = (
     Algorithm("ppo", "agents.ppo:PPO", "discrete", "sync", ("net",), stochastic=True,
               config="agents.configs:PPOConfig"),
     Algorithm("a3c", "agents.a3c:A3C", "discrete", "async", ("actor_critic",), stochastic=True,
-              config="agents.configs:A3CConfig", async_trainer="agents.a3c:train_a3c", thread_per_env=True),
+              config="agents.configs:A3CConfig", async_trainer="agents.a3c:train_a3c", actors="agents.a3c:actor_learners"),
     Algorithm("impala", "agents.impala:IMPALA", "discrete", "async", ("actor_critic",), stochastic=True,
               config="agents.configs:IMPALAConfig", async_trainer="agents.impala:train_impala"),
     Algorithm("dqn", "agents.dqn:DQN", "discrete", "sync", ("q_network",), stochastic=False,
@@ -133,13 +140,20 @@ def get_config_class(name: str):
     return _load(get(name).config)
 
 
+def get_actors(name: str):
+    """The actor-learner factory of ``name`` (:attr:`Algorithm.actors`), or None when its
+    agents act and learn in the loop's own thread."""
+    entry = get(name)
+    return _load(entry.actors) if entry.actors else None
+
+
 def get_async_trainer(name: str):
     """The training function of an ``async`` algorithm (:attr:`Algorithm.async_trainer`).
 
     Raises:
-        KeyError: If no algorithm has that name, or it trains in the sync loop.
+        KeyError: If no algorithm has that name, or it is a sync one (no such function).
     """
     entry = get(name)
     if not entry.async_trainer:
-        raise KeyError(f"{name} trains in the sync loop (agents.loop); async algorithms: {list(ASYNC)}")
+        raise KeyError(f"{name} has no asynchronous training function; async algorithms: {list(ASYNC)}")
     return _load(entry.async_trainer)

@@ -29,7 +29,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from agents import observations
 from agents.base import Agent
 
 __all__ = ["SharedSlot", "share", "shared_core"]
@@ -72,13 +71,13 @@ class SharedSlot(Agent):
         return self.core.optimizer_learning_rates
 
     @property
-    def _cache(self):
-        """The core's ``act()`` memo (the validator saves and restores it around its episodes)."""
-        return getattr(self.core, "_cache", None)
+    def progress_remaining(self) -> float:  # type: ignore[override]
+        """The core's: what the loop sets before ``update()`` reaches the one learner."""
+        return self.core.progress_remaining
 
-    @_cache.setter
-    def _cache(self, value) -> None:
-        self.core._cache = value
+    @progress_remaining.setter
+    def progress_remaining(self, value: float) -> None:
+        self.core.progress_remaining = value
 
     @classmethod
     def check_spaces(cls, observation_space, action_space) -> None:  # the core checked them
@@ -99,13 +98,6 @@ class SharedSlot(Agent):
 
     def act_batch(self, obs, columns, deterministic: bool = False) -> np.ndarray:
         return self.core.act_batch(obs, self._columns(columns), deterministic=deterministic)
-
-    def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
-        """One transition of this AC in environment 0, as its own column of the core."""
-        batch = lambda x: observations.stack([x])  # noqa: E731 - a batch of one
-        self.core.observe_batch(batch(obs), np.asarray([action]), np.asarray([reward], np.float32),
-                                batch(next_obs), np.asarray([terminated]), np.asarray([truncated]),
-                                self._columns([0]))
 
     def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
         self.core.observe_batch(obs, actions, rewards, next_obs, terminated, truncated,
@@ -138,8 +130,8 @@ def share(core: Agent, agent_ids: Sequence[str]) -> dict[str, SharedSlot]:
     """One :class:`SharedSlot` of ``core`` per AC id, in order (slot k is ``agent_ids[k]``).
 
     The core is prepared for one environment (``prepare_envs(len(agent_ids))``), so the slots
-    also work in the one-environment loop (agents.loop.run_loop); the vector loop prepares it
-    for its N environments.
+    also act and observe one row at a time (``act``/``observe``); the loop prepares it for its
+    N environments.
 
     Raises:
         ValueError: no AC ids, or a core that is itself a slot.

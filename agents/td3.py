@@ -5,7 +5,7 @@ target policy smoothing (clipped Gaussian noise on the target action) and
 delayed actor/target updates. ``agents/ddpg.py`` is this class with the tricks
 switched off (one critic, no target noise, policy delay 1), as in SB3.
 
-Reads top to bottom: config, agent (act / observe / update), losses.
+Reads top to bottom: config, agent (act_batch / observe_batch / update), losses.
 """
 
 from __future__ import annotations
@@ -105,30 +105,14 @@ class TD3(ReplayAgent):
 
     # ---- acting -----------------------------------------------------------------------
     @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        cfg = self.config
-        if not deterministic and self.steps < self.random_until:
-            # Uniform random warm-up fills the buffer with diverse actions (Fujimoto et al.).
-            return self.rng.uniform(self.random_low, self.high).astype(np.float32)
-        action = self.actor(self.critic.encode(self.obs_batch(obs)))[0].cpu().numpy()
-        if not deterministic:
-            action = action + self.rng.normal(0.0, cfg.exploration_noise, action.shape) * self.half_range
-        return np.clip(action, self.low, self.high).astype(np.float32)
-
-    @torch.no_grad()
-    def act_batch(self, obs: np.ndarray, columns: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        cfg, n = self.config, len(columns)
+    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        cfg, n = self.config, observations.rows(obs)
         if not deterministic and self.steps < self.random_until:
             return self.rng.uniform(self.random_low, self.high, (n, *self.low.shape)).astype(np.float32)
         actions = self.actor(self.critic.encode(obs_to_tensor(obs, self.device))).cpu().numpy()
         if not deterministic:
             actions = actions + self.rng.normal(0.0, cfg.exploration_noise, actions.shape) * self.half_range
         return np.clip(actions, self.low, self.high).astype(np.float32)
-
-    def observe(self, obs, action, reward, next_obs, terminated, truncated) -> None:
-        action = np.asarray(action, dtype=np.float32).reshape(self.action_space.shape)
-        self.buffer.add(obs, action, reward * self.config.reward_scale, next_obs, terminated, truncated)
-        self.steps += 1
 
     def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:
         scale = self.config.reward_scale

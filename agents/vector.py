@@ -25,7 +25,7 @@ only actions, rewards, flags and infos are pickled. The arrays in a :class:`VecS
 are views of that memory, valid until the next ``step``/``step_async``/``reset``: copy
 what you keep.
 ``step_async(actions)`` + ``step_wait()`` (what ``step`` does) let the caller
-learn while the workers step (:func:`agents.loop.run_vector_loop` does).
+learn while the workers step (:func:`agents.loop.run_loop` does).
 Both take ``envs=[...]`` to step a subset; threads that step DISJOINT sets of
 envs may call them concurrently (A3C's learner threads, ``agents/a3c.py``, each
 own one env index): each env has its own pipe and its own rows of the shared
@@ -257,7 +257,7 @@ class InProcessVectorEnv(_VectorBase):
         return self._assemble_reset([self._call(i, slot.reset, seed) for i, slot in enumerate(self.slots)])
 
     groups: list[np.ndarray]
-    """Env indices stepped as one group by run_vector_loop: in process, all at once."""
+    """Env indices stepped as one group by agents.loop.run_loop: in process, all at once."""
 
     def step_async(self, actions: Mapping[str, np.ndarray], envs=None) -> None:
         sent = self._envs(envs)
@@ -407,7 +407,7 @@ class VectorEnv(_VectorBase):
 
     @property
     def groups(self) -> list[np.ndarray]:
-        """Env indices stepped as one group by run_vector_loop: two halves (double buffering:
+        """Env indices stepped as one group by agents.loop.run_loop: two halves (double buffering:
         one half steps while the trainer acts and learns for the other), or all for N = 1."""
         envs = np.arange(self.num_envs)
         return [envs] if self.num_envs == 1 else [envs[: self.num_envs // 2], envs[self.num_envs // 2:]]

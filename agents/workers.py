@@ -2,8 +2,8 @@
 
 Every environment of a training run steps in ONE place: the vector env of
 ``agents/vector.py`` (worker processes, or in process for one env). This module
-holds what it and the asynchronous trainers (A3C, IMPALA, ``agents/async_env.py``)
-share, nothing algorithm-specific:
+holds what it, the loop (``agents/loop.py``) and the asynchronous algorithms'
+trainers (A3C, IMPALA, ``agents/async_env.py``) share, nothing algorithm-specific:
 
 * :func:`get_context` (``spawn`` or ``forkserver``, never ``fork``),
   :func:`_die_with_owner` (a worker dies with its owner, even on SIGKILL),
@@ -11,9 +11,9 @@ share, nothing algorithm-specific:
   :func:`live_pids` (which of some pids still run: the no-orphan checks).
 * :class:`Rollout` / :class:`RolloutBuilder`: one agent's consecutive
   transitions, the unit A3C learns from and IMPALA's learner batches.
-* :class:`EpisodeReport` and :class:`TrainProgress`: what an asynchronous
-  trainer hands its callback; :func:`agents_for`, :func:`make_parallel_env`,
-  :func:`linear_learning_rate`, :func:`private_copy`, :func:`worker_seed`.
+* :class:`EpisodeReport`: one finished episode of one environment, as the
+  loop's :class:`~agents.loop.Progress` reports it; :func:`agents_for`,
+  :func:`make_parallel_env`, :func:`private_copy`, :func:`worker_seed`.
 
 Workers ignore SIGINT, so a Ctrl-C in a terminal (delivered to the whole
 process group) is handled once, by the owner, which then closes them.
@@ -43,15 +43,12 @@ __all__ = [
     "EpisodeReport",
     "Rollout",
     "RolloutBuilder",
-    "TrainProgress",
     "WorkerError",
     "agents_for",
     "get_context",
-    "linear_learning_rate",
     "live_pids",
     "make_parallel_env",
     "private_copy",
-    "rates",
     "worker_seed",
 ]
 
@@ -375,27 +372,6 @@ def make_parallel_env(env_fn: Callable[[], Any]):
     )
 
 
-def rates(env_steps: int, agent_steps: int, since: float) -> dict[str, float]:
-    """Steady rates for :attr:`TrainProgress.timing`: steps per second since ``since`` (perf_counter)."""
-    elapsed = max(time.perf_counter() - since, 1e-9)
-    return {"time/env_steps_per_s": env_steps / elapsed, "time/agent_steps_per_s": agent_steps / elapsed}
-
-
-def linear_learning_rate(optimizer: torch.optim.Optimizer, base_lr: float, steps_done: int, total_steps: int) -> float:
-    """Set ``optimizer``'s learning rate to ``base_lr`` decayed linearly to 0 at ``total_steps``.
-
-    Used by IMPALA's learner; A3C's learner threads pass their learning rate to
-    :meth:`agents.a3c.SharedAdam.apply_gradients` instead (param groups are shared).
-
-    Returns:
-        The learning rate now in use.
-    """
-    lr = base_lr * max(0.0, 1.0 - steps_done / total_steps)
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    return lr
-
-
 def private_copy(module: torch.nn.Module) -> torch.nn.Module:
     """A copy of ``module`` with its own (not shared-memory) parameter storage.
 
@@ -407,29 +383,3 @@ def private_copy(module: torch.nn.Module) -> torch.nn.Module:
     for param in local.parameters():
         param.data = param.data.clone()  # never alias the shared storage, whatever deepcopy did
     return local
-
-
-@dataclass
-class TrainProgress:
-    """What an asynchronous trainer passes to its callback after each report.
-
-    Attributes:
-        env_steps: Environment steps taken so far, all environments counted.
-        episodes: Episodes that finished since the previous callback.
-        agents: The agents being trained (their weights are live).
-        worker_pids: Pids of the vector env's worker processes (none in process).
-        elapsed: Seconds since training started.
-        metrics: Agent id -> namespaced learning metrics of the updates this
-            report covers (empty for agents that did not learn), as in
-            :func:`agents.loop.run_loop`'s callback.
-    """
-
-    env_steps: int
-    episodes: list[EpisodeReport]
-    agents: dict[str, Any]
-    worker_pids: list[int]
-    elapsed: float
-    metrics: dict[str, dict[str, float]] = field(default_factory=dict)
-    timing: dict[str, float] = field(default_factory=dict)
-    """``time/env_steps_per_s`` and ``time/agent_steps_per_s`` since the first reset
-    (process and simulator start-up excluded), as in :meth:`agents.loop.LoopStats.summary`."""

@@ -83,13 +83,17 @@ def run(algo: str, seed: int, args) -> dict:
     env_fn = functools.partial(gymnasium.make, ENV_ID)
     evals: list[dict] = []
     state = {"next_eval": args.eval_every, "eval_time": 0.0, "solved": None}
+    # the catalogue's class and config (the trained agents, live, are the ones built here)
+    cls = registry.get_agent_class(algo)
+    config = cls.config_class.preset(args.preset)
+    agents = {"agent_0": cls.from_spaces(*spaces, config, seed=seed)}
     start = time.monotonic()
 
     def callback(progress) -> bool:
         if progress.env_steps < state["next_eval"]:
             return False
         state["next_eval"] = progress.env_steps + args.eval_every
-        frozen, steps = snapshot(progress.agents["agent_0"]), progress.env_steps
+        frozen, steps = snapshot(agents["agent_0"]), progress.env_steps
         t0 = time.monotonic()
         mean, played = evaluate(frozen, args.eval_episodes, target=args.target)
         state["eval_time"] += time.monotonic() - t0
@@ -102,10 +106,10 @@ def run(algo: str, seed: int, args) -> dict:
             return not args.full_budget
         return False
 
-    # the catalogue's config class and async training function (train_a3c, train_impala)
-    config = registry.get_agent_class(algo).config_class.preset(args.preset)
+    # the catalogue's async training function (train_a3c, train_impala)
     trained = registry.get_async_trainer(algo)(env_fn, *spaces, config=config, total_steps=args.total_steps,
-                                               num_envs=args.workers, seed=seed, callback=callback)
+                                               num_envs=args.workers, seed=seed, callback=callback,
+                                               agents=agents)
     wall = time.monotonic() - start
     solved = state["solved"]
     final_agent = solved["agent"] if solved and not args.full_budget else snapshot(trained["agent_0"])

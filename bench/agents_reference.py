@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from agents.envs import SingleAgentParallel
-from agents.loop import LoopStats, evaluate, run_loop
+from agents.loop import Progress, evaluate, run_loop
 from agents.registry import get_agent_class
 
 TASKS = {
@@ -94,8 +94,9 @@ def train_until(
         returns = evaluate({"agent_0": agent}, eval_env, eval_episodes, seed=10_000 + seed)
         return float(np.mean(returns["agent_0"]))
 
-    def callback(step: int, _stats: LoopStats, _metrics) -> bool:
+    def callback(progress: Progress) -> bool:
         nonlocal eval_time
+        step = progress.env_steps
         if step % eval_every != 0:
             return False
         start = time.perf_counter()

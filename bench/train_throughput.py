@@ -16,7 +16,7 @@ Every row uses the same torch thread count (--torch-threads, default 1): on a
 busy 2-core machine two OpenMP threads made one CNN forward 20x slower.
 A3C and IMPALA step the same vector env (`--envs N`: A3C one learner thread per
 environment, IMPALA one learner acting in all of them); their steady rate is
-the trainer's own clock from the first reset (agents/workers.py TrainProgress.timing).
+the trainer's own clock from the first reset (agents/loop.py Progress.timing).
 
     python bench/train_throughput.py [--steps 1500] [--envs 1 2] [--algos ppo dqn td3 a3c impala]
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo a3c impala dqn ddpg td3   # the presets' ACs

@@ -1,7 +1,7 @@
 """Does learning survive N environments? The ColourBar image task with 1 vs N envs.
 
 Same image configs as bench/agents_image_task.py (docs/agents.md, benchmark 2),
-trained through agents.loop.run_vector_loop on N ColourBar copies (worker
+trained through agents.loop.run_loop on N ColourBar copies (worker
 processes when N > 1), evaluated every 1,000 env steps (summed over the envs)
 on the 18-episode grid; target 90% of the optimum (7.0).
 
@@ -20,7 +20,7 @@ import torch
 from agents_image_task import BUDGETS, CONFIGS, TARGET, grid_score
 
 from agents.envs import ColourBar, SingleAgentParallel
-from agents.loop import run_vector_loop
+from agents.loop import run_loop
 from agents.registry import get_agent_class
 from agents.vector import make_vector_env
 
@@ -38,7 +38,8 @@ def run(algo: str, n: int, seed: int, budget: int) -> dict:
 
     last = [0]
 
-    def callback(step: int, stats, metrics) -> bool:
+    def callback(progress) -> bool:
+        step = progress.env_steps
         before, last[0] = last[0], step
         if step // 1000 > before // 1000:
             t0 = time.perf_counter()
@@ -50,7 +51,7 @@ def run(algo: str, n: int, seed: int, budget: int) -> dict:
     venv = make_vector_env([functools.partial(colour_bar, continuous) for _ in range(n)])
     t0 = time.perf_counter()
     try:
-        run_vector_loop({"agent_0": agent}, venv, total_steps=budget, callback=callback, seed=seed)
+        run_loop({"agent_0": agent}, venv, total_steps=budget, callback=callback, seed=seed)
     finally:
         venv.close()
     wall = time.perf_counter() - t0 - eval_time[0]

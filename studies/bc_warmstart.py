@@ -237,7 +237,8 @@ def fit(agent, data: list[dict], epochs: int, name: str) -> None:
 # -- 3. test -----------------------------------------------------------------------------------
 def test_clone(out: Path, path: Path, env_name: str, args) -> pd.DataFrame:
     """``OUT/test/<env>.parquet``: every slot driven by the clone (module docstring, step 3)."""
-    from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
+    from eval.testing.protocol import ProtocolPlan
+    from eval.testing.session import TestRequest, run_test
 
     done = out / "test" / f"{env_name}.parquet"
     if done.exists():
@@ -246,7 +247,8 @@ def test_clone(out: Path, path: Path, env_name: str, args) -> pd.DataFrame:
     steps = pilot_task.test_steps(args, env_name)
     plan = ProtocolPlan(envs=(env_name,), scenarios=(1,), episodes=args.test_episodes, steps=steps,
                         seed=HELD_OUT_SEED, agents=cfg.agents, rotate=False)
-    records = run_protocol(plan, policy_factory("trained", {"ppo": path}, fixed=("ppo",)), ["ppo"] * cfg.agents)
+    records = run_test(TestRequest(plan, ("ppo",) * cfg.agents, checkpoints={env_name: {"ppo": path}},
+                                   fixed=("ppo",))).records
     _write(records, done)
     return records
 

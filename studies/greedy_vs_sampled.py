@@ -23,7 +23,8 @@ import pandas as pd  # noqa: E402
 from eval.reporting.report import per_episode  # noqa: E402
 from eval.testing import selection  # noqa: E402
 from eval.testing.conditions import TestConditions  # noqa: E402
-from eval.testing.protocol import SAMPLED, drive, load_for_slot  # noqa: E402
+from eval.testing.loading import drive, load_for_slot  # noqa: E402
+from eval.testing.protocol import SAMPLED  # noqa: E402
 from eval.testing.rollout import run_episodes  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 

@@ -37,7 +37,7 @@ interval) and skips finished tests; the plan (preset, steps, seed, test) is kept
 ``OUT/plan.json`` and a rerun with another is refused.
 
 Test: each run's ACs drive together, each in the slot it was trained in with its own selected
-checkpoint (eval/testing/protocol.py ``slot_checkpoint``: best.pt, chosen by the run's own rule), under
+checkpoint (eval/testing/checkpoints.py ``slot_checkpoint``: best.pt, chosen by the run's own rule), under
 the test's rules (collisions go on, every contact step charged, the scenario's horizon, PPO
 sampling and DQN greedy), on the held-out episode seeds 10,000, 10,001, ...
 (eval.testing.validity.HELD_OUT_SEED), with background traffic, in the new task's environment except
@@ -349,7 +349,8 @@ def test_run(run: Path, algo: str, episodes: int, steps: int, env: str | None = 
     """The run's ACs together, each in its own slot with its own selected checkpoint, under
     the test's rules, in the run's scenario (its car) or ``env``, on the held-out seeds."""
     from eval.testing import selection
-    from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
+    from eval.testing.protocol import ProtocolPlan
+    from eval.testing.session import TestRequest, run_test
     from eval.training.runfolder import load_run_config
 
     cfg = load_run_config(run)
@@ -358,8 +359,8 @@ def test_run(run: Path, algo: str, episodes: int, steps: int, env: str | None = 
         raise PilotError(f"{run} has no checkpoint")
     plan = ProtocolPlan(envs=(env or cfg.env,), scenarios=(1,), episodes=episodes, steps=steps,
                         seed=HELD_OUT_SEED, agents=cfg.agents, rotate=False)
-    records = run_protocol(plan, policy_factory("trained", {algo: chosen.path}),
-                           [algo] * cfg.agents)
+    records = run_test(TestRequest(plan, (algo,) * cfg.agents,
+                                   checkpoints={plan.envs[0]: {algo: chosen.path}})).records
     slots = sorted(set(records["agent"]))
     paths = {s: selection.checkpoint_of(run, s) for s in slots}
     return records.assign(checkpoint=records["agent"].map(

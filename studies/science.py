@@ -17,7 +17,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
    finished runs of other ``cosim benchmark --train-only`` folders (say two processes of
    three algorithms each, one per core) are linked in instead, once their configs are
    checked against the plan's;
-2. test: per (environment, training seed) the test protocol (eval/testing/protocol.py) with that
+2. test: per (environment, training seed) one test session (eval/testing/session.py) with that
    seed's checkpoints on episode seeds from eval.testing.validity.HELD_OUT_SEED (10,000; training
    uses small seeds), saved as ``OUT/test/<env>__seed<k>.parquet``;
 3. references: the autopilot, uniform random and degenerate suite (eval/testing/validity.py) on the
@@ -409,8 +409,10 @@ def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, l
     """Held-out records of every (env, training seed in seeds_of[env]), from the cache where
     present; ``workers`` processes run each seed's episodes (the same records as one). A
     combined (env, seed) whose records stayed on another machine has its seed means instead
-    (:data:`KEPT`): it is skipped here and joins the results in :func:`kept_seeds`."""
-    from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol
+    (:data:`KEPT`): it is skipped here and joins the results in :func:`kept_seeds`. Each
+    (env, seed) is one test session (eval.testing.session.run_test), as `cosim test`'s."""
+    from eval.testing.protocol import ProtocolPlan
+    from eval.testing.session import TestRequest, run_test
 
     t = study["test"]
     frames = []
@@ -424,8 +426,8 @@ def test(plan: BenchmarkPlan, study: dict, out: Path, say, seeds_of: dict[str, l
                 pp = ProtocolPlan(envs=(env,), scenarios=tuple(t["scenarios"]),
                                   episodes=t["episodes"], steps=t["steps"], seed=HELD_OUT_SEED,
                                   agents=len(plan.algos))
-                records = run_protocol(pp, policy_factory("trained", checkpoints(
-                    plan, out / "bench", env, seed)), list(plan.algos), workers=workers)
+                records = run_test(TestRequest(pp, tuple(plan.algos), workers=workers, checkpoints={
+                    env: checkpoints(plan, out / "bench", env, seed)})).records
                 _write(records.assign(train_seed=seed), path)
                 say(f"tested {env} seed {seed} ({time.monotonic() - start:.0f} s)")
             frames.append(pd.read_parquet(path))

@@ -28,7 +28,8 @@ import science  # noqa: E402
 from eval.reporting.report import per_episode  # noqa: E402
 from eval.scale.benchmark import BenchmarkPlan  # noqa: E402
 from eval.testing import selection  # noqa: E402
-from eval.testing.protocol import ProtocolPlan, policy_factory, run_protocol  # noqa: E402
+from eval.testing.protocol import ProtocolPlan  # noqa: E402
+from eval.testing.session import TestRequest, run_test  # noqa: E402
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 COLUMNS = ["return", "goal", "CV", "CO", "OS", "SPEED"]
@@ -56,7 +57,7 @@ def main(argv=None) -> int:
         if not cache.exists():
             pp = ProtocolPlan(envs=(env,), scenarios=(1,), episodes=t["episodes"], steps=t["steps"],
                               seed=HELD_OUT_SEED, agents=len(plan.algos))
-            run_protocol(pp, policy_factory("trained", ck), list(plan.algos)).to_parquet(cache)
+            run_test(TestRequest(pp, tuple(plan.algos), checkpoints={env: ck})).records.to_parquet(cache)
         for acs, rec in ((3, base[base.scenario == 1]), (6, pd.read_parquet(cache))):
             per = per_episode(rec)
             per = per[per.algorithm == args.algo]

@@ -28,8 +28,8 @@ import yaml
 import agents
 from cosim.scenario import load_scenario, nets_dir
 from eval.testing.conditions import TestConditions
+from eval.testing.loading import drive
 from eval.testing.metrics import episode_metrics
-from eval.testing.protocol import drive
 from eval.testing.rollout import AutopilotPolicy, RandomPolicy, run_episodes
 from eval.training.train import DISCRETE_ALGOS, make_config, parse_set, train
 

@@ -44,6 +44,11 @@ def test_readme_fits_its_budget():
     assert lines <= README_MAX_LINES, f"README.md has {lines} lines; move detail to docs/"
 
 
+def test_no_readme_line_is_over_200_characters():
+    long = [n for n, line in enumerate((ROOT / "README.md").read_text().splitlines(), 1) if len(line) > 200]
+    assert not long, f"README.md lines over 200 characters: {long}; shorten or move the detail to docs/"
+
+
 @pytest.mark.parametrize("doc", doc_files(), ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_relative_link_reaches_a_file_and_its_heading(doc):
     broken = []

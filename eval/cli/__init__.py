@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 
 from eval.cli import learn, sim
+from eval.training.options import MAX_SEED, int_in, names_text
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -165,8 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--policy", choices=["autopilot", "random"], default="autopilot",
                    help="who drives the ACs: the scripted autopilot or uniform random actions")
     v.add_argument("--out", type=Path, default=Path("view"), help="output folder")
-    v.add_argument("--image-size", type=_int_in(8, 512), default=84, help="camera pixels (8-512)")
-    v.add_argument("--moments", type=_int_in(1), default=3, help="mosaics taken along the run")
+    v.add_argument("--image-size", type=int_in(8, 512), default=84, help="camera pixels (8-512)")
+    v.add_argument("--moments", type=int_in(1), default=3, help="mosaics taken along the run")
     v.add_argument("--extent", type=float, default=100.0,
                    help="metres across the top-down view beside the mosaic")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -180,87 +181,23 @@ def build_parser() -> argparse.ArgumentParser:
     n.set_defaults(func=sim.cmd_nets)
 
     # the catalogue (no algorithm imported) and the environments (the scenario files)
-    from agents.registry import ALGORITHMS, DETERMINISTIC, DISCRETE, STOCHASTIC
+    from agents.registry import ALGORITHMS, DETERMINISTIC, STOCHASTIC
     from eval.labels import ENVS
-    from eval.training.config import COLLISION_RULES, OBS_VARIANTS
+    from eval.training.options import add_flags
     from eval.training.runfolder import KEEP_POLICIES
 
     presets, preset_error = _preset_names()
 
     t = sub.add_parser("train", help="train N ACs of one algorithm together (or --algo all)")
-    t.add_argument("--algo", default="ppo",
-                   help=f"{', '.join(ALGORITHMS)}, or all (every one, in parallel where CPUs allow)")
-    t.add_argument("--env", default="env_1", help=f"{_names(ENVS)} or a scenario .yaml")
-    t.add_argument("--agents", type=int, default=None, help="learning cars (default: from the preset)")
-    t.add_argument("--steps", type=int, default=None,
-                   help="environment steps (default: from the preset); with --resume, the run's new budget")
-    t.add_argument("--seed", type=_seed, default=0, help="seed of the run (environments, weights, exploration)")
-    t.add_argument("--preset", default="quick", choices=presets or None,
-                   help=f"run preset, from eval/training/hyperparams/runs.yaml: {', '.join(presets)}")
-    t.add_argument("--action-type", choices=["discrete", "continuous"], default=None,
-                   help=f"must match the algorithm (discrete: {' '.join(DISCRETE)}; default: the "
-                        "algorithm's own)")
-    t.add_argument("--agent-preset", default=None,
-                   help="hyperparameters: default or paper (default: the run preset's)")
-    t.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="hyper",
-                   help="change one agent hyperparameter, e.g. --set learning_rate=3e-4 (repeatable)")
+    add_flags(t, "train", choices={"preset": presets})  # the run's options: eval/training/options.py
     t.add_argument("--out", type=Path, default=Path("runs"), help="folder for run folders")
     t.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
                    help="continue an interrupted run from its last checkpoint (default: start a new run)")
-    t.add_argument("--envs", type=int, default=None,
-                   help="environments stepped together, one process each when > 1, every algorithm "
-                        "(default: the preset's envs; a3c/impala: its workers)")
-    t.add_argument("--frame-stack", type=_int_in(1), default=None, metavar="K",
-                   help="camera frames per observation, stacked oldest first (84x84x3K; default: the "
-                        "preset's, 1 = the paper's single frame); tests of the run stack K too")
-    t.add_argument("--obs", choices=OBS_VARIANTS, default="image",
-                   help="what an AC observes: image (default: its camera frames, the paper's), nav "
-                        "(the frames beside speed, route command and distance to the goal) or state "
-                        "(65 numbers: route geometry, goal, signal, nearest cars and people; cameras "
-                        "off, frame stack 1; docs/task.md, Observation); tests of the run build the "
-                        "same for its ACs")
-    t.add_argument("--collisions", choices=COLLISION_RULES, default="event",
-                   help="event (default): as in the test, the episode goes on and each collision "
-                        "event is charged once; step: every contact step is charged (task version "
-                        "3); end: a collision ends the AC's training episode (the paper's rule; "
-                        "docs/task.md, Collision rule)")
-    t.add_argument("--share-params", action="store_true",
-                   help="the run's ACs act with ONE network that learns from all their transitions "
-                        "(parameter sharing; default: one network per AC, the paper's; ppo dqn ddpg "
-                        "td3; docs/agents.md)")
-    t.add_argument("--stall-truncate", type=_int_in(0), default=0, metavar="N",
-                   help="truncate a training episode once every AC has stood still N steps away from "
-                        "a red light: more attempts per env step, the test's rewards (default 0: off; "
-                        "docs/task.md, Collision rule)")
-    t.add_argument("--demo-steps", type=_int_in(0), default=0, metavar="N",
-                   help="dqn ddpg td3: first drive N env steps (whole episodes) with the scripted "
-                        "autopilot and put every AC's transitions in its replay as demonstrations; "
-                        "not counted in --steps (default 0: none; docs/agents.md, Demonstrations)")
-    t.add_argument("--demo-updates", type=_int_in(0), default=0, metavar="N",
-                   help="with --demo-steps: N gradient steps on the demonstrations before the first "
-                        "env step (DQfD's pre-training; default 0); their losses: dqn --set "
-                        "demo_margin=0.8, ddpg td3 --set demo_bc=W")
-    t.add_argument("--init-from", type=Path, default=None, metavar="RUN_OR_CKPT",
-                   help="warm start: each AC's policy weights from this run folder (its ac_k/best.pt) "
-                        "or checkpoint, same algorithm and --obs; optimizers and exploration start "
-                        "fresh (a curriculum; default: random weights; docs/agents.md)")
-    t.add_argument("--validation-episodes", type=_int_in(0), default=None, metavar="N",
-                   help="held-out episodes under the test's rules at every checkpoint that pick each "
-                        "AC's best.pt (default: the preset's, else 2; 0: off, best.pt by training "
-                        "return; docs/task.md)")
-    t.add_argument("--validation-steps", type=_int_in(1), default=None, metavar="STEPS",
-                   help="steps per validation episode (default: the preset's horizon, at most the "
-                        "scenario's: quick 300, standard 600)")
-    t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
-                   help="torch device of the learners (auto: cuda when available)")
-    t.add_argument("--torch-threads", type=int, default=0, metavar="K",
-                   help="torch threads in the trainer (0: the CPUs the env workers leave, shared among the learner threads)")
-    t.add_argument("--learner-threads", type=int, default=0, metavar="K",
-                   help="ACs updating at once on K threads (0: one per AC up to the CPUs); "
-                        "the result is the same for any K")
-    t.add_argument("--pbt", type=_int_in(2), default=None, metavar="P",
+    # how `--algo all` hands each of its runs its options (RunOptions.to_json); not for users
+    t.add_argument("--options", default=None, metavar="JSON", help=argparse.SUPPRESS)
+    t.add_argument("--pbt", type=int_in(2), default=None, metavar="P",
                    help="Population Based Training on Ray Tune with P trials (eval/scale/pbt.py)")
-    t.add_argument("--pbt-interval", type=_int_in(1), default=None, metavar="STEPS",
+    t.add_argument("--pbt-interval", type=int_in(1), default=None, metavar="STEPS",
                    help="environment steps between PBT exploit/explore decisions (default: the "
                         "preset's checkpoint interval)")
     t.add_argument("--ray-address", default=None, metavar="ADDR",
@@ -276,16 +213,16 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--algos", nargs="+", default=None, choices=list(ALGORITHMS), metavar="ALGO",
                    help="the algorithms tested, one AC each (default: the first --agents of that order)")
     e.add_argument("--envs", nargs="+", default=list(ENVS), metavar="ENV",
-                   help=f"environments tested: {_names(ENVS)} or scenario .yaml files")
+                   help=f"environments tested: {names_text(ENVS)} or scenario .yaml files")
     e.add_argument("--scenario", choices=["1", "2", "both"], default="both",
                    help="1: the ACs together in traffic; 2: each AC alone; both")
-    e.add_argument("--episodes", type=_int_in(1), default=3, help="episodes per environment and scenario")
-    e.add_argument("--steps", type=_int_in(1), default=500, help="steps per episode")
+    e.add_argument("--episodes", type=int_in(1), default=3, help="episodes per environment and scenario")
+    e.add_argument("--steps", type=int_in(1), default=500, help="steps per episode")
     e.add_argument("--seed", type=_seed, default=0, help="seed of the first episode (episode e: seed + e)")
     e.add_argument("--fixed-slots", action="store_true",
                    help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "
                         "turns at the spawn slots, one step per episode)")
-    e.add_argument("--workers", type=_int_in(1), default=1, metavar="N",
+    e.add_argument("--workers", type=int_in(1), default=1, metavar="N",
                    help="processes that run the test's episodes, one torch thread each (the "
                         "records are the same with any number; default 1)")
     e.add_argument("--greedy", action="store_true",
@@ -312,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--cross-play", action="store_true",
                    help="also the cross-play matrix: each algorithm's AC among ACs of each other "
                         "algorithm and among autopilots (eval/testing/robustness.py)")
-    e.add_argument("--cross-play-group", type=_int_in(2, 6), default=3, metavar="N",
+    e.add_argument("--cross-play-group", type=int_in(2, 6), default=3, metavar="N",
                    help="ACs per cross-play episode: the ego and N-1 partners (default 3)")
     e.add_argument("--sweep", action="append", default=[], metavar="KIND=L1,L2",
                    help="also a robustness sweep (repeatable): density=0.5,1,2, camera_noise=0,0.05, "
@@ -333,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("check-scenarios",
                        help="run the degenerate-policy suite: does a scenario measure driving?")
     c.add_argument("scenarios", nargs="*", default=list(ENVS),
-                   help=f"{_names(ENVS)} or scenario .yaml files (default: all of them)")
+                   help=f"{names_text(ENVS)} or scenario .yaml files (default: all of them)")
     c.add_argument("--agents", type=int, nargs="+", default=[3, 6], help="AC counts to check")
     c.add_argument("--episodes", type=int, default=5, help="held-out episodes per policy")
     c.add_argument("--steps", type=int, default=None, help="steps per episode (default: horizon)")
@@ -368,7 +305,7 @@ def _refuse(error: Exception):
 def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | None) -> None:
     from agents.registry import ALGORITHMS
     from eval.labels import ENVS
-    from eval.training.config import COLLISION_RULES, OBS_VARIANTS
+    from eval.training.options import add_flags
     from eval.training.runfolder import KEEP_POLICIES
 
     trials = len(ENVS) * len(ALGORITHMS)
@@ -378,42 +315,23 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
         description=f"Train every (algorithm, environment, seed) as a Ray Tune trial, test them "
                     f"(Scenario 1 and 2 in each environment) and write the report. Without options "
                     f"it runs the `standard` preset: {len(ALGORITHMS)} algorithms x {len(ENVS)} "
-                    f"environments x 1 seed = {trials} trials of 27-41 min of learning each on a "
-                    f"2-core machine with 4 frames (~{trials * 34 * 1.24 / 60:.0f} h with validation, "
-                    "docs/benchmarks.md), then the test with the whole reference suite. "
-                    "Start with --preset smoke (the same grid at 120 steps per trial, a few minutes).")
-    b.add_argument("--preset", choices=presets or None, default="standard",
-                   help="run preset (eval/training/hyperparams/runs.yaml); standard: 27-41 min of "
-                        "learning per trial on 2 cores, smoke: under a minute")
+                    f"environments x 1 seed = {trials} trials, then the test with the whole reference "
+                    "suite (how long each takes: docs/benchmarks.md). Start with --preset smoke (the "
+                    "same grid with short trials: it checks the pipeline).")
     b.add_argument("--envs", nargs="+", default=list(ENVS), metavar="ENV",
-                   help=f"environments of the grid: {_names(ENVS)} or scenario .yaml files")
+                   help=f"environments of the grid: {names_text(ENVS)} or scenario .yaml files")
     b.add_argument("--algos", nargs="+", default=list(ALGORITHMS), metavar="ALGO",
                    help=f"algorithms of the grid: {' '.join(ALGORITHMS)}")
-    b.add_argument("--seeds", type=_int_in(1), default=1, metavar="K",
+    b.add_argument("--seeds", type=int_in(1), default=1, metavar="K",
                    help="seeds 0..K-1 per (algorithm, environment), or from --first-seed")
     b.add_argument("--first-seed", type=_seed, default=0, metavar="S",
                    help="train seeds S..S+K-1 (default 0): a grid in parts, e.g. seed 1 alone; "
                         "each cell is the one a benchmark from seed 0 trains")
-    b.add_argument("--steps", type=_int_in(1), default=None,
-                   help="environment steps per trial (default: the preset's)")
-    b.add_argument("--agents", type=_int_in(1), default=None, metavar="N",
-                   help="ACs each trial trains (default: the preset's, 6 for quick/standard/paper)")
-    b.add_argument("--collisions", choices=COLLISION_RULES, default="event",
-                   help="training episodes at a collision (as `cosim train --collisions`; default "
-                        "event: the test's rule, docs/task.md)")
-    b.add_argument("--obs", choices=OBS_VARIANTS, default="image",
-                   help="what the ACs observe (as `cosim train --obs`: image, nav or state; default "
-                        "image, the paper's)")
-    b.add_argument("--share-params", action="store_true",
-                   help="one network per trial for all its ACs in ppo dqn ddpg td3 (as `cosim train "
-                        "--share-params`; a3c and impala stay one per AC; default: one per AC)")
-    b.add_argument("--demo-steps", type=_int_in(0), default=0, metavar="N",
-                   help="the demonstration variant: dqn ddpg td3 trials put N env steps of the "
-                        "autopilot's driving in their replays, pre-train on them and learn with "
-                        "the variant's losses (docs/agents.md, Demonstrations); default 0: off")
+    # the run options every trial takes (those declared `benchmark` in eval/training/options.py)
+    add_flags(b, "benchmark", choices={"preset": presets})
     b.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="an existing Ray cluster (HOST:PORT of `ray start --head`); default: local Ray")
-    b.add_argument("--concurrent", type=_int_in(1), default=None, metavar="N",
+    b.add_argument("--concurrent", type=int_in(1), default=None, metavar="N",
                    help="trials at once (default: the CPUs here, or unlimited on a cluster)")
     b.add_argument("--gpus-per-trial", type=float, default=0.0, metavar="F", help="GPU share of each trial (Ray resources)")
     b.add_argument("--no-ray", action="store_true",
@@ -436,41 +354,17 @@ def _benchmark_parser(sub, presets: tuple[str, ...], preset_error: Exception | N
 def _scenario_args(p: argparse.ArgumentParser, steps: int) -> None:
     from eval.labels import ENVS
 
-    p.add_argument("scenario", nargs="?", default="env_3", help=f"{_names(ENVS)} or a scenario .yaml")
-    p.add_argument("--agents", type=_int_in(1, 6), default=None,
+    p.add_argument("scenario", nargs="?", default="env_3", help=f"{names_text(ENVS)} or a scenario .yaml")
+    p.add_argument("--agents", type=int_in(1, 6), default=None,
                    help="learning cars (default: every spawn point of the scenario)")
-    p.add_argument("--steps", type=_int_in(1), default=steps, help="simulation steps")
+    p.add_argument("--steps", type=int_in(1), default=steps, help="simulation steps")
     p.add_argument("--seed", type=_seed, default=0, help="seed of the episode (traffic, spawn order)")
     p.add_argument("--no-background", action="store_true", help="no background cars")
     p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians")
 
 
-def _names(envs) -> str:
-    """``env_1..env_5`` for the bundled environments (a run of names), else the names listed."""
-    return f"{envs[0]}..{envs[-1]}" if len(envs) > 2 else ", ".join(envs)
-
-
-MAX_SEED = 2**31 - 1
-"""The largest ``--seed``: SUMO's seeds are below 2^31 (and torch's generators take < 2^64)."""
-
-
 def _seed(text: str) -> int:
     """An argparse type: a seed, a whole number 0..MAX_SEED (issue 57: -1 and 10^22 were
     unexpected errors from numpy and torch)."""
-    return _int_in(0, MAX_SEED)(text)
-
-
-def _int_in(low: int, high: int | None = None):
-    """An argparse type: an int in [low, high]; the error names the value and the range."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-        if value < low or (high is not None and value > high):
-            span = f"{low}..{high}" if high is not None else f">= {low}"
-            raise argparse.ArgumentTypeError(f"must be {span}, got {value}")
-        return value
-
-    return parse
+    return int_in(0, MAX_SEED)(text)
 

@@ -56,9 +56,7 @@ def cmd_train(args) -> int:
 
 
 def _cmd_train(args) -> int:
-
-    from eval.training.config import ASYNC_ALGOS
-    from eval.training.train import ALGORITHMS, TrainError, make_config, parse_set, train
+    from eval.training.train import TrainError, resolve, train
 
     if args.pbt is not None or (args.resume is not None and (args.resume / "pbt.json").exists()):
         return _train_pbt(args)
@@ -67,25 +65,13 @@ def _cmd_train(args) -> int:
             run = train(None, resume=args.resume, quiet=args.quiet, keep=args.keep, steps=args.steps)
             print(f"run folder: {run}")
             return 0
-        if args.init_from is not None and args.algo == "all":
+        options = _run_options(args)
+        if options.init_from is not None and options.algo == "all":
             raise TrainError("--init-from warm-starts one algorithm from its own run; choose it with --algo")
-        if (args.demo_steps or args.demo_updates) and args.algo == "all":
+        if (options.demo_steps or options.demo_updates) and options.algo == "all":
             raise TrainError("--demo-steps fills one replay learner's buffer; choose it with --algo dqn, ddpg or td3")
-        algos = list(ALGORITHMS) if args.algo == "all" else [args.algo]
-        hyper = parse_set(args.hyper)
-        configs = [
-            make_config(a, args.env, args.preset, agents=args.agents, steps=args.steps,
-                        seed=args.seed, action_type=args.action_type, agent_preset=args.agent_preset,
-                        hyper=hyper, envs=args.envs, device=args.device, collisions=args.collisions,
-                        torch_threads=args.torch_threads, frame_stack=args.frame_stack,
-                        obs=args.obs, learner_threads=args.learner_threads,
-                        validation_episodes=args.validation_episodes,
-                        validation_steps=args.validation_steps,
-                        share_params=args.share_params and (args.algo != "all" or a not in ASYNC_ALGOS),
-                        init_from=args.init_from, stall_truncate=args.stall_truncate,
-                        demo_steps=args.demo_steps, demo_updates=args.demo_updates)
-            for a in algos
-        ]
+        runs = [options.for_algo(a) for a in options.algos] if options.algo == "all" else [options]
+        configs = [resolve(o) for o in runs]  # every refusal before the first run starts
     except TrainError as exc:
         print(f"cosim train: error: {exc}", file=sys.stderr)
         return 2
@@ -97,16 +83,35 @@ def _cmd_train(args) -> int:
             return 2
         print(f"run folder: {run}")
         return 0
-    return _train_all(args, configs)
+    return _train_all(args, runs, configs)
+
+
+def _run_options(args):
+    """The run options of a `cosim train` command line (eval/training/options.py), or those an
+    ``--algo all`` parent handed this run (``--options JSON``, then no run-option flag may be given).
+
+    Raises:
+        TrainError: a refused option, or ``--options`` beside run-option flags.
+    """
+    from eval.training.options import RunOptions, TrainError, declared
+
+    flags = RunOptions.from_args(args)
+    if args.options is None:
+        return flags
+    if flags != RunOptions():
+        given = " ".join(spec.flag for name, spec in declared() if name in flags.changed())
+        raise TrainError(f"--options holds the run's options: give {given} there, not as flags beside it")
+    return RunOptions.from_json(args.options)
 
 
 LINE = re.compile(r"^\[(?P<algo>\w+) \S+\] step (?P<step>\d+)/(?P<steps>\d+)")
 """A --quiet training run's progress line (eval/training/trainer.py, _report)."""
 
 
-def _train_all(args, configs) -> int:
-    """``cosim train --algo all``: one `cosim train --quiet` process per algorithm, as many at
-    once as there are CPUs, under one progress bar over all their steps (their log lines,
+def _train_all(args, runs, configs) -> int:
+    """``cosim train --algo all``: one `cosim train --quiet` process per algorithm, started with
+    its run options (``runs``, RunOptions.for_algo; ``configs``, what they resolve to), as many
+    at once as there are CPUs, under one progress bar over all their steps (their log lines,
     every few seconds, move it; other lines are printed above it; ``--quiet``: the lines only)."""
     import queue
     import subprocess
@@ -118,13 +123,13 @@ def _train_all(args, configs) -> int:
     print(f"training {len(configs)} algorithms, {parallel} at a time", flush=True)
     steps = {c.algo: c.steps for c in configs}
     pending = [c.algo for c in configs]
+    options = {o.algo: o for o in runs}
     running: dict[str, subprocess.Popen] = {}
     done_steps = dict.fromkeys(steps, 0)
     failed, lines = [], queue.Queue()
     bar = tqdm(total=sum(steps.values()), unit="step", desc="train all", dynamic_ncols=True,
                disable=args.quiet, smoothing=0.05)
     say = print if args.quiet else bar.write
-    base = _train_command(args)
     env = {**os.environ, "PYTHONUNBUFFERED": "1", OWNER_ENV: str(os.getpid())}  # they die with this process
     if not args.quiet:  # their lines move the bar: a line every few seconds
         env["COSIM_LOG_EVERY_S"] = os.environ.get("COSIM_LOG_EVERY_S", "5")
@@ -162,7 +167,7 @@ def _train_all(args, configs) -> int:
         while pending or running:
             while pending and len(running) < parallel:
                 algo = pending.pop(0)
-                running[algo] = subprocess.Popen(_algo_command(args, base, algo), stdout=subprocess.PIPE,
+                running[algo] = subprocess.Popen(_child_command(args, options[algo]), stdout=subprocess.PIPE,
                                                  text=True, env=env)
                 pumps[algo] = threading.Thread(target=pump, args=(algo, running[algo].stdout), daemon=True)
                 pumps[algo].start()
@@ -196,13 +201,11 @@ def _say_stopping(algos: list[str], out) -> None:
               f"`cosim train --resume RUN` (run folders under {out})", file=sys.stderr, flush=True)
 
 
-def _algo_command(args, base: list[str], algo: str) -> list[str]:
-    """One algorithm's `cosim train` of ``--algo all`` (A3C and IMPALA share no parameters)."""
-    from eval.training.config import ASYNC_ALGOS
-
-    envs = [] if args.envs is None else ["--envs", str(args.envs)]
-    own = [a for a in base if a != "--share-params" or algo not in ASYNC_ALGOS]
-    return own + envs + ["--algo", algo]
+def _child_command(args, options) -> list[str]:
+    """The `cosim train` process of one algorithm of ``--algo all``: its run options as one JSON
+    object (RunOptions.to_json), where its run folder goes and what it keeps."""
+    return [sys.executable, "-m", "eval.cli", "train", "--options", options.to_json(), "--out", str(args.out),
+            "--keep", args.keep, "--quiet"]
 
 
 def _stop_children(procs, grace_s: float = 30.0) -> None:
@@ -223,37 +226,10 @@ def _stop_children(procs, grace_s: float = 30.0) -> None:
             proc.wait()
 
 
-def _train_command(args) -> list[str]:
-    """The `cosim train` command line of one algorithm of ``--algo all`` (without --algo/--envs)."""
-    base = [sys.executable, "-m", "eval.cli", "train", "--env", args.env, "--preset", args.preset,
-            "--seed", str(args.seed), "--out", str(args.out), "--quiet", "--device", args.device,
-            "--torch-threads", str(args.torch_threads), "--collisions", args.collisions,
-            "--obs", args.obs, "--keep", args.keep]
-    if args.agents is not None:
-        base += ["--agents", str(args.agents)]
-    if args.steps is not None:
-        base += ["--steps", str(args.steps)]
-    if args.agent_preset is not None:
-        base += ["--agent-preset", args.agent_preset]
-    if args.frame_stack is not None:
-        base += ["--frame-stack", str(args.frame_stack)]
-    for flag, value in (("--validation-episodes", args.validation_episodes),
-                        ("--validation-steps", args.validation_steps)):
-        if value is not None:
-            base += [flag, str(value)]
-    for item in args.hyper:
-        base += ["--set", item]
-    if args.share_params:  # _train_all drops it for a3c and impala (they cannot share)
-        base += ["--share-params"]
-    if args.stall_truncate:
-        base += ["--stall-truncate", str(args.stall_truncate)]
-    return base
-
-
 def _train_pbt(args) -> int:
     from eval.scale.pbt import run_pbt
     from eval.scale.raysession import ray_available
-    from eval.training.train import TrainError, make_config, parse_set
+    from eval.training.train import TrainError, resolve
 
     if not ray_available():
         print("cosim train: error: --pbt needs Ray Tune, which is not installed; install it with: "
@@ -262,17 +238,11 @@ def _train_pbt(args) -> int:
     try:
         cfg = None
         if args.resume is None:
-            if args.algo == "all":
+            options = _run_options(args)
+            if options.algo == "all":
                 raise TrainError("--pbt trains one algorithm; choose it with --algo")
-            cfg = make_config(args.algo, args.env, args.preset, agents=args.agents, steps=args.steps,
-                              seed=args.seed, action_type=args.action_type,
-                              agent_preset=args.agent_preset, hyper=parse_set(args.hyper),
-                              envs=args.envs, device=args.device, torch_threads=args.torch_threads or 1,
-                              frame_stack=args.frame_stack, obs=args.obs, collisions=args.collisions,
-                              validation_episodes=args.validation_episodes,
-                              validation_steps=args.validation_steps, share_params=args.share_params,
-                              init_from=args.init_from, stall_truncate=args.stall_truncate,
-                        demo_steps=args.demo_steps, demo_updates=args.demo_updates)
+            # the trials share the CPUs: at least one torch thread each
+            cfg = resolve(options.replace(torch_threads=options.torch_threads or 1))
         folder = run_pbt(cfg, args.pbt or 0, args.pbt_interval, args.out, resume=args.resume,
                          address=args.ray_address)
     except TrainError as exc:
@@ -291,16 +261,14 @@ def cmd_test(args) -> int:
 def _cmd_test(args) -> int:
     import datetime as dt
 
-    from eval.testing.protocol import ALGO_ORDER, ProtocolError, ProtocolPlan, run_protocol
+    from eval.testing.protocol import ALGO_ORDER, ProtocolError, ProtocolPlan
+    from eval.testing.validity import POLICIES
 
     if args.algos:  # paper order, one AC each
         args.agents = len(set(args.algos))
     if not 1 <= args.agents <= 6:
         print("cosim test: error: --agents must be 1..6 (one AC per algorithm)", file=sys.stderr)
         return 2
-    from eval.testing.protocol import reference_rows
-    from eval.testing.validity import POLICIES
-
     refs_wanted = (list(POLICIES) if args.references == "all" else []
                    if args.references == "none" else args.references.split(","))
     unknown = sorted(set(refs_wanted) - set(POLICIES))
@@ -317,39 +285,62 @@ def _cmd_test(args) -> int:
     for env_name in plan.envs:  # a bad name fails now, not after the first environments ran
         load_scenario(env_name)
     try:
-        from eval.testing.robustness import parse_sweeps
-
-        sweeps = parse_sweeps(args.sweep)
-        given = _checkpoint_slots(args.checkpoint, algos)
-        if given and args.policy != "trained":
-            raise ProtocolError(f"--checkpoint is for --policy trained, not --policy {args.policy}")
-        per_env, factory = _test_policies(args, plan, algos, given)
+        request = _test_request(args, plan, algos, refs_wanted)
+        _ = request.policies  # each checkpoint loads now: a bad file fails before the folder is made
     except ProtocolError as exc:
         print(f"cosim test: error: {exc}", file=sys.stderr)
         return 2
-    out = _test_folder(args, dt.datetime.now().strftime("%Y%m%d-%H%M%S"))
+    return _write_test(args, request, _test_folder(args, dt.datetime.now().strftime("%Y%m%d-%H%M%S")))
+
+
+def _test_request(args, plan, algos: list[str], references: list[str]):
+    """The test session `cosim test`'s options ask for (eval.testing.session.TestRequest).
+
+    Raises:
+        ProtocolError: a bad --sweep or --checkpoint, no checkpoint, or a cross-environment test
+            without --allow-cross-env.
+    """
+    from eval.reporting.report import slot_label
+    from eval.testing.protocol import ProtocolError
+    from eval.testing.robustness import parse_sweeps
+    from eval.testing.session import TestRequest
+
+    sweeps = parse_sweeps(args.sweep)
+    given = _checkpoint_slots(args.checkpoint, algos)
+    if given and args.policy != "trained":
+        raise ProtocolError(f"--checkpoint is for --policy trained, not --policy {args.policy}")
+    return TestRequest(plan, tuple(algos), checkpoints=_test_checkpoints(args, plan, algos, given),
+                       policy=args.policy, fixed=tuple(given), references=tuple(references),
+                       replays=not args.no_replays, labels={a: slot_label(args.policy, a) for a in algos},
+                       cross_play=args.cross_play_group if args.cross_play else 0, sweeps=sweeps,
+                       workers=args.workers)
+
+
+def _write_test(args, request, out: Path) -> int:
+    """Run `cosim test`'s session into ``out`` (eval.testing.session.run_test), then its report."""
     from eval.reporting.report import provenance, write_paper_report
     from eval.testing import selection
-    from eval.testing.protocol import slot_summary, slot_table, slots_markdown
+    from eval.testing.protocol import ProtocolError
+    from eval.testing.session import run_test
+    from eval.testing.slots import slot_summary, slots_markdown
 
-    slots = slot_table(per_env, plan, algos, fixed=given) if per_env else None
+    plan, algos, given = request.plan, list(request.algos), request.fixed
+    slots = request.slots
     if slots is not None:  # which checkpoint drives which slot where: console and report
         print(f"checkpoints per environment and slot (slots.csv):\n{slot_summary(slots)}")
         slots.to_csv(out / "slots.csv", index=False)
     # provenance first: the code, checkpoints and hashes as they are when the test starts
-    ckpts = per_env[plan.envs[0]] if per_env else None
+    ckpts = request.checkpoints[plan.envs[0]] if request.checkpoints else None
     picked = {a: selection.describe(p) if a in given else
               (selection.choose(p.parent.parent.parent) or selection.describe(p))
               for a, p in (ckpts or {}).items()}
-    prov = provenance(policy=args.policy, plan=plan, algos=algos, checkpoints=ckpts,
+    prov = provenance(policy=request.policy, plan=plan, algos=algos, checkpoints=ckpts,
                       selections=picked, command=_test_command(args))
     if slots is not None:
         prov["slots"] = slots.to_dict("records")
     phases = _Phases(args.quiet)
-    units = len(plan.envs) * ((1 in scenarios) + (2 in scenarios) * len(algos))
     try:  # each run's episodes kept as it ends: an interrupted test goes on from them
-        records = run_protocol(plan, factory, algos, progress=phases.bar("test", units, "run"),
-                               workers=args.workers, save=out / "episodes")
+        result = run_test(request, out, phases.bar)
     except KeyboardInterrupt:
         phases.close()
         kept = len(list((out / "episodes").glob("job-*.parquet")))
@@ -357,36 +348,16 @@ def _cmd_test(args) -> int:
               f"run(s) kept in {out / 'episodes'}: the same command with --out {out} runs the rest",
               file=sys.stderr, flush=True)
         raise
-    refs = None
-    if refs_wanted:
-        refs = reference_rows(plan, refs_wanted, progress=phases.bar("references", len(plan.envs), "env"))
-    labels = {t["algorithm"]: t["label"] for t in prov["tested"]}
-    replays = []
-    if not args.no_replays:
-        from eval.testing import replay
-
-        replays = replay.capture(plan, factory, algos, records, out, labels,
-                                 progress=phases.bar("replays", replay.reruns(records), "run"))
     extra_md = slots_markdown(slots) if slots is not None else ""
-    if args.cross_play or sweeps:
+    if result.cross_play is not None or result.sweeps:
         from eval.reporting import robustness as robustness_report
-        from eval.testing import robustness
 
-        cross = (robustness.run_cross_play(plan, factory, algos, group=args.cross_play_group,
-                                           progress=phases.bar("cross-play", len(plan.envs) * len(algos) * (len(algos) + 1), "run"))
-                 if args.cross_play else None)
-        swept = {kind: robustness.run_sweep(plan, factory, algos, kind, levels,
-                                            progress=phases.bar(f"sweep {kind}", len(levels) * len(plan.envs), "run"))
-                 for kind, levels in sweeps.items()}
-        _, robust_md = robustness_report.write(out, labels, cross, swept)
-        extra_md += robust_md
+        extra_md += robustness_report.write(out, dict(request.labels), result.cross_play, result.sweeps)[1]
     phases.say("writing the report (tables, figures) ...")
     try:
-        written = write_paper_report(records, out, prov=prov, references=refs, replays=replays,
-                                     extra_md=extra_md)
+        written = write_paper_report(result.records, out, prov=prov, references=result.references,
+                                     replays=result.replays, extra_md=extra_md)
     except OSError as exc:  # a full disk: the episodes stay in episodes/, the folder incomplete
-        from eval.testing.protocol import ProtocolError
-
         phases.close()
         raise ProtocolError(f"cannot write the report in {out} ({exc.strerror or exc}: {exc.filename or out}); "
                             f"free space (or fix the folder), then the same command with --out {out} "
@@ -404,7 +375,7 @@ def _cmd_test(args) -> int:
 
 INCOMPLETE = "incomplete.json"
 """In a `cosim test` report folder until its report is written: the folder is not a report yet
-(interrupted, or running), its finished runs' episodes in episodes/ (eval.testing.protocol
+(interrupted, or running), its finished runs' episodes in episodes/ (eval.testing.jobs
 run_protocol's ``save``); `cosim test` with the same options and ``--out`` that folder goes on."""
 
 
@@ -443,26 +414,20 @@ def _test_folder(args, stamp: str) -> Path:
     return out
 
 
-def _test_policies(args, plan, algos: list[str], given: dict[str, Path]):
+def _test_checkpoints(args, plan, algos: list[str], given: dict[str, Path]) -> dict | None:
     """The checkpoints each environment is tested with (environment -> algorithm -> path; None
-    for a reference policy) and the policy factory. Each environment takes the newest run of
-    each algorithm trained in it; a checkpoint trained in another environment (none of its
-    own under --runs, or a --checkpoint from another) is refused without --allow-cross-env,
-    and named on stderr with it.
+    for a reference policy). Each environment takes the newest run of each algorithm trained
+    in it; a checkpoint trained in another environment (none of its own under --runs, or a
+    --checkpoint from another) is refused without --allow-cross-env, and named on stderr with it.
 
     Raises:
         ProtocolError: no checkpoint, or a cross-environment test without --allow-cross-env.
     """
-    from eval.testing.protocol import (
-        ProtocolError,
-        cross_env,
-        env_policy_factory,
-        find_checkpoints,
-        policy_factory,
-    )
+    from eval.testing.checkpoints import cross_env, find_checkpoints
+    from eval.testing.protocol import ProtocolError
 
     if args.policy != "trained":
-        return None, policy_factory(args.policy, None, greedy=args.greedy)
+        return None
     per_env = {}
     for env in plan.envs:
         found = find_checkpoints(args.runs, [a for a in algos if a not in given], env=env)
@@ -482,7 +447,7 @@ def _test_policies(args, plan, algos: list[str], given: dict[str, Path]):
     for (algo, path, trained), envs in by_ckpt.items():
         print(f"cosim test: warning: the {algo} checkpoint {path} was trained in {trained} and drives "
               f"{' '.join(envs)} (--allow-cross-env)", file=sys.stderr)
-    return per_env, env_policy_factory(per_env, fixed=given, greedy=args.greedy)
+    return per_env
 
 
 class _Phases:
@@ -515,6 +480,7 @@ def cmd_benchmark(args) -> int:
     import time
 
     from eval.scale.benchmark import (
+        BenchmarkError,
         BenchmarkPlan,
         finished_cells,
         finished_runs,
@@ -524,6 +490,7 @@ def cmd_benchmark(args) -> int:
         write_report,
     )
     from eval.scale.raysession import INSTALL_HINT, ray_available
+    from eval.training.options import TrainError
 
     if args.status:
         from eval.scale.benchmark import load_plan
@@ -534,10 +501,14 @@ def cmd_benchmark(args) -> int:
     if not args.no_ray and not ray_available():
         print(f"cosim benchmark: error: {INSTALL_HINT}", file=sys.stderr)
         return 2
-    plan = BenchmarkPlan(preset=args.preset, envs=tuple(args.envs), algos=tuple(args.algos), seeds=args.seeds,
-                         steps=args.steps, agents=args.agents, collisions=args.collisions,
-                         obs=args.obs, share_params=args.share_params, demo_steps=args.demo_steps,
-                         first_seed=args.first_seed)
+    from eval.training.options import RunOptions
+
+    try:
+        options = RunOptions.from_args(args, "benchmark")
+    except TrainError as exc:  # as the plan's own refusals: one line, exit 2
+        raise BenchmarkError(str(exc)) from None
+    plan = BenchmarkPlan(envs=tuple(args.envs), algos=tuple(args.algos), seeds=args.seeds,
+                         first_seed=args.first_seed, options=options)
     cells = plan.cells()  # a bad environment or algorithm fails here, before Ray starts
     output_folder(args.out, "--out")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))

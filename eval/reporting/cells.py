@@ -65,7 +65,7 @@ REF = "ref:"
 
 
 def reference_columns(refs: pd.DataFrame | None) -> list[str]:
-    """The reference columns ``refs`` (eval.testing.protocol.reference_rows) fills, in order."""
+    """The reference columns ``refs`` (eval.testing.session.reference_rows) fills, in order."""
     if refs is None or refs.empty:
         return []
     have = set(refs["policy"])

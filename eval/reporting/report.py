@@ -56,6 +56,7 @@ from eval.reporting.cells import (  # noqa: F401 - re-exported: Table RQ1's cell
 )
 from eval.reporting.stats import BOOTSTRAP, CI_SEED, bootstrap_ci
 from eval.testing.metrics import episode_metrics, scenario_dt
+from eval.training.options import report_keys
 
 
 def per_episode(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
@@ -282,11 +283,10 @@ def _checkpoint_entry(path: Path, sel) -> dict:
             "scores": sel.scores if sel else {}, "trained": trained_with(run)}
 
 
-TRAINING_KEYS = ("algo", "env", "preset", "steps", "agents", "seed", "horizon", "obs", "image_size",
-                 "frame_stack", "collisions_end_episode", "collision_charge", "share_params", "stall_truncate",
-                 "demo_steps")
-"""What the report says of a checkpoint's training run (keys of its config.yaml; and its
-agents' ``action_repeat``, docs/task.md "Action repeat")."""
+TRAINING_KEYS = report_keys()
+"""What the report says of a checkpoint's training run: the config.yaml keys of the run options
+declared ``report`` (eval/training/options.py) and the horizon and camera size; and its agents'
+``action_repeat``, docs/task.md "Action repeat"."""
 
 
 def trained_with(run: Path | None) -> dict:
@@ -336,7 +336,7 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
                        dt: float | None = None, figures: bool = True, extra_md: str = "") -> list[Path]:
     """The combined Table RQ1 (md, csv long/wide, tex), figures, index.md/html, provenance."""
     from eval.reporting import figures as figs
-    from eval.testing.protocol import metrics_table
+    from eval.testing.metrics import metrics_table
     from eval.testing.records import save
 
     out = Path(out)

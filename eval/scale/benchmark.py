@@ -43,15 +43,9 @@ import numpy as np
 from cosim.errors import CosimError
 from eval.labels import ENVS
 from eval.testing.validity import POLICIES
-from eval.training.config import (
-    ASYNC_ALGOS,
-    COLLISION_RULES,
-    DEMO_ALGOS,
-    DEMO_HYPER,
-    DEMO_UPDATES,
-    OBS_VARIANTS,
-)
-from eval.training.train import ALGORITHMS, TrainConfig, make_config, train
+from eval.training.config import DEMO_ALGOS, DEMO_HYPER, DEMO_UPDATES, resolve
+from eval.training.options import RunOptions, TrainError, benchmark_names, declared
+from eval.training.train import ALGORITHMS, TrainConfig, train
 
 log = logging.getLogger(__name__)
 
@@ -86,46 +80,55 @@ TEST_SETTINGS = {
 }
 
 
-@dataclass(frozen=True)
+SAVED_ALWAYS = ("preset", "steps", "collisions")
+"""Run options benchmark.json always holds; the others only when set, so a plan saved before
+they existed still reads back as equal (the grid is resumed only with the options it started with)."""
+
+
+@dataclass(frozen=True, init=False)
 class BenchmarkPlan:
-    """The grid: every (algorithm, environment, seed) of a preset."""
+    """The grid: every (algorithm, environment, seed), and the run options every trial takes.
 
-    preset: str = "standard"
-    envs: tuple[str, ...] = ENVS
-    algos: tuple[str, ...] = ALGORITHMS
-    seeds: int = 1
+    Built as ``BenchmarkPlan(envs=..., algos=..., seeds=..., preset=..., steps=..., ...)``: the
+    keywords beside the grid's are the run options `cosim benchmark` takes (those declared
+    ``benchmark`` in eval/training/options.py, :func:`~eval.training.options.benchmark_names`),
+    with the benchmark's defaults (preset ``standard``); or with ``options``, a RunOptions.
+    ``plan.preset``, ``plan.steps``, ...: those options. ``collisions=None`` is what a plan saved
+    before 2026-11-24 holds: it meant, and still means, "end".
+
+    Raises:
+        BenchmarkError: an algorithm, seed count or option the grid cannot take, naming the flag.
+    """
+
+    envs: tuple[str, ...]
+    """The environments of the grid (``--envs``)."""
+    algos: tuple[str, ...]
+    """The algorithms of the grid (``--algos``)."""
+    seeds: int
     """How many seeds per (algorithm, environment): ``first_seed`` .. ``first_seed + seeds - 1``."""
-    steps: int | None = None
-    """Environment steps per trial (default: the preset's, per algorithm)."""
-    agents: int | None = None
-    """ACs each trial trains (default: the preset's)."""
-    collisions: str | None = "event"
-    """Training episodes at a collision (``cosim train --collisions``): "event" (the test's
-    rule, the default: each collision event charged once), "step" (every contact step charged)
-    or "end" (the paper's); docs/task.md, "Collision rule". None is what a plan saved before
-    2026-11-24 holds (no key): it meant, and still means, "end"."""
-    obs: str = "image"
-    """What the trials' ACs observe (``cosim train --obs``): image, or nav (docs/task.md)."""
-    share_params: bool = False
-    """One network per trial for all its ACs (``cosim train --share-params``) in the algorithms
-    that can share (PPO, DQN, DDPG, TD3); A3C and IMPALA trials stay one network per AC."""
-
-    demo_steps: int = 0
-    """The demonstration variant (``--demo-steps N``): DQN, DDPG and TD3 trials put N env steps of
-    the autopilot's driving in their replays, pre-train :data:`~eval.training.config.DEMO_UPDATES`
-    steps on them and learn with :data:`~eval.training.config.DEMO_HYPER`; the other
-    algorithms' trials are the plain grid's. 0: off (the paper's)."""
-    first_seed: int = 0
+    first_seed: int
     """The first seed (``--first-seed``): a benchmark of seed 1 alone trains exactly the cells
     "seed 1" of a benchmark of seeds 0..2, so a long grid can run in parts (sessions, machines)
     and each part's results join the others' (studies/science.py ``--combine``)."""
+    options: RunOptions
+    """The run options of every trial (the benchmark's; the others at their defaults): trial
+    (algo, env, seed) trains ``options.for_algo(algo)`` there with one torch thread; with
+    ``demo_steps`` the DQN, DDPG and TD3 trials are the demonstration variant (pre-training
+    :data:`~eval.training.config.DEMO_UPDATES` steps, :data:`~eval.training.config.DEMO_HYPER`),
+    the others the plain grid's."""
 
-    @property
-    def seed_list(self) -> range:
-        """The seeds of every (algorithm, environment), in order."""
-        return range(self.first_seed, self.first_seed + self.seeds)
-
-    def __post_init__(self):
+    def __init__(self, envs: Sequence[str] = ENVS, algos: Sequence[str] = ALGORITHMS, seeds: int = 1,
+                 first_seed: int = 0, options: RunOptions | None = None, **run: Any):
+        for name, value in (("envs", tuple(envs)), ("algos", tuple(algos)), ("seeds", seeds),
+                            ("first_seed", first_seed), ("options", options or _benchmark_options(run))):
+            object.__setattr__(self, name, value)
+        if options is not None and run:
+            raise BenchmarkError(f"give the run options as options= or as keywords, not both ({', '.join(run)})")
+        taken = benchmark_names()
+        others = {n: v for n, v in self.options.changed().items() if n not in taken}
+        if others:
+            raise BenchmarkError(f"{', '.join(others)}: not an option of `cosim benchmark` (it takes "
+                                 f"{', '.join(taken)}; eval/training/options.py declares which)")
         unknown = sorted(set(self.algos) - set(ALGORITHMS))
         if unknown or not self.algos:
             raise BenchmarkError(f"--algos {' '.join(unknown) or '(none)'}: choose from {' '.join(ALGORITHMS)}")
@@ -135,45 +138,53 @@ class BenchmarkPlan:
             raise BenchmarkError(f"--first-seed must be >= 0, got {self.first_seed}")
         if not self.envs:
             raise BenchmarkError("--envs: name at least one environment")
-        if self.agents is not None and self.agents < 1:
-            raise BenchmarkError(f"--agents must be >= 1, got {self.agents}")
-        if self.collisions is None:  # a plan saved before the default changed
-            object.__setattr__(self, "collisions", "end")
-        if self.collisions not in COLLISION_RULES:
-            raise BenchmarkError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {self.collisions!r}")
-        if self.obs not in OBS_VARIANTS:
-            raise BenchmarkError(f"--obs must be {' or '.join(OBS_VARIANTS)}, got {self.obs!r}")
-        if self.demo_steps < 0:
-            raise BenchmarkError(f"--demo-steps must be >= 0 (0: off), got {self.demo_steps}")
+
+    def __getattr__(self, name: str) -> Any:  # plan.preset, plan.steps, ...: the trials' run options
+        if name in benchmark_names():
+            return getattr(self.options, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @property
+    def seed_list(self) -> range:
+        """The seeds of every (algorithm, environment), in order."""
+        return range(self.first_seed, self.first_seed + self.seeds)
+
+    def trial(self, algo: str, env: str, seed: int) -> RunOptions:
+        """The run options of trial (``algo``, ``env``, ``seed``)."""
+        demos = bool(self.options.demo_steps) and algo in DEMO_ALGOS
+        return self.options.for_algo(algo).replace(
+            env=env, seed=seed, torch_threads=1, demo_steps=self.options.demo_steps if demos else 0,
+            demo_updates=DEMO_UPDATES if demos else 0, hyper=DEMO_HYPER[algo] if demos else {})
 
     def cells(self) -> list[TrainConfig]:
         """One TrainConfig per trial, environment-major (the order --no-ray trains them)."""
-        return [make_config(algo, env, self.preset, seed=seed, steps=self.steps, agents=self.agents,
-                            torch_threads=1, collisions=self.collisions, obs=self.obs,
-                            share_params=self.share_params and algo not in ASYNC_ALGOS,
-                            **self._demos(algo))
+        return [resolve(self.trial(algo, env, seed))
                 for env in self.envs for algo in self.algos for seed in self.seed_list]
 
-    def _demos(self, algo: str) -> dict[str, Any]:
-        if not self.demo_steps or algo not in DEMO_ALGOS:
-            return {}
-        return {"demo_steps": self.demo_steps, "demo_updates": DEMO_UPDATES, "hyper": DEMO_HYPER[algo]}
-
     def to_dict(self) -> dict[str, Any]:
-        plan = {"preset": self.preset, "envs": list(self.envs), "algos": list(self.algos),
-                "seeds": self.seeds, "steps": self.steps, "collisions": self.collisions}
-        # only when set: a plan saved before --agents, --obs, --share-params, --demo-steps or
-        # --first-seed existed still reads back as equal
-        extra = {"agents": self.agents} if self.agents is not None else {}
-        if self.obs != "image":
-            extra["obs"] = self.obs
-        if self.share_params:
-            extra["share_params"] = True
-        if self.demo_steps:
-            extra["demo_steps"] = self.demo_steps
-        if self.first_seed:
-            extra["first_seed"] = self.first_seed
-        return {**plan, **extra}
+        """The plan as benchmark.json holds it: the grid, the run options of :data:`SAVED_ALWAYS`
+        and the others that are set, ``first_seed`` when not 0."""
+        run = {n: getattr(self.options, n) for n in SAVED_ALWAYS}
+        grid = {"envs": list(self.envs), "algos": list(self.algos), "seeds": self.seeds}
+        extra = {"first_seed": self.first_seed} if self.first_seed else {}
+        return {**run, **grid, **self.options.changed(benchmark_names()), **extra}
+
+
+def _benchmark_options(run: dict[str, Any]) -> RunOptions:
+    """The RunOptions of a benchmark's keywords (``steps=``, ``obs=``, ...), with the benchmark's
+    defaults where it has its own (``--preset standard``)."""
+    taken = benchmark_names()
+    unknown = sorted(set(run) - set(taken))
+    if unknown:
+        raise BenchmarkError(f"{', '.join(unknown)}: not an option of `cosim benchmark` (it takes "
+                             f"{', '.join(taken)}; eval/training/options.py declares which)")
+    if "collisions" in run and run["collisions"] is None:  # a plan saved before the default changed
+        run = {**run, "collisions": "end"}
+    defaults = {n: spec.benchmark_default for n, spec in declared() if spec.benchmark_default is not None}
+    try:
+        return RunOptions(**{**defaults, **run})
+    except TrainError as exc:
+        raise BenchmarkError(str(exc)) from None
 
 
 def saved_plan(path: Path) -> dict[str, Any]:
@@ -561,7 +572,8 @@ def _collect(grid, cells: Sequence[TrainConfig], out: Path) -> dict[str, Path]:
 # -- the test protocol and its report ----------------------------------------------------
 def report_steps(plan: BenchmarkPlan) -> int:
     """How many times :func:`write_report` calls its ``progress``: once per environment and
-    seed tested, once as the references and the report start."""
+    seed tested (the last seed of each environment with its reference policies), once as the
+    report starts."""
     return len(plan.envs) * plan.seeds + 1
 
 
@@ -570,25 +582,21 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
     """Scenario 1 and 2 in every environment with that environment's trained policies
     (every seed's, pooled, episodes numbered apart), on held-out episode seeds (from
     eval.testing.validity.HELD_OUT_SEED; training uses small ones), the references of the
-    preset, and the `cosim test` report; ``progress`` is called :func:`report_steps` times,
-    as each environment's test ends and as the references and the report start."""
+    preset, and the `cosim test` report: one test session (eval.testing.session.run_test) per
+    environment and seed; ``progress`` is called :func:`report_steps` times, as each session
+    ends and as the report starts."""
     import pandas as pd
 
     from eval.reporting.report import provenance, write_paper_report
     from eval.testing import selection
-    from eval.testing.protocol import (
-        ProtocolPlan,
-        policy_factory,
-        reference_rows,
-        run_protocol,
-        slot_table,
-    )
+    from eval.testing.protocol import ProtocolPlan
+    from eval.testing.session import TestRequest, run_test
     from eval.testing.validity import HELD_OUT_SEED
 
     out = Path(out)
     settings = TEST_SETTINGS[plan.preset]
     algos = list(plan.algos)
-    frames, tested, first, slots = [], [], {}, []
+    frames, tested, first, slots, refs = [], [], {}, [], []
     for env in plan.envs:
         for seed in plan.seed_list:
             ckpts = {}
@@ -601,22 +609,27 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
                 first.setdefault(algo, chosen.path)
                 tested.append({"env": env, "seed": seed, "algorithm": algo, "path": chosen.path,
                                "selection": chosen})
-            test_plan = ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
-                                     seed=HELD_OUT_SEED, agents=len(algos))
-            slots.append(slot_table({env: ckpts}, test_plan, algos).assign(train_seed=seed))
-            records = run_protocol(test_plan, policy_factory("trained", ckpts), algos)
+            last = seed == plan.seed_list[-1]  # the environment's references once, with its last seed
+            request = TestRequest(ProtocolPlan(envs=(env,), episodes=settings.episodes, steps=settings.steps,
+                                               seed=HELD_OUT_SEED, agents=len(algos)),
+                                  tuple(algos), checkpoints={env: ckpts},
+                                  references=tuple(settings.references) if last else ())
+            slots.append(request.slots.assign(train_seed=seed))
+            result = run_test(request)
             # seeds are pooled: number their episodes apart, or the metrics would merge
             # seed 0's episode 0 with seed 1's episode 0
-            frames.append(records.assign(train_seed=seed, episode=records["episode"]
-                                         + (seed - plan.first_seed) * settings.episodes))
+            frames.append(result.records.assign(train_seed=seed, episode=result.records["episode"]
+                                                + (seed - plan.first_seed) * settings.episodes))
+            if result.references is not None:
+                refs.append(result.references)
             if progress:
-                progress(f"tested {env} seed {seed}")
+                progress(f"tested {env} seed {seed}" + (f" and the reference policies ({len(settings.references)})"
+                                                        if result.references is not None else ""))
     records = pd.concat(frames, ignore_index=True)
     whole = ProtocolPlan(envs=tuple(plan.envs), episodes=settings.episodes, steps=settings.steps,
                          seed=HELD_OUT_SEED, agents=len(algos))
-    if progress:  # one line for both phases: the smoke console stays under 40 lines
-        progress(f"reference policies ({len(settings.references)}) and the report (tables, figures) ...")
-    refs = reference_rows(whole, list(settings.references)) if settings.references else None
+    if progress:  # one line for the report: the smoke console stays under 40 lines
+        progress("the report (tables, figures) ...")
     # every environment's checkpoints, each with its AC and scores (the report's provenance)
     prov = provenance(policy="trained", plan=whole, algos=algos, checkpoints=first,
                       selections={t["algorithm"]: t["selection"] for t in tested if t["env"] == plan.envs[0]
@@ -630,4 +643,5 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
              f"{plan.seeds} seed(s) pooled (seeds {plan.first_seed}..{plan.seed_list[-1]}, "
              f"`cosim benchmark --preset {plan.preset}`); provenance "
              "lists every checkpoint (environment, seed, algorithm) with its hash and the AC chosen.\n")
-    return write_paper_report(records, out / "report", prov=prov, references=refs, extra_md=extra)
+    return write_paper_report(records, out / "report", prov=prov,
+                              references=pd.concat(refs, ignore_index=True) if refs else None, extra_md=extra)

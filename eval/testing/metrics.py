@@ -184,3 +184,16 @@ def speed_curve(records: pd.DataFrame, by: list[str] | None = None) -> pd.DataFr
     by = by or ["algorithm"]
     return (records.assign(speed_kmh=records["speed"] * 3.6)
             .groupby([*by, "step"])["speed_kmh"].mean().reset_index())
+
+
+def metrics_table(records: pd.DataFrame, dt: float | None = None) -> pd.DataFrame:
+    """Per (scenario, env, algorithm): mean over episodes of every SPEC §4 metric (``dt``:
+    seconds per step; None: each environment's scenario's, eval.testing.metrics.scenario_dt)."""
+    parts = []
+    for (scenario, env), g in records.groupby(["scenario", "env"], sort=True):
+        per = episode_metrics(g, scenario_dt(env) if dt is None else dt)
+        s = summarize(per, by=["algorithm"])
+        parts.append(s.assign(scenario=scenario, env=env))
+    out = pd.concat(parts, ignore_index=True)
+    return success_rates(out)
+

@@ -1,7 +1,7 @@
 """Which AC of a training run represents its algorithm in the test (issue 13).
 
 A run trains N ACs of one algorithm; the test drives one per algorithm and slot. A
-slot the run trained an AC in is driven by that AC (eval/testing/protocol.py, slot_checkpoint:
+slot the run trained an AC in is driven by that AC (eval/testing/checkpoints.py, slot_checkpoint:
 the camera has no route command, an AC knows only its own route); every other slot, and
 the report's "checkpoint tested" line, use the AC chosen by this rule:
 

@@ -1,6 +1,7 @@
-"""Training configuration: :class:`TrainConfig`, resolved from a preset by
-:func:`make_config`, with ``--set FIELD=VALUE`` hyperparameter changes
-(:func:`parse_set`, :func:`parse_hyper`).
+"""Training configuration: :class:`TrainConfig`, what a run trains with, resolved by
+:func:`resolve` from a run's options (eval.training.options.RunOptions, the one declaration of
+them) and its preset; :func:`make_config` takes the options as keywords; ``--set FIELD=VALUE``
+hyperparameter changes are typed by :func:`parse_hyper`.
 
 Algorithm names, action kinds and training loops come from the catalogue
 (agents/registry.py); presets from eval/training/presets.py. A TrainConfig holds its
@@ -22,25 +23,18 @@ import yaml
 
 from agents import registry
 from agents.configs import AgentConfig
-from cosim.errors import CosimError
 from cosim.wrappers import OBS_VARIANTS
+from eval.training.options import COLLISION_RULES, RunOptions, TrainError, parse_set
 from eval.training.presets import load_presets
 
 __all__ = ["ALGORITHMS", "ASYNC_ALGOS", "COLLISION_RULES", "CONTINUOUS_ALGOS", "DEMO_ALGOS", "DEMO_HYPER",
-           "DEMO_UPDATES", "DISCRETE_ALGOS", "OBS_VARIANTS", "TrainConfig", "TrainError", "make_config", "parse_hyper", "parse_set"]
+           "DEMO_UPDATES", "DISCRETE_ALGOS", "OBS_VARIANTS", "RunOptions", "TrainConfig", "TrainError", "make_config",
+           "parse_hyper", "parse_set", "resolve"]
 
 ALGORITHMS: tuple[str, ...] = tuple(registry.ALGORITHMS)
 DISCRETE_ALGOS = registry.DISCRETE
 CONTINUOUS_ALGOS = registry.CONTINUOUS
 ASYNC_ALGOS = registry.ASYNC
-COLLISION_RULES = ("event", "step", "end")
-"""``--collisions``: ``event`` (the default, the test's rule): the episode goes on after a
-collision and each collision event is charged once; ``step``: the episode goes on and every
-contact step is charged (task version 3); ``end``: a collision ends the AC's training episode
-(the paper's rule). TrainConfig.collision_charge and .collisions_end_episode; docs/task.md,
-"Collision rule"."""
-
-
 DEMO_UPDATES = 2000
 """Pre-training gradient steps per AC of the demonstration variant (`cosim benchmark
 --demo-steps`), as the demonstration pilot's (task version 3; in git history at 1b59d82, docs/results/2026-11-26-demo-pilot)."""
@@ -63,10 +57,6 @@ VALIDATION_EPISODES = 2
 """Validation episodes per checkpoint unless ``--validation-episodes`` says otherwise."""
 
 
-class TrainError(CosimError, ValueError):
-    """A training request that cannot run; the message says what to change."""
-
-
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that defines a training run (written to config.yaml)."""
@@ -78,6 +68,7 @@ class TrainConfig:
     seed: int = 0
     preset: str = "quick"
     horizon: int = 300
+    """Steps per training episode: :func:`resolve` gives the preset's (TrainPreset.horizon)."""
     checkpoint_every: int = 2_000
     workers: int = 2
     """The preset's default ``envs`` for A3C and IMPALA (recorded; ``envs`` is what runs)."""
@@ -97,13 +88,15 @@ class TrainConfig:
     """torch.set_num_threads in the trainer; 0: the CPUs left beside the env workers (all
     with one env) divided among the learner threads, at least 1 (A3C: 1)."""
     learner_threads: int = 0
-    """Threads running the ACs' updates at once (agents.loop.run_vector_loop; each AC has its
+    """Threads running the ACs' updates at once (agents.loop.run_loop; each AC has its
     own networks, so the result is the same for any value); 0: one per AC up to the CPUs
     (OMP_NUM_THREADS when set, as Ray sets it per trial)."""
     frame_stack: int = 1
     """Camera frames per observation, stacked on the channel axis oldest first (84x84x3K;
     1: the paper's single frame). The training env stacks them (cosim.wrappers.FrameStack)
-    and every test of a checkpoint does too, read from its observation shape."""
+    and every test of a checkpoint does too, read from its observation shape. :func:`resolve`
+    gives the preset's (runs.yaml, the one source of the default) unless ``--frame-stack`` says;
+    1 here is what a config.yaml without the key (written before frame stacks) reads as."""
     obs: str = "image"
     """What an AC observes: ``image``, its camera frames (the paper's observation), or ``nav``,
     those beside the measurements vector (speed, route command, distance to the goal;
@@ -185,44 +178,90 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
 
-def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents: int | None = None,
-                steps: int | None = None, seed: int = 0, action_type: str | None = None,
-                image_size: int = 84, agent_preset: str | None = None,
-                hyper: Mapping[str, str] | None = None, envs: int | None = None, device: str = "auto",
-                torch_threads: int = 0, frame_stack: int | None = None, obs: str = "image",
-                learner_threads: int = 0, collisions: str = "event",
-                validation_episodes: int | None = None, validation_steps: int | None = None,
-                share_params: bool = False, init_from: str | Path | None = None,
-                stall_truncate: int = 0, demo_steps: int = 0, demo_updates: int = 0) -> TrainConfig:
-    """Resolve a training request into a TrainConfig, refusing what cannot work.
-
-    ``hyper`` changes agent hyperparameters last, field name -> value as text
-    (``cosim train --set actor_learning_rate=1e-4``). ``envs`` and ``frame_stack``
-    default to the preset's (for A3C and IMPALA ``envs`` defaults to the preset's
-    ``workers``: A3C runs one learner thread per environment, IMPALA acts in all).
-    ``validation_episodes`` / ``validation_steps``: the held-out episodes that pick each AC's
-    best.pt (TrainConfig.validation_episodes; 0 episodes: by training return).
-    ``collisions``: "event" (the default, the test's rule: the episode goes on and each collision
-    event is charged once), "step" (every contact step charged) or "end" (a collision ends the
-    AC's training episode, the paper's).
-    ``obs``: "image" (the default), "nav" or "state" (TrainConfig.obs; "state" takes frame stack 1
-    and the preset's ``state_hidden`` MLP sizes). ``share_params``: one network for
-    all the run's ACs (TrainConfig.share_params). ``init_from``: a run folder or checkpoint to
-    warm-start from (TrainConfig.init_from). ``stall_truncate``: TrainConfig.stall_truncate.
-    ``demo_steps``, ``demo_updates``: autopilot demonstrations in the replay (TrainConfig.demo_steps).
+def make_config(algo: str, env: str = "env_1", preset: str = "quick", **options: Any) -> TrainConfig:
+    """Resolve a training request into a TrainConfig, refusing what cannot work: :func:`resolve`
+    of ``RunOptions(algo=algo, env=env, preset=preset, **options)``, the keywords being the
+    options' names (eval/training/options.py: ``agents``, ``steps``, ``frame_stack``, ``hyper``,
+    ...; ``hyper`` maps hyperparameter names to values as text, as ``--set`` gives them).
 
     Raises:
-        TrainError: unknown algorithm or preset (listing the valid ones), an action
-            type the algorithm cannot use (with the reason), bad numbers.
+        TrainError: an option the declaration refuses (naming its flag), or what :func:`resolve`
+            refuses.
+        cosim.errors.ScenarioError: unknown environment (listing the valid ones).
+    """
+    return resolve(RunOptions(algo=algo, env=env, preset=preset, **options))
+
+
+def resolve(options: RunOptions) -> TrainConfig:
+    """The TrainConfig of one run's options: what the options leave open comes from the preset.
+
+    ``envs`` and ``frame_stack`` default to the preset's (for A3C and IMPALA ``envs`` defaults to
+    the preset's ``workers``: A3C runs one learner thread per environment, IMPALA acts in all);
+    ``--obs state`` takes frame stack 1 and the preset's ``state_hidden`` MLP sizes.
+    ``validation_episodes`` defaults to the preset's, else :data:`VALIDATION_EPISODES`;
+    ``validation_steps`` to the preset's horizon, at most the scenario's (the test's episode length).
+    ``collisions`` sets TrainConfig.collisions_end_episode and .collision_charge; ``hyper``
+    changes agent hyperparameters last.
+
+    Raises:
+        TrainError: ``--algo all`` (resolve each algorithm's options: RunOptions.for_algo), unknown
+            preset (listing the valid ones), an action type the algorithm cannot use (with the
+            reason), a variant the algorithm cannot run, a bad hyperparameter, --init-from without
+            a checkpoint.
         cosim.errors.ScenarioError: unknown environment (listing the valid ones).
     """
     from cosim.scenario import load_scenario
 
-    if algo not in ALGORITHMS:
-        raise TrainError(f"unknown algorithm {algo!r}; choose one of {', '.join(ALGORITHMS)} (or 'all')")
+    o = options
+    if o.algo == "all":
+        raise TrainError("--algo all trains every algorithm: resolve the options of each (RunOptions.for_algo)")
     presets = load_presets()
-    if preset not in presets:
-        raise TrainError(f"unknown preset {preset!r}; choose one of {', '.join(presets)}")
+    if o.preset not in presets:
+        raise TrainError(f"unknown preset {o.preset!r}; choose one of {', '.join(presets)}")
+    _check_action_type(o.algo, o.action_type)
+    scenario = load_scenario(o.env)
+    p = presets[o.preset]
+    n = p.agents if o.agents is None else o.agents
+    if not 1 <= n <= scenario.max_agents:
+        raise TrainError(f"--agents must be 1..{scenario.max_agents} for {o.env}, got {n}")
+    total = p.steps[o.algo] if o.steps is None else o.steps
+    envs = o.envs
+    if envs is None:  # A3C and IMPALA: the preset's workers, one environment (and A3C thread) each
+        envs = p.envs if o.algo not in ASYNC_ALGOS else p.workers
+    if o.obs == "state" and o.frame_stack is not None and o.frame_stack != 1:
+        raise TrainError(f"--frame-stack {o.frame_stack} stacks camera frames; --obs state observes one state "
+                         "vector (it carries the speeds): drop --frame-stack or give 1")
+    # the state track observes one vector: the preset's frame stack is the camera's
+    frame_stack = (1 if o.obs == "state" else p.frame_stack) if o.frame_stack is None else o.frame_stack
+    validation_episodes = o.validation_episodes
+    if validation_episodes is None:
+        validation_episodes = VALIDATION_EPISODES if p.validation_episodes is None else p.validation_episodes
+    # the preset's episode length, at most the test's (the scenario's horizon): docs/task.md
+    validation_steps = min(p.horizon, scenario.horizon) if o.validation_steps is None else o.validation_steps
+    _check_variants(o.algo, o.share_params, o.stall_truncate, o.demo_steps, o.demo_updates)
+    config_cls = registry.get_config_class(o.algo)  # PPOConfig, ... (agents/configs.py, no torch)
+    try:  # the preset's typed config (with its YAML's changes), then the --set changes
+        # the state track's MLPs: the preset's state_hidden, unless the algorithm's YAML sets hidden
+        state = {"hidden": tuple(p.state_hidden)} if o.obs == "state" else {}
+        base = config_cls.preset(o.agent_preset or p.agent_preset,
+                                 **{"reward_scale": p.reward_scale, **state, **p.overrides.get(o.algo, {})})
+        agent_config = base.replace(**parse_hyper(base, o.hyper, o.algo))
+    except ValueError as exc:
+        raise TrainError(f"{o.algo} hyperparameters: {exc}") from exc
+    return TrainConfig(
+        algo=o.algo, env=o.env, agents=n, steps=total, seed=o.seed, preset=o.preset,
+        horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
+        agent_config=agent_config, envs=envs, device=o.device, torch_threads=o.torch_threads,
+        frame_stack=frame_stack, obs=o.obs, learner_threads=o.learner_threads,
+        collisions_end_episode=o.collisions == "end", collision_charge="step" if o.collisions == "step" else "event",
+        validation_episodes=validation_episodes, validation_steps=validation_steps, policy_dtype=p.policy_dtype,
+        share_params=o.share_params, init_from=_init_source(o.init_from), stall_truncate=o.stall_truncate,
+        demo_steps=o.demo_steps, demo_updates=o.demo_updates,
+    )
+
+
+def _check_action_type(algo: str, action_type: str | None) -> None:
+    """Refuse ``--action-type`` of the other kind than ``algo``'s, saying why and what to use."""
     natural = "discrete" if algo in DISCRETE_ALGOS else "continuous"
     if action_type is not None and action_type != natural:
         why = ("it picks among a finite set of actions (Discrete(9))" if natural == "discrete"
@@ -232,71 +271,10 @@ def make_config(algo: str, env: str = "env_1", preset: str = "quick", *, agents:
             f"or a {'continuous' if natural == 'discrete' else 'discrete'} algorithm "
             f"({', '.join(CONTINUOUS_ALGOS if natural == 'discrete' else DISCRETE_ALGOS)})"
         )
-    scenario = load_scenario(env)
-    p = presets[preset]
-    n = p.agents if agents is None else int(agents)
-    if not 1 <= n <= scenario.max_agents:
-        raise TrainError(f"--agents must be 1..{scenario.max_agents} for {env}, got {n}")
-    total = p.steps[algo] if steps is None else int(steps)
-    if total < 1:
-        raise TrainError(f"--steps must be >= 1, got {total}")
-    if envs is None:  # A3C and IMPALA: the preset's workers, one environment (and A3C thread) each
-        envs = p.envs if algo not in ASYNC_ALGOS else p.workers
-    if obs == "state" and frame_stack is not None and int(frame_stack) != 1:
-        raise TrainError(f"--frame-stack {frame_stack} stacks camera frames; --obs state observes one "
-                         "state vector (it carries the speeds): drop --frame-stack or give 1")
-    # the state track observes one vector: the preset's frame stack is the camera's
-    frame_stack = (1 if obs == "state" else p.frame_stack) if frame_stack is None else int(frame_stack)
-    if frame_stack < 1:
-        raise TrainError(f"--frame-stack must be >= 1 (1: a single camera frame), got {frame_stack}")
-    if int(envs) < 1 or int(torch_threads) < 0 or int(learner_threads) < 0:
-        raise TrainError(f"--envs must be >= 1, --torch-threads and --learner-threads >= 0, got "
-                         f"{envs}, {torch_threads} and {learner_threads}")
-    if validation_episodes is None:
-        validation_episodes = VALIDATION_EPISODES if p.validation_episodes is None else p.validation_episodes
-    # the preset's episode length, at most the test's (the scenario's horizon): docs/task.md
-    validation_steps = min(p.horizon, scenario.horizon) if validation_steps is None else int(validation_steps)
-    validation_episodes = int(validation_episodes)
-    if validation_episodes < 0 or validation_steps < 1:
-        raise TrainError(f"--validation-episodes must be >= 0 (0: off) and --validation-steps >= 1, got "
-                         f"{validation_episodes} and {validation_steps}")
-    if obs not in OBS_VARIANTS:
-        raise TrainError(f"--obs must be {' or '.join(OBS_VARIANTS)}, got {obs!r}")
-    if collisions not in COLLISION_RULES:
-        raise TrainError(f"--collisions must be {' or '.join(COLLISION_RULES)}, got {collisions!r}")
-    if device not in ("auto", "cpu", "cuda"):
-        raise TrainError(f"--device must be auto, cpu or cuda, got {device!r}")
-    _check_variants(algo, share_params, int(stall_truncate), int(demo_steps), int(demo_updates))
-    config_cls = registry.get_config_class(algo)  # PPOConfig, ... (agents/configs.py, no torch)
-    chosen = agent_preset or p.agent_preset
-    try:  # the preset's typed config (with its YAML's changes), then the --set changes
-        # the state track's MLPs: the preset's state_hidden, unless the algorithm's YAML sets hidden
-        state = {"hidden": tuple(p.state_hidden)} if obs == "state" else {}
-        base = config_cls.preset(chosen, **{"reward_scale": p.reward_scale, **state, **p.overrides.get(algo, {})})
-        agent_config = base.replace(**parse_hyper(base, hyper or {}, algo))
-    except ValueError as exc:
-        raise TrainError(f"{algo} hyperparameters: {exc}") from exc
-    return TrainConfig(
-        algo=algo, env=env, agents=n, steps=total, seed=int(seed), preset=preset,
-        horizon=p.horizon, checkpoint_every=min(p.checkpoint_every, total), workers=p.workers,
-        image_size=int(image_size), agent_config=agent_config, envs=int(envs), device=device,
-        torch_threads=int(torch_threads), frame_stack=frame_stack, obs=obs,
-        learner_threads=int(learner_threads),
-        collisions_end_episode=collisions == "end",
-        collision_charge="step" if collisions == "step" else "event",
-        validation_episodes=validation_episodes,
-        validation_steps=validation_steps, policy_dtype=p.policy_dtype, share_params=bool(share_params),
-        init_from=_init_source(init_from), stall_truncate=int(stall_truncate),
-        demo_steps=int(demo_steps), demo_updates=int(demo_updates),
-    )
 
 
 def _check_variants(algo: str, share_params: bool, stall_truncate: int, demo_steps: int, demo_updates: int) -> None:
     """Refuse a training variant the algorithm cannot run (make_config), naming the option."""
-    if stall_truncate < 0:
-        raise TrainError(f"--stall-truncate must be >= 0 steps (0: off), got {stall_truncate}")
-    if demo_steps < 0 or demo_updates < 0:
-        raise TrainError(f"--demo-steps and --demo-updates must be >= 0 (0: off), got {demo_steps} and {demo_updates}")
     if demo_steps and algo not in DEMO_ALGOS:
         raise TrainError(f"--demo-steps fills a replay buffer: {', '.join(DEMO_ALGOS)} only, not {algo}")
     if demo_updates and not demo_steps:
@@ -315,17 +293,6 @@ def _init_source(init_from: str | Path | None) -> str | None:
         raise TrainError(f"--init-from {path}: not a checkpoint file nor a run folder with "
                          "checkpoints/ac_0/best.pt; name a finished run of the same algorithm and --obs")
     return str(path)
-
-
-def parse_set(items: list[str]) -> dict[str, str]:
-    """``["lr=3e-4", ...]`` (``--set`` arguments) -> ``{"lr": "3e-4"}``; values stay text."""
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise TrainError(f"--set {item!r}: write FIELD=VALUE, e.g. --set learning_rate=3e-4")
-        out[key.strip()] = value.strip()
-    return out
 
 
 def parse_hyper(current: AgentConfig, hyper: Mapping[str, str], algo: str) -> dict[str, Any]:

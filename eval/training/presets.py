@@ -37,7 +37,8 @@ class TrainPreset:
     agents: int
     """Learning cars trained together."""
     horizon: int
-    """Steps per episode before truncation."""
+    """Steps per training episode before truncation: the one source of a run's episode length
+    (TrainConfig.horizon; its validation episodes take it too, at most the scenario's horizon)."""
     checkpoint_every: int
     """Environment steps between checkpoints."""
     agent_preset: str
@@ -45,14 +46,15 @@ class TrainPreset:
     workers: int
     """A3C's and IMPALA's environments when ``--envs`` is not given (one vector env;
     A3C runs one learner thread per environment)."""
+    frame_stack: int
+    """Camera frames per observation (1: the paper's single frame; runs.yaml gives 4, the paper's
+    released scripts' stack, and is the one source of it); ``--frame-stack`` overrides it
+    (eval/training/config.py TrainConfig.frame_stack)."""
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Per-algorithm hyperparameter changes on top of agent_preset."""
     envs: int = 1
     """Environments stepped together by PPO, DQN, DDPG and TD3 (A3C and IMPALA default
     to ``workers`` environments instead); ``cosim train --envs`` overrides both."""
-    frame_stack: int = 1
-    """Camera frames per observation (1: the paper's single frame); ``--frame-stack``
-    overrides it (eval/training/config.py TrainConfig.frame_stack)."""
     validation_episodes: int | None = None
     """Held-out validation episodes per checkpoint that pick best.pt (None: the library's
     default, eval/training/config.py VALIDATION_EPISODES); ``--validation-episodes`` overrides it."""
@@ -149,6 +151,12 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
         if settings.get("policy_dtype", "float32") not in POLICY_DTYPES:
             raise PresetError(folder / "runs.yaml", f"{name}: policy_dtype must be one of "
                                                     f"{', '.join(POLICY_DTYPES)}, got {settings['policy_dtype']!r}")
+        required = [f.name for f in dataclasses.fields(TrainPreset) if f.name not in ("steps", "overrides")
+                    and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+        missing = [key for key in required if key not in settings]
+        if missing:
+            raise PresetError(folder / "runs.yaml", f"{name}: missing key(s) {missing}; every preset gives "
+                                                    f"{', '.join(required)}")
         if "state_hidden" in settings:
             settings = {**settings, "state_hidden": tuple(settings["state_hidden"])}
         presets[name] = TrainPreset(steps=steps, overrides=overrides, **settings)

@@ -5,7 +5,8 @@ The layer, one concern per module:
     agents/registry.py    the algorithm catalogue: name, class, action kind, sync/async loop,
                           policy kind
     eval/training/presets.py       run presets (smoke, quick, standard, paper) from eval/training/hyperparams/*.yaml
-    eval/training/config.py        TrainConfig, make_config, --set parsing
+    eval/training/options.py       RunOptions: a run's options, declared once (flags, checks, report keys)
+    eval/training/config.py        TrainConfig, resolve (options -> config), make_config, --set typing
     eval/training/runfolder.py     the run folder: layout, config.yaml, manifest, lock, resume recovery
     eval/training/runlog.py        episodes.csv (columns from the event and reward-term catalogues),
                           TensorBoard, checkpoints
@@ -27,6 +28,7 @@ from eval.training.config import (
     make_config,
     parse_hyper,
     parse_set,
+    resolve,
 )
 from eval.training.plots import plot_convergence
 from eval.training.presets import TrainPreset, load_presets
@@ -46,5 +48,5 @@ __all__ = [
     "ALGORITHMS", "ASYNC_ALGOS", "CONTINUOUS_ALGOS", "DISCRETE_ALGOS", "EPISODE_FIELDS", "RunLock",
     "RunLog", "TrainConfig", "TrainError", "TrainPreset", "atomic_write", "load_presets",
     "load_run_config", "make_config", "make_env", "manifest", "new_run_dir", "parse_hyper",
-    "parse_set", "plot_convergence", "read_state", "recover_checkpoints", "train",
+    "parse_set", "plot_convergence", "read_state", "recover_checkpoints", "resolve", "train",
 ]

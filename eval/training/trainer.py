@@ -1,14 +1,13 @@
 """The trainer (SPEC §6, "Scenario 1, train"): N ACs of ONE algorithm, each with its
 own network, learning together in a driving environment among background cars.
 
-Algorithms that train in the sync loop (agents/registry.py) step ``--envs N``
-environments through :func:`agents.loop.run_vector_loop`: one in this process, or
-N worker processes (``agents/vector.py``), each AC acting in all of them in one
-forward pass; each environment's episodes become CSV rows. The async ones (A3C,
-IMPALA) step the same vector env of ``--envs N`` environments (libsumo allows one
-simulation per process): A3C with one learner thread per environment, IMPALA's
-learner acting in all of them (agents/async_env.py). The run folder, resuming and the
-lock are eval/training/runfolder.py; the CSV, TensorBoard and checkpoints eval/training/runlog.py.
+Every algorithm trains on one path (:func:`_train_loop`): ``--envs N`` environments
+(one in this process, or N worker processes, ``agents/vector.py``; libsumo allows one
+simulation per process) stepped by the one loop, :func:`agents.loop.run_loop`, each AC
+acting in all of them in one forward pass, or for A3C one actor-learner thread per
+environment (the loop's ``actors``); each AC's finished episodes become CSV rows. The run
+folder, resuming and the lock are eval/training/runfolder.py; the CSV, TensorBoard and
+checkpoints eval/training/runlog.py.
 """
 
 from __future__ import annotations
@@ -23,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.env import EPISODE_INFO
 from eval.training.config import ASYNC_ALGOS, TrainConfig, TrainError
 from eval.training.plots import plot_convergence
 from eval.training.runfolder import (
@@ -104,10 +102,8 @@ def _train_locked(cfg: TrainConfig, run: Path, state: dict | None, quiet: bool, 
     try:
         if runlog.env_steps >= cfg.steps:
             log.info("run %s is already complete (%d steps)", run, runlog.env_steps)
-        elif cfg.algo in ASYNC_ALGOS:
-            _train_async(cfg, runlog, state is not None, quiet, progress)
         else:
-            _train_sync(cfg, runlog, state is not None, quiet, progress)
+            _train_loop(cfg, runlog, state is not None, quiet, progress)
     finally:
         runlog.close()
         try:
@@ -239,18 +235,20 @@ def _report(bar, runlog: RunLog, cfg: TrainConfig, step: int, quiet: bool, last_
               f"({rate:.0f} steps/s)", flush=True)
 
 
-def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
-    """PPO, DQN, DDPG, TD3: ``cfg.envs`` environments (worker processes when > 1), one
-    batched forward pass per AC per step (agents.loop.run_vector_loop, docs/agents.md)."""
-
+def _train_loop(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
+    """Every algorithm: ``cfg.envs`` environments (worker processes when > 1) stepped by the
+    one loop, agents.loop.run_loop (docs/agents.md): one batched forward pass per AC per step,
+    or for A3C one actor-learner thread per environment (agents.registry ``actors``). One
+    progress record, one checkpoint rule (each multiple of ``checkpoint_every`` crossed, and
+    the end), one reseed rule (episodes after a resume: ``seed + 100003 * episodes so far``)."""
+    from agents import registry
     from agents.base import resolve_device
-    from agents.loop import run_vector_loop
+    from agents.loop import run_loop
     from agents.vector import make_vector_env
 
-    n = cfg.envs
     _set_torch_threads(cfg)
-    try:
-        device = resolve_device(cfg.device)
+    try:  # A3C's and IMPALA's learners stay on the CPU, as their trainers always built them
+        device = "cpu" if cfg.algo in ASYNC_ALGOS else resolve_device(cfg.device)
     except ValueError as exc:
         raise TrainError(str(exc)) from None
     start_step = runlog.env_steps
@@ -258,10 +256,8 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
     # vector env opens its own (libsumo runs one simulation per process)
     agent_map = _demonstrate(cfg, runlog.run, resumed, device, quiet, progress) if cfg.demo_steps else None
     # env i of N: seed + i (env 0 is the one-env run's env)
-    fns = [functools.partial(make_env, cfg, cfg.seed + i) for i in range(n)]
+    env = make_vector_env([functools.partial(make_env, cfg, cfg.seed + i) for i in range(cfg.envs)])
     repeat = cfg.agent_config.action_repeat  # the loop counts decisions, the budget env steps
-    env = _EpisodeTap(make_vector_env(fns), lambda a, s: runlog.episode(a, s, env.env_step), repeat)
-    env.env_step = start_step
     last = [start_step]
     bar = _bar(cfg, runlog, quiet, progress)
     last_log = [time.monotonic(), start_step]
@@ -270,21 +266,25 @@ def _train_sync(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, pr
             agent_map = _load_or_build(cfg, runlog.run, resumed, env.observation_space("ac_0"),
                                        env.action_space("ac_0"), device)
 
-        def callback(step: int, stats, metrics) -> bool:
-            now = start_step + step * repeat
+        def callback(p) -> bool:
+            now = start_step + p.env_steps * repeat
             before, last[0] = last[0], now
-            for aid, m in metrics.items():
-                runlog.metrics(aid, m, now)
+            for aid, summary in p.summaries:
+                runlog.episode(aid, summary, now)
+            for aid, m in p.metrics.items():
+                runlog.metrics(aid, {k: v for k, v in m.items() if np.isscalar(v)}, now)
             bar.update(now - before)
             if now // cfg.checkpoint_every > before // cfg.checkpoint_every or now >= cfg.steps:
-                runlog.checkpoint(agent_map, now, stats.summary())
+                runlog.checkpoint(agent_map, now, p.timing)
             _report(bar, runlog, cfg, now, quiet, last_log)
             return now >= cfg.steps
 
         # episodes after a resume get fresh seeds: seed + 100003 * (episodes so far)
         first_seed = cfg.seed + 100_003 * sum(runlog.episodes.values())
-        run_vector_loop(agent_map, env, total_steps=decisions(cfg, start_step), callback=callback,
-                        seed=first_seed, learner_threads=_learner_threads(cfg))
+        actors = registry.get_actors(cfg.algo)
+        run_loop(agent_map, env, total_steps=decisions(cfg, start_step), callback=callback, seed=first_seed,
+                 learner_threads=_learner_threads(cfg),
+                 actors=None if actors is None else actors(agent_map, first_seed))
     finally:
         bar.close()
         env.close()
@@ -359,58 +359,6 @@ def _set_torch_threads(cfg: TrainConfig) -> None:
     torch.set_num_threads(threads)
 
 
-def _train_async(cfg: TrainConfig, runlog: RunLog, resumed: bool, quiet: bool, progress: bool) -> None:
-    """A3C, IMPALA on one vector env of ``cfg.envs`` environments (worker processes when > 1):
-    A3C runs one learner thread per environment, IMPALA's learner acts in all of them."""
-    from agents.registry import get_async_trainer
-
-    trainer = get_async_trainer(cfg.algo)  # agents.a3c.train_a3c, agents.impala.train_impala
-    probe = make_env(cfg)
-    obs_space, act_space = probe.observation_space("ac_0"), probe.action_space("ac_0")
-    probe.close()
-    start_step = runlog.env_steps
-    initial = (_load_or_build(cfg, runlog.run, resumed, obs_space, act_space)
-               if resumed or cfg.init_from is not None else None)
-    bar = _bar(cfg, runlog, quiet, progress)
-    last = {"step": start_step, "ckpt": start_step}
-    last_log = [time.monotonic(), start_step]
-
-    def callback(p) -> bool:
-        now = start_step + int(p.env_steps) * cfg.agent_config.action_repeat
-        for ep in p.episodes:
-            for aid, stats in getattr(ep, "extras", {}).items():
-                runlog.episode(aid, stats, now)
-        metrics = p.metrics or {}
-        if metrics and all(isinstance(v, dict) for v in metrics.values()):
-            for aid, m in metrics.items():  # per-agent metrics
-                runlog.metrics(aid, {k: v for k, v in m.items() if np.isscalar(v)}, now)
-        elif metrics:  # shared metrics (e.g. policy lag)
-            scalars = {k: v for k, v in metrics.items() if np.isscalar(v)}
-            for aid in p.agents:
-                runlog.metrics(aid, scalars, now)
-        bar.update(max(now - last["step"], 0))
-        last["step"], last["timing"] = now, p.timing
-        if now - last["ckpt"] >= cfg.checkpoint_every or now >= cfg.steps:
-            runlog.checkpoint(p.agents, now, p.timing)
-            last["ckpt"] = now
-        _report(bar, runlog, cfg, now, quiet, last_log)
-        return now >= cfg.steps
-
-    _set_torch_threads(cfg)
-    kwargs = {} if initial is None else {"agents": initial}
-    fns = [functools.partial(make_env, cfg, cfg.seed + i) for i in range(cfg.envs)]
-    try:  # env i of N: seed + i, as in _train_sync
-        trained = trainer(
-            fns, obs_space, act_space,
-            agent_ids=[f"ac_{k}" for k in range(cfg.agents)], config=cfg.agent_config,
-            total_steps=decisions(cfg, start_step), seed=cfg.seed + 7919 * sum(runlog.episodes.values()),
-            callback=callback, **kwargs,
-        )
-        runlog.checkpoint(trained, max(last["step"], runlog.env_steps), last.get("timing"))
-    finally:
-        bar.close()
-
-
 def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
     """Build the training env of a config, a TrainConfig or its ``to_dict()`` (top-level, so
     worker processes can pickle it; a TrainConfig pickles without torch);
@@ -439,31 +387,3 @@ def decisions(cfg: TrainConfig, start_step: int) -> int:
     environment steps, and with the agents' ``action_repeat`` R each decision is R of them
     (docs/task.md, "Action repeat")."""
     return -(-(cfg.steps - start_step) // cfg.agent_config.action_repeat)
-
-
-class _EpisodeTap:
-    """Forwards a ParallelEnv and hands each agent's final ``info[EPISODE_INFO]`` to a callback;
-    counts environment steps, ``repeat`` per step of a training env that holds each action
-    for ``repeat`` steps."""
-
-    def __init__(self, env, on_episode: Callable[[str, dict], None], repeat: int = 1):
-        self.env, self.on_episode, self.repeat = env, on_episode, int(repeat)
-        self.env_step = 0  # env steps so far (a vector env: summed over the envs it stepped)
-
-    def __getattr__(self, name):  # reset, agents, spaces, close: the env's own
-        return getattr(self.env, name)
-
-    def step(self, actions):
-        return self._tap(self.env.step(actions))
-
-    def step_wait(self, *envs):  # a vector env's second half of step (agents/vector.py)
-        return self._tap(self.env.step_wait(*envs))
-
-    def _tap(self, out):
-        # a vector env gives one info dict per environment
-        self.env_step += self.repeat * (int(out.stepped.sum()) if hasattr(out, "stepped") else 1)
-        for infos in (out.infos if hasattr(out, "env_reset") else [out[4]]):
-            for agent, info in infos.items():
-                if EPISODE_INFO in info:
-                    self.on_episode(agent, info[EPISODE_INFO])
-        return out

@@ -74,13 +74,8 @@ class Validator:
         for aid, agent in agents.items():
             sample = self.cfg.algo in SAMPLED
             policies[aid] = SampledPolicy(agent, int(aid.rsplit("_", 1)[1])) if sample else agent
-        saved = {aid: getattr(a, "_cache", None) for aid, a in agents.items()}  # act()'s memo
-        try:
-            records = run_episodes(self._env, policies, self.seeds)
-        finally:
-            for aid, a in agents.items():
-                if saved[aid] is not None:
-                    a._cache = saved[aid]
+        # act() is a batch of one outside any env column: it leaves what training keeps alone
+        records = run_episodes(self._env, policies, self.seeds)
         returns = records.groupby(["agent", "episode"])["reward"].sum().groupby("agent").mean()
         return {aid: float(returns.get(aid, np.nan)) for aid in agents}
 

@@ -140,11 +140,13 @@ def test_async_training_on_two_env_processes_updates_the_shared_model(tmp_path):
     untrained = A3C.from_spaces(*CARTPOLE_SPACES, A3CConfig(n_steps=10), seed=0)
     assert isinstance(agent, A3C)
     assert not torch.equal(model_weights(agent), model_weights(untrained))
-    assert reports[-1].env_steps == 3000  # segments are claimed before they run: no overshoot here
+    assert reports[-1].env_steps == 3000  # steps are claimed before they are taken: no overshoot
     assert {ep.worker for r in reports for ep in r.episodes} == {0, 1}  # both environments played
     assert len(reports[-1].worker_pids) == 2 and live_pids(reports[-1].worker_pids) == []
-    assert agent.num_updates == len(reports) == 3000 // 10  # one shared step per segment
-    learning_rates = [r.metrics["agent_0"]["charts/learning_rate"] for r in reports]
+    learnt = [r for r in reports if r.metrics]
+    # one shared step per segment of 10 transitions; each thread may end within a segment
+    assert agent.num_updates == len(learnt) and 3000 // 10 - 2 <= len(learnt) <= 3000 // 10
+    learning_rates = [r.metrics["agent_0"]["charts/learning_rate"] for r in learnt]
     assert learning_rates[0] > learning_rates[-1] and learning_rates[-1] < 0.02 * agent.config.learning_rate
     agent.save(tmp_path / "async.ckpt")
     loaded = agents.load(tmp_path / "async.ckpt")
@@ -175,9 +177,9 @@ def test_threads_apply_their_updates_asynchronously(monkeypatch):
     for name, rollout in segments:
         assert len(set(rollout.obs[:, 0].tolist())) == 1, "a segment mixes environments"
         by_thread.setdefault(name, set()).add(int(rollout.obs[0, 0]))
-    assert by_thread == {f"a3c-learner-{k}": {k} for k in range(3)}  # thread k owns env k
-    staleness = [r.metrics["agent_0"]["charts/staleness"] for r in reports]
-    assert len(staleness) == 600 // 4 and max(staleness) > 0
+    assert by_thread == {f"cosim-actor-{k}": {k} for k in range(3)}  # thread k owns env k
+    staleness = [r.metrics["agent_0"]["charts/staleness"] for r in reports if r.metrics]
+    assert 600 // 4 - 3 <= len(staleness) <= 600 // 4 and max(staleness) > 0
 
 
 def test_segments_follow_each_env_across_auto_resets(monkeypatch):
@@ -190,9 +192,11 @@ def test_segments_follow_each_env_across_auto_resets(monkeypatch):
     envs = [functools.partial(ScriptedParallelEnv, i) for i in range(2)]
     ids = ["agent_0", "agent_1", "agent_2"]
     train_a3c(envs, *SCRIPTED_SPACES, ids, A3CConfig(n_steps=5), total_steps=200, seed=7, processes=False)
-    assert {(r.agent_id, int(r.obs[0, 0])) for r in segments} == {(a, e) for a in ids for e in range(2)}
+    # obs: (env, agent index, t, episode seed, last action)
+    assert {(int(r.obs[0, 1]), int(r.obs[0, 0])) for r in segments} == {(k, e) for k in range(3) for e in range(2)}
     for rollout in segments:
-        k = ids.index(rollout.agent_id)
+        k = int(rollout.obs[0, 1])
+        assert (rollout.obs[:, 1] == k).all(), "a segment mixes agents"
         final = dict(zip(rollout.final_index.tolist(), rollout.final_obs, strict=True))
         assert len(rollout) - 1 in final
         for t in range(len(rollout)):
@@ -240,7 +244,7 @@ def test_a_raising_env_surfaces_its_traceback_and_leaves_no_process():
     assert "in step" in info.value.worker_traceback  # the frame inside the env worker
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
-    assert not [t for t in threading.enumerate() if t.name.startswith("a3c-learner")]
+    assert not [t for t in threading.enumerate() if t.name.startswith("cosim-actor")]
 
 
 def test_keyboard_interrupt_in_the_callback_leaves_no_process_or_thread():
@@ -256,7 +260,7 @@ def test_keyboard_interrupt_in_the_callback_leaves_no_process_or_thread():
                   start_method="forkserver")
     assert pids and live_pids(pids) == []
     assert multiprocessing.active_children() == []
-    assert not [t for t in threading.enumerate() if t.name.startswith("a3c-learner")]
+    assert not [t for t in threading.enumerate() if t.name.startswith("cosim-actor")]
 
 
 def test_reward_scale_applies_to_a3c_and_impala_rollouts():
@@ -268,4 +272,5 @@ def test_reward_scale_applies_to_a3c_and_impala_rollouts():
         obs = np.zeros(4, np.float32)
         for reward in (10.0, -20.0):
             agent.observe(obs, agent.act(obs), reward, obs, terminated=False, truncated=False)
-        np.testing.assert_allclose(agent._builder.build().rewards, [1.0, -2.0], rtol=1e-6)
+        builder = agent._builders[0] if cls is A3C else agent._unrolls.builders[("self", 0)]
+        np.testing.assert_allclose(builder.build().rewards, [1.0, -2.0], rtol=1e-6)

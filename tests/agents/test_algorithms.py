@@ -36,7 +36,7 @@ def test_runs_end_to_end_on_gym_task(algo):
     agent = cls.from_spaces(*SPACES[algo], config=FAST[algo], seed=0)
     before = _weights(agent)
     seen: list[dict[str, float]] = []
-    stats = run_loop({"agent_0": agent}, env, 300, callback=lambda s, st, m: seen.extend(m.values()))
+    stats = run_loop({"agent_0": agent}, env, 300, callback=lambda p: seen.extend(p.metrics.values()))
     assert stats.env_steps == 300 and stats.updates == len(seen) > 0
     assert all(np.isfinite(v) for metrics in seen for v in metrics.values())
     assert all(k.split("/")[0] in {"losses", "charts"} for k in seen[-1])
@@ -103,7 +103,7 @@ def test_ppo_truncation_bootstraps_from_final_observation():
     obs, final = np.zeros(4, np.float32), np.full(4, 3.0, np.float32)
     agent.act(obs)
     agent.observe(obs, 0, 1.0, final, terminated=False, truncated=True)
-    expected = agent._value(final)
+    expected = float(agent._values(final[None])[0])
     assert agent.buffer.next_values[0] == pytest.approx(expected) and expected != 0.0
     agent.act(obs)
     agent.observe(obs, 0, 1.0, final, terminated=True, truncated=False)

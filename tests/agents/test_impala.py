@@ -155,7 +155,7 @@ def test_learner_on_two_env_processes_updates_and_leaves_no_process(tmp_path):
     assert lags and min(lags) >= 0 and max(lags) > 0  # double buffering: actions lag the weights
     learning_rates = [r.metrics["agent_0"]["charts/learning_rate"] for r in reports if r.metrics]
     assert learning_rates == sorted(learning_rates, reverse=True) and learning_rates[-1] < 0.02 * config.learning_rate
-    assert agent.optimizer.param_groups[0]["lr"] == config.learning_rate  # restored for in-process use
+    assert agent.progress_remaining == 0.0  # what the loop set before the last update: the budget spent
     assert live_pids(reports[-1].worker_pids) == []
     agent.save(tmp_path / "async.ckpt")
     loaded = agents.load(tmp_path / "async.ckpt")
@@ -173,7 +173,7 @@ def test_unrolls_are_per_env_and_agent_with_true_final_observations(monkeypatch)
     for _agent, batch, *_ in batches:
         k = int(batch.obs[0, 1])
         assert (batch.obs[:, 1] == k).all(), "a batch mixes agents"
-        assert batch.agent_id == f"agent_{k}" and len(batch) == 2 * config.unroll_length
+        assert len(batch) == 2 * config.unroll_length
         final = dict(zip(batch.final_index.tolist(), batch.final_obs, strict=True))
         for t in range(len(batch)):
             env, step, ep_seed = batch.obs[t, 0], batch.obs[t, 2], batch.obs[t, 3]

@@ -27,12 +27,13 @@ class Recorder(Agent):
     def _build(self):
         self.calls = []
 
-    def act(self, obs, deterministic=False):
-        self.calls.append(("act", float(np.asarray(obs).ravel()[0])))
-        return 1
+    def act_batch(self, obs, columns, deterministic=False):
+        self.calls += [("act", float(np.asarray(row).ravel()[0])) for row in obs]
+        return np.ones(len(obs), np.int64)
 
-    def observe(self, obs, action, reward, next_obs, terminated, truncated):
-        self.calls.append(("observe", float(np.asarray(obs).ravel()[0]), float(np.asarray(next_obs).ravel()[0]), truncated))
+    def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns):
+        self.calls += [("observe", float(np.asarray(o).ravel()[0]), float(np.asarray(n).ravel()[0]), bool(t))
+                       for o, n, t in zip(obs, next_obs, truncated, strict=True)]
 
     def update(self):
         self.calls.append(("update",))
@@ -68,7 +69,8 @@ def test_loop_passes_final_observation_not_reset_observation():
     assert observes == [(0, 1, False), (1, 2, False), (2, 3, True),
                         (100, 101, False), (101, 102, False), (102, 103, True)]
     kinds = [c[0] for c in agent.calls]
-    assert kinds[:6] == ["act", "observe", "update"] * 2  # update follows every observe
+    # the action of step t + 1 is chosen before step t is observed; update follows every observe
+    assert kinds[:7] == ["act", "act", "observe", "update", "act", "observe", "update"]
     assert stats.episodes == 2 and stats.episode_lengths["agent_0"] == [3, 3]
     assert stats.episode_returns["agent_0"] == [3.0, 3.0]
     assert stats.updates == 6 and stats.env_time_s > 0 and stats.learn_time_s > 0

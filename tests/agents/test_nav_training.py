@@ -22,7 +22,7 @@ from agents.ddpg import DDPGConfig
 from agents.dqn import DQNConfig
 from agents.envs import ScriptedParallelEnv
 from agents.impala import IMPALAConfig, train_impala
-from agents.loop import run_vector_loop
+from agents.loop import run_loop
 from agents.networks import ImageMeasurementsEncoder
 from agents.ppo import PPOConfig
 from agents.registry import get_agent_class
@@ -149,7 +149,7 @@ def test_the_vector_loop_trains_every_sync_algorithm_on_nav_observations(algo, t
         agents = {a: cls.from_spaces(venv.observation_space(a), venv.action_space(a), FAST[algo], seed=k)
                   for k, a in enumerate(venv.possible_agents)}
         initial = _encoder(agents["agent_0"]).mlp[0].weight.detach().clone()
-        stats = run_vector_loop(agents, venv, 40, seed=0)
+        stats = run_loop(agents, venv, 40, seed=0)
     assert stats.last_metrics.get("agent_0"), f"{algo} learned"
     _check_trained(agents["agent_0"], initial, tmp_path)
 

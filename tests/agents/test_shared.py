@@ -16,7 +16,7 @@ import torch
 
 import agents
 from agents.envs import ScriptedParallelEnv
-from agents.loop import run_loop, run_vector_loop
+from agents.loop import run_loop
 from agents.shared import SharedSlot, share, shared_core
 from agents.vector import InProcessVectorEnv
 
@@ -42,7 +42,7 @@ def weights(agent) -> torch.Tensor:
 def test_every_acs_transitions_reach_the_one_learner_each_in_its_own_column():
     core, slots = shared_ppo(rollout_steps=500)  # no update: the buffer keeps everything
     with InProcessVectorEnv(env_fns(2)) as venv:
-        stats = run_vector_loop(slots, venv, total_steps=40, seed=3)
+        stats = run_loop(slots, venv, total_steps=40, seed=3)
     buf, n = core.buffer, core.buffer.pos
     assert n == stats.agent_steps == core.steps > 0
     # column = env * 3 + slot, and the observation in it came from that env and that AC
@@ -58,7 +58,7 @@ def test_one_network_acts_for_every_slot_and_learns_from_all_of_them():
     core, slots = shared_ppo()
     before = weights(core)
     with InProcessVectorEnv(env_fns(2)) as venv:
-        run_vector_loop(slots, venv, total_steps=60, seed=0)
+        run_loop(slots, venv, total_steps=60, seed=0)
     assert core.iterations >= 2 and not torch.equal(before, weights(core))
     assert all(s.net is core.net for s in slots.values()) and shared_core(slots) is core
     # the same observation gets the same logits from every slot: there is one policy
@@ -72,7 +72,7 @@ def test_updates_on_several_threads_learn_once_per_step_bit_for_bit():
     for threads in (1, 3):
         core, slots = shared_ppo(seed=4)
         with InProcessVectorEnv(env_fns(2)) as venv:
-            stats = run_vector_loop(slots, venv, total_steps=60, seed=4, learner_threads=threads)
+            stats = run_loop(slots, venv, total_steps=60, seed=4, learner_threads=threads)
         runs[threads] = (weights(core), core.iterations, stats.updates)
     torch.testing.assert_close(runs[1][0], runs[3][0], rtol=0, atol=0)
     assert runs[1][1:] == runs[3][1:] and runs[1][1] == runs[1][2] > 0  # one update per iteration
@@ -83,10 +83,10 @@ def test_shared_dqn_learns_per_transition_as_independent_ones_do():
                               buffer_size=600, hidden=(8,))
     with InProcessVectorEnv(env_fns(2)) as venv:
         independent = {a: agents.DQN(SPACE, ACTIONS, config, seed=k) for k, a in enumerate(IDS)}
-        run_vector_loop(independent, venv, total_steps=60, seed=1)
+        run_loop(independent, venv, total_steps=60, seed=1)
     with InProcessVectorEnv(env_fns(2)) as venv:
         core = agents.DQN(SPACE, ACTIONS, config, seed=0)
-        run_vector_loop(share(core, IDS), venv, total_steps=60, seed=1)
+        run_loop(share(core, IDS), venv, total_steps=60, seed=1)
     steps = sum(a.steps for a in independent.values())
     assert core.steps == steps  # the same transitions, all in one replay
     assert core.buffer.columns == 6 and len(core.buffer) == steps
@@ -106,7 +106,7 @@ def test_slots_work_in_the_one_environment_loop():
 def test_each_slots_checkpoint_is_the_shared_network(tmp_path):
     core, slots = shared_ppo()
     with InProcessVectorEnv(env_fns(1)) as venv:
-        run_vector_loop(slots, venv, total_steps=30, seed=0)
+        run_loop(slots, venv, total_steps=30, seed=0)
     for aid, slot in slots.items():
         slot.save(tmp_path / f"{aid}.pt", policy_only=True)
     loaded = [agents.load(tmp_path / f"{a}.pt") for a in IDS]

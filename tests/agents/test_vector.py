@@ -1,4 +1,4 @@
-"""Vector envs and batched acting (agents/vector.py, agents.loop.run_vector_loop).
+"""Vector envs and batched acting (agents/vector.py, agents.loop.run_loop).
 
 A scripted ParallelEnv (agents.envs.ScriptedParallelEnv) writes the env index,
 agent, step and episode seed into every observation and ends its agents at
@@ -25,7 +25,7 @@ import agents
 from agents.base import Agent, due
 from agents.buffers import ReplayBuffer
 from agents.envs import ScriptedParallelEnv
-from agents.loop import run_vector_loop
+from agents.loop import run_loop
 from agents.vector import InProcessVectorEnv, VectorEnv, VectorEnvError
 from agents.workers import live_pids
 
@@ -82,7 +82,7 @@ def test_each_agent_gets_exactly_its_own_cars_transitions_across_auto_resets(n):
     seed = 5
     with InProcessVectorEnv(env_fns(n)) as venv:
         recs = _recorders(venv)
-        stats = run_vector_loop(recs, venv, total_steps=40 * n, seed=seed)
+        stats = run_loop(recs, venv, total_steps=40 * n, seed=seed)
     assert stats.env_steps == 40 * n and all(r.prepared == n for r in recs.values())
     for k, (aid, rec) in enumerate(recs.items()):
         for env in range(n):
@@ -139,7 +139,7 @@ def _ppo_run(n, seed, processes=False, learner_threads=1):
         config = agents.PPOConfig(rollout_steps=10, batch_size=5, epochs=2, hidden=(8,))
         learners = {a: agents.PPO(space, gym.spaces.Discrete(3), config, seed=seed + k)
                     for k, a in enumerate(venv.possible_agents)}
-        stats = run_vector_loop(learners, venv, total_steps=30 * n, seed=seed,
+        stats = run_loop(learners, venv, total_steps=30 * n, seed=seed,
                                 learner_threads=learner_threads)
     weights = {a: torch.cat([p.detach().flatten() for p in ag.net.parameters()]) for a, ag in learners.items()}
     return stats, weights, learners
@@ -179,7 +179,7 @@ def test_ppo_stores_the_acting_policys_log_prob_and_value_for_each_transition():
     ppo = {a: agents.PPO(space, gym.spaces.Discrete(3), agents.PPOConfig(rollout_steps=200, batch_size=10, hidden=(8,)),
                          seed=k) for k, a in enumerate(["agent_0", "agent_1", "agent_2"])}
     with InProcessVectorEnv(env_fns(2)) as venv:
-        run_vector_loop(ppo, venv, total_steps=60, seed=0)
+        run_loop(ppo, venv, total_steps=60, seed=0)
     for agent in ppo.values():
         buf, n = agent.buffer, agent.buffer.pos
         assert n > 20 and agent.iterations == 0

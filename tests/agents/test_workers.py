@@ -24,15 +24,15 @@ import numpy as np
 import pytest
 import torch
 
-from agents.async_env import EpisodeTracker, Unrolls, act_for, record, vector_env
+from agents.async_env import Unrolls, vector_env
 from agents.envs import ScriptedParallelEnv
-from agents.networks import ActorCritic
+from agents.impala import IMPALA, IMPALAConfig
+from agents.loop import run_loop
 from agents.vector import InProcessVectorEnv, VectorEnv
 from agents.workers import (
     Rollout,
     RolloutBuilder,
     get_context,
-    linear_learning_rate,
     live_pids,
     worker_seed,
 )
@@ -99,14 +99,6 @@ def test_worker_seeds_differ_and_repeat():
     assert worker_seed(3, 1) == worker_seed(3, 1)
 
 
-def test_linear_learning_rate_decays_to_zero():
-    optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
-    assert linear_learning_rate(optimizer, 0.4, 0, 100) == pytest.approx(0.4)
-    assert linear_learning_rate(optimizer, 0.4, 75, 100) == pytest.approx(0.1)
-    assert optimizer.param_groups[0]["lr"] == pytest.approx(0.1)
-    assert linear_learning_rate(optimizer, 0.4, 120, 100) == 0.0  # overshoot clamps at 0
-
-
 def test_get_context_refuses_fork():
     with pytest.raises(ValueError, match="fork"):
         get_context("fork")
@@ -121,30 +113,26 @@ def _scripted(n: int, **kwargs):
     return [functools.partial(ScriptedParallelEnv, i, **{"lengths": LENGTHS, **kwargs}) for i in range(n)]
 
 
-def _models(venv):
-    space, actions = venv.observation_space("agent_0"), venv.action_space("agent_0")
-    return {a: ActorCritic(space, int(actions.n), (16,)) for a in venv.possible_agents}
-
-
-def test_act_record_and_track_follow_each_env_and_agent_across_auto_resets():
+def test_loop_hooks_cut_unrolls_per_env_and_agent_across_auto_resets():
+    # IMPALA's hooks on the one loop (learning off: unrolls longer than the run): every
+    # transition reaches its (env, agent) unroll with the acting policy's log-probability and
+    # the TRUE final observation at an episode end; the loop reports each env's episodes.
     seed, n, scale = 3, 2, 0.5
+    config = IMPALAConfig(unroll_length=1000, batch_size=1, reward_scale=scale)
+    reports = []
     with InProcessVectorEnv(_scripted(n)) as venv:
-        models = _models(venv)
-        generators = {a: torch.Generator().manual_seed(k) for k, a in enumerate(models)}
-        unrolls, tracker = Unrolls(), EpisodeTracker(venv.possible_agents, n)
-        state, envs, episodes = venv.reset(seed=seed), np.arange(n), []
-        for _ in range(30):
-            acted, actions = act_for(models, generators, envs, state.obs, state.alive, n)
-            for a, (rows, obs, chosen, log_probs) in acted.items():
-                assert (rows == envs[state.alive[a]]).all() and (actions[a][rows] == chosen).all()
-                with torch.no_grad():
-                    logits, _ = models[a](torch.as_tensor(obs))
-                expected = torch.log_softmax(logits, -1).numpy()[np.arange(len(rows)), chosen]
-                np.testing.assert_allclose(log_probs, expected, rtol=1e-5)  # the acting policy's
-            state = venv.step(actions)
-            record(unrolls, acted, state, scale)
-            episodes += tracker.record(state, envs)
-        rollouts = unrolls.take_all()
+        space, actions = venv.observation_space("agent_0"), venv.action_space("agent_0")
+        learners = {a: IMPALA.from_spaces(space, actions, config, seed=k) for k, a in enumerate(venv.possible_agents)}
+        run_loop(learners, venv, 30 * n, callback=reports.append, seed=seed)
+    assert all(not r.metrics for r in reports) and reports[-1].env_steps == 30 * n
+    rollouts = [(aid, env, rollout, version) for aid, learner in learners.items()
+                for _, env, rollout, version in learner._unrolls.take_all()]
+    episodes = [episode for r in reports for episode in r.episodes]
+    for aid, _env, rollout, _version in rollouts:
+        with torch.no_grad():
+            logits, _ = learners[aid].model(torch.as_tensor(rollout.obs))
+        expected = torch.log_softmax(logits, -1).numpy()[np.arange(len(rollout)), rollout.actions]
+        np.testing.assert_allclose(rollout.log_probs, expected, rtol=1e-5)  # the acting policy's
     assert sorted((a, e) for a, e, _, _ in rollouts) == [(a, e) for a in venv.possible_agents for e in range(n)]
     for aid, env, rollout, _ in rollouts:
         k = int(aid[-1])
@@ -163,6 +151,7 @@ def test_act_record_and_track_follow_each_env_and_agent_across_auto_resets():
                 episode += 1
     for report in episodes:  # raw returns, the env's own summary, per env
         i = report.worker
+        assert set(report.lengths) == set(learners)
         for aid, length in report.lengths.items():
             k = int(aid[-1])
             assert report.extras[aid] == {"t": length}
@@ -244,7 +233,7 @@ spaces = (gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float32), gymnasium.spa
 """
 
 
-# The trainer's cleanup is bounded by its own timeouts (agents/async_env.py run_threads: each
+# The trainer's cleanup is bounded by its own timeouts (agents/loop.py _run_actor_threads: each
 # learner thread joined for 10 s, the env workers closed in ~7 s, the threads joined again for
 # 5 s): ~40 s at worst with two envs. Three times that, so load never fails the test and a hang
 # still does.

@@ -161,10 +161,10 @@ def test_bad_cli_input_is_one_line_naming_it(make_argv, expected, tmp_path, capf
 
 
 def test_out_under_a_file_fails_before_the_protocol_runs(tmp_path, capfd, monkeypatch):
-    import eval.testing.protocol
+    import eval.testing.session
 
     ran = []
-    monkeypatch.setattr(eval.testing.protocol, "run_protocol", lambda *a, **k: ran.append(1))
+    monkeypatch.setattr(eval.testing.session, "run_test", lambda *a, **k: ran.append(1))
     code, err = run_cli(["test", "--policy", "random", "--envs", "env_1", "--quiet",
                          "--out", str(_file(tmp_path) / "reports")], capfd)
     assert code != 0 and not ran and "--out" in err

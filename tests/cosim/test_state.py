@@ -177,9 +177,9 @@ def test_the_training_env_of_a_state_run_has_its_cameras_off():
 
 def test_a_state_policy_in_a_camera_test_env_sees_its_training_observation():
     """`cosim test` drives every AC in one env that gives camera frames; a state-trained AC's
-    policy (eval.testing.protocol.drive -> StatePolicy) builds, from the env's world, what the
+    policy (eval.testing.loading.drive -> StatePolicy) builds, from the env's world, what the
     state env gives, step after step (same seed, same actions)."""
-    from eval.testing.protocol import drive
+    from eval.testing.loading import drive
     from eval.testing.rollout import StatePolicy
 
     actions = [{"ac_0": 3, "ac_1": 4}, {"ac_0": 5, "ac_1": 3}, {"ac_0": 3, "ac_1": 1}] * 2

@@ -346,6 +346,7 @@ def _return_at(checkpoint: Path) -> float:
 
 
 @needs_ray
+@pytest.mark.cluster  # a PBT run on Ray (~90 s): .ci/run runs it in its -m cluster step
 @pytest.mark.timeout(1000)  # the run's own budget is 900 s (2 min on a quiet machine, ~10 at load 13)
 def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperparameters(tmp_path, ray_tmp):
     import pandas as pd
@@ -353,7 +354,7 @@ def test_pbt_exploits_continue_from_the_donor_checkpoint_with_perturbed_hyperpar
 
     from eval.scale.pbt import weights_digest
     from eval.testing import selection
-    from eval.testing.protocol import load_for_slot
+    from eval.testing.loading import load_for_slot
 
     done = cosim(["train", "--algo", "ppo", "--env", "env_1", "--preset", "smoke", "--steps",
                   str(PBT_STEPS), "--pbt", "4", "--pbt-interval", str(PBT_INTERVAL), "--out",

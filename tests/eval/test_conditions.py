@@ -17,7 +17,7 @@ ROOT = Path(eval.__file__).resolve().parents[1]
 SOURCES = sorted([*(ROOT / "eval").rglob("*.py"), *(ROOT / "studies").glob("*.py")])
 HOME = ROOT / "eval" / "testing" / "conditions.py"
 USES = {
-    "eval/testing/protocol.py": 1,  # run_job: a Scenario 1 slot order or an AC alone
+    "eval/testing/jobs.py": 1,  # run_job: a Scenario 1 slot order or an AC alone
     "eval/testing/replay.py": 1,  # either scenario, as the report's records were taken
     "eval/testing/robustness.py": 2,  # cross-play, sweeps
     "eval/testing/validity.py": 1,  # the degenerate-policy suite (and the references)

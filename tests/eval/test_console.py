@@ -51,7 +51,8 @@ def test_every_option_has_help_and_shows_its_default():
     bench = commands["benchmark"].format_help()
     assert "(default: standard)" in bench and "(default: env_1 env_2 env_3 env_4 env_5)" in bench
     assert re.search(r"runs\s+the\s+`standard`\s+preset", bench) and re.search(r"30\s+trials", bench)
-    assert re.search(r"27-41\s+min\s+of\s+learning", bench)
+    # measured times live in docs/benchmarks.md, not in --help (they change with the machine)
+    assert not re.search(r"\d\s*(min|h)\b|minute|hour", bench) and "docs/benchmarks.md" in bench
     test = commands["test"].format_help()
     assert "--allow-cross-env" in test and "(default: 500)" in test and "(default: runs)" in test
 
@@ -122,7 +123,9 @@ def test_each_environment_is_tested_with_its_own_runs_and_the_table_names_every_
     _run(runs, "env_1", "ppo", acs=("ac_0",))
     _run(runs, "env_3", "ppo", acs=("ac_0", "ac_1", "ac_2"))
     _run(runs, "env_1", "dqn", acs=("ac_0", "ac_1"))
-    from eval.testing.protocol import ProtocolPlan, find_checkpoints, slot_summary, slot_table
+    from eval.testing.checkpoints import find_checkpoints
+    from eval.testing.protocol import ProtocolPlan
+    from eval.testing.slots import slot_summary, slot_table
 
     per_env = {env: find_checkpoints(runs, ["ppo"], env=env) for env in ("env_1", "env_3")}
     assert [c["ppo"].parts[-4] for c in per_env.values()] == ["env_1__ppo__0__20260101-000000",
@@ -185,6 +188,6 @@ def test_benchmark_console_on_ray_is_short_with_a_line_per_trial(tmp_path):
     lines = _console_checks(done.stdout + done.stderr, 3)
     # the plan, 3 trials, the total, the test of env_1, the report's start, where it is
     assert len(lines) == 1 + 3 + 1 + 2 + 1, lines
-    phases = [re.match(r"\[(\d+)/(\d+)\] (tested|reference)", line) for line in lines]
+    phases = [re.match(r"\[(\d+)/(\d+)\] (tested|the report)", line) for line in lines]
     counts = [(int(m[1]), int(m[2])) for m in phases if m]
     assert counts == [(1, 2), (2, 2)], lines  # the report's counter ends at its total

@@ -35,10 +35,10 @@ def _spy_on_the_cli_layer(monkeypatch) -> tuple[list, list]:
     import eval.training.train as train_module
 
     built, events = [], []
-    make_config = train_module.make_config
+    resolve = train_module.resolve  # what make_config and cosim train resolve a run's options with
 
-    def recording_make_config(*args, **kwargs):
-        cfg = make_config(*args, **kwargs)
+    def recording_resolve(*args, **kwargs):
+        cfg = resolve(*args, **kwargs)
         built.append(cfg)
         events.append("make_config")
         return cfg
@@ -49,7 +49,7 @@ def _spy_on_the_cli_layer(monkeypatch) -> tuple[list, list]:
         events.append(f"from_dict {cls.__name__}")
         return from_dict(cls, values)
 
-    monkeypatch.setattr(train_module, "make_config", recording_make_config)  # cmd_train imports it from here
+    monkeypatch.setattr(train_module, "resolve", recording_resolve)  # cmd_train imports it from here
     monkeypatch.setattr(AgentConfig, "from_dict", classmethod(recording_from_dict))
     return built, events
 
@@ -84,24 +84,28 @@ def test_set_learning_rate_reaches_ppos_optimiser_as_the_typed_config_make_confi
     assert events[events.index("make_config"):] == ["make_config", "PPO.__init__"], events
 
 
-def test_the_async_loop_gets_the_typed_config_as_it_is(tmp_path, monkeypatch):
-    """A3C and IMPALA train in their own loops (agents.a3c.train_a3c, ...): the trainer hands
-    them the same object."""
+def test_the_async_algorithms_get_the_typed_config_as_it_is(tmp_path, monkeypatch):
+    """A3C and IMPALA train on the same trainer path as PPO (one loop, agents.loop.run_loop):
+    the agents it builds get the same object."""
+    from agents.a3c import A3C
+
     built, events = _spy_on_the_cli_layer(monkeypatch)
     received = []
+    init = A3C.__init__
 
-    def capturing_trainer(*args, config=None, **kwargs):
-        events.append("train_a3c")
+    def capturing_init(self, observation_space, action_space, config=None, seed=0, device="cpu"):
+        events.append("A3C.__init__")
+        init(self, observation_space, action_space, config=config, seed=seed, device=device)
         received.append(config)
         raise _Stop
 
-    monkeypatch.setattr(registry, "get_async_trainer", lambda name: capturing_trainer)
+    monkeypatch.setattr(A3C, "__init__", capturing_init)
     assert main(["train", "--algo", "a3c", "--preset", "smoke", "--agents", "1", "--envs", "1", "--steps", "50",
                  "--set", "learning_rate=2e-4", "--validation-episodes", "0", "--out", str(tmp_path)]) == 2
     (cfg,) = built
     assert received[0] is cfg.agent_config and received[0].learning_rate == 2e-4
     assert type(received[0]) is registry.get_config_class("a3c")
-    assert events[events.index("make_config"):] == ["make_config", "train_a3c"], events
+    assert events[events.index("make_config"):] == ["make_config", "A3C.__init__"], events
 
 
 def test_pbt_perturbs_the_typed_config_with_dataclasses_replace():

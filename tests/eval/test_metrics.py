@@ -81,8 +81,7 @@ def test_seconds_come_from_the_scenario_dt(tmp_path):
     not a fixed 0.1 s: a scenario YAML with dt 0.05 halves the seconds of the same steps."""
     from cosim.scenario import scenarios_dir
     from eval.reporting.report import per_episode
-    from eval.testing.metrics import scenario_dt
-    from eval.testing.protocol import metrics_table
+    from eval.testing.metrics import metrics_table, scenario_dt
 
     text = (scenarios_dir() / "env_1.yaml").read_text()
     assert "\ndt: 0.1 " in text

@@ -10,15 +10,11 @@ from gymnasium import spaces
 
 from agents.registry import get_agent_class
 from eval.cli import main
-from eval.testing.protocol import (
-    ProtocolError,
-    ProtocolPlan,
-    find_checkpoints,
-    metrics_table,
-    policy_factory,
-    run_protocol,
-    slot_order,
-)
+from eval.testing.checkpoints import find_checkpoints
+from eval.testing.jobs import run_protocol
+from eval.testing.metrics import metrics_table
+from eval.testing.policies import policy_factory
+from eval.testing.protocol import ProtocolError, ProtocolPlan, slot_order
 
 
 def test_both_scenarios_and_their_metric_table():
@@ -125,7 +121,7 @@ def test_a_checkpoint_trained_on_two_frames_is_tested_on_two(tmp_path):
     the checkpoint (84x84x6) and stack that AC's frames, beside a one-frame AC."""
     import yaml
 
-    from eval.testing.protocol import drive, load_for_slot
+    from eval.testing.loading import drive, load_for_slot
     from eval.testing.rollout import StackedPolicy
     from eval.training.train import make_config, train
 
@@ -158,7 +154,7 @@ def test_a_checkpoint_trained_with_an_action_repeat_is_tested_holding_its_action
     checkpoint carries the repeat, and the test holds each of its actions for 2 steps."""
     import yaml
 
-    from eval.testing.protocol import action_repeat_of, drive, load_for_slot
+    from eval.testing.loading import action_repeat_of, drive, load_for_slot
     from eval.testing.rollout import RepeatPolicy, StackedPolicy
     from eval.training.runfolder import read_state
     from eval.training.train import make_config, train

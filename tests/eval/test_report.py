@@ -23,7 +23,8 @@ from eval.reporting.report import (
 )
 from eval.reporting.stats import bootstrap_ci
 from eval.testing import replay, selection
-from eval.testing.protocol import ProtocolPlan, run_protocol
+from eval.testing.jobs import run_protocol
+from eval.testing.protocol import ProtocolPlan
 
 ARGS = ["test", "--policy", "random", "--agents", "2", "--envs", "env_1", "env_3",
         "--episodes", "2", "--steps", "30", "--quiet", "--references", "none"]

@@ -73,7 +73,7 @@ def run_folder(root: Path, env: str, algo: str, seed: int = 0) -> Path:
 
 
 def synthetic_references() -> pd.DataFrame:
-    """The whole reference suite's summary (eval.testing.protocol.reference_rows) in ENVS."""
+    """The whole reference suite's summary (eval.testing.session.reference_rows) in ENVS."""
     return pd.DataFrame([{"policy": p, "DS": 0.95 - 0.05 * i, "RC": 0.96 - 0.05 * i, "success": 0.5 * (i < 2),
                           "return": 100.0 - 10 * i, "goal": 0.5 * (i < 2), "DISTANCE": 10.0,
                           "CV": 0.0, "CO": 0.1 * (i % 3), "CP": np.nan if env == "env_1" else 0.0,

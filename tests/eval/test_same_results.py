@@ -93,7 +93,10 @@ def _weights(run: Path, algo: str) -> list[dict]:
 
 
 def _records(tmp_path: Path) -> dict[str, pd.DataFrame]:
-    from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.testing.checkpoints import find_checkpoints
+    from eval.testing.jobs import run_protocol
+    from eval.testing.policies import policy_factory
+    from eval.testing.protocol import ProtocolPlan
     from eval.training.train import make_config, train
 
     episodes, weights = [], []

@@ -418,6 +418,7 @@ def _as_env(study: Path, dest: Path, env: str, seeds: int, first_seed: int = 0) 
             link.symlink_to(study / "bench" / "runs" / f"env_1__{algo}__{k}__bench")
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_combine_gathers_studies_of_different_environments(smoke, tmp_path):
     """--combine: one table over studies run apart, each environment with its own seeds."""
     study, done = smoke
@@ -477,6 +478,7 @@ def _link_runs(study, runs) -> None:
         (runs / name).symlink_to((study / "bench" / "runs" / name).resolve())
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_a_study_tested_alone_too_has_the_alone_table(smoke, tmp_path):
     """A part of a grid tested in Scenarios 1 and 2 (the smoke study's seed-0 runs, linked with
     --runs), exported and, as a clone has it, without its held-out records, combined on its own:
@@ -505,6 +507,7 @@ def test_a_study_tested_alone_too_has_the_alone_table(smoke, tmp_path):
         assert f"| {algo.upper()} | {r['return']:,.1f} ({r['goal']:.2f}; 1 seed) |" in alone
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_combined_page_finds_every_section_of_a_five_environment_summary(smoke, load_study, tmp_path):
     """studies/combined_page.py reads the sections it shows from the summary.md that
     studies/science.py --combine writes: here the smoke study (Straight) combined with copies of
@@ -525,6 +528,7 @@ def test_combined_page_finds_every_section_of_a_five_environment_summary(smoke, 
     assert s["budget"].startswith("|") and "alone" not in s
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
     """--export copies a finished study without checkpoints (run folders are not kept in git);
     --combine takes the copy as the study: the same table, curves and checkpoint provenance."""
@@ -588,6 +592,7 @@ def test_an_exported_study_combines_without_its_checkpoints(smoke, tmp_path):
     assert refused.returncode == 2 and "no finished study" in refused.stderr, refused.stderr
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_seed_parts_of_one_environment_combine_into_the_whole_study(smoke, tmp_path):
     """A grid run in parts: seed 0 in one study, seed 1 in another (``--first-seed 1``), one
     of them only as an export's seed means: --combine gives the 2-seed study's tables; a seed
@@ -803,6 +808,7 @@ def test_part_page_alone_bullet_gives_goals_or_how_far_short_each_algorithm_stoo
                     "road in 80% of its steps (-450.0).")
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_a_study_from_a_first_seed_trains_and_tests_only_its_seeds(smoke, tmp_path):
     """--first-seed 1 --seeds 1 with the smoke study's runs: only seed 1 is tested, and its
     seed means are the smoke study's seed-1 rows."""
@@ -825,6 +831,7 @@ def test_a_study_from_a_first_seed_trains_and_tests_only_its_seeds(smoke, tmp_pa
     assert bad.returncode == 2 and "--first-seed -1: give 0 or more" in bad.stderr
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_a_finished_study_grows_by_seeds(smoke, tmp_path):
     """A 1-seed study rerun with --seeds 2 and --runs: seed 0's test records are kept, only
     seed 1 is tested, and the results hold both seeds (as the 2-seed study's)."""
@@ -859,6 +866,7 @@ def test_a_finished_study_grows_by_seeds(smoke, tmp_path):
     pd.testing.assert_frame_equal(ours[key], pd.read_csv(study / "results.csv")[key])
 
 
+@pytest.mark.slow  # a second smoke study or combine run (~7-26 s): -m slow
 def test_runs_trained_elsewhere_are_linked_instead_of_trained(smoke, tmp_path):
     """--runs: a study takes its finished runs from `cosim benchmark --train-only` folders
     (split across processes), after checking each run's config against the plan."""

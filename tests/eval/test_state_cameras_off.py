@@ -9,8 +9,11 @@ from gymnasium import spaces
 
 from agents.registry import get_agent_class
 from cosim.state import state_space
-from eval.testing import protocol
-from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+from eval.testing import jobs
+from eval.testing.checkpoints import find_checkpoints
+from eval.testing.jobs import run_protocol
+from eval.testing.policies import policy_factory
+from eval.testing.protocol import ProtocolPlan
 
 ALGOS = ["ppo", "td3"]  # a sampled discrete policy and a greedy continuous one
 PLAN = ProtocolPlan(envs=("env_2",), scenarios=(1, 2), episodes=1, steps=6, agents=2)
@@ -38,7 +41,7 @@ def _no_mirror(monkeypatch):
 def test_a_test_without_image_acs_builds_no_mirror_and_records_what_the_camera_env_does(tmp_path, monkeypatch, kind):
     ckpts = _state_runs(tmp_path / "runs") if kind == "trained" else None
     with monkeypatch.context() as m:  # the cameras on, as before: the reference records
-        m.setattr(protocol, "use_cameras", lambda env, policies: True)
+        m.setattr(jobs, "use_cameras", lambda env, policies: True)
         with_cameras = run_protocol(PLAN, policy_factory(kind, ckpts), ALGOS)
     _no_mirror(monkeypatch)
     without = run_protocol(PLAN, policy_factory(kind, ckpts), ALGOS)

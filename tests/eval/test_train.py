@@ -25,6 +25,7 @@ def _rows(run: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow  # six algorithms trained end to end (~50 s); the children's options: test_run_options.py
 @pytest.mark.timeout(1000)  # the run's own budget is 900 s (under 2 min on a quiet machine)
 def test_train_all_smoke_gives_a_loadable_checkpoint_per_algorithm(tmp_path):
     proc = subprocess.run(

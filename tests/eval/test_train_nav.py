@@ -57,7 +57,10 @@ def test_obs_is_part_of_the_config_and_a_bad_value_is_refused(tmp_path):
 
 
 def test_cosim_train_obs_nav_writes_checkpoints_with_the_measurement_mlp_that_drive_beside_image_acs(tmp_path):
-    from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.testing.checkpoints import find_checkpoints
+    from eval.testing.jobs import run_protocol
+    from eval.testing.policies import policy_factory
+    from eval.testing.protocol import ProtocolPlan
 
     runs = tmp_path / "runs"
     assert main(["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "4",
@@ -108,12 +111,13 @@ class _Spy:
 
 def test_the_test_env_gives_a_nav_ac_exactly_its_training_observation():
     """`cosim test` drives every AC in one env that gives camera frames; a nav AC's policy
-    (eval.testing.protocol.drive: StackedPolicy around NavPolicy) builds, from each frame and the
+    (eval.testing.loading.drive: StackedPolicy around NavPolicy) builds, from each frame and the
     env's infos, what the training env's wrappers (FrameStack + NavObservation) give, episode
     after episode."""
     from cosim.env import CosimParallelEnv
     from cosim.wrappers import observation_wrappers
-    from eval.testing.protocol import ProtocolError, drive
+    from eval.testing.loading import drive
+    from eval.testing.protocol import ProtocolError
 
     raw = CosimParallelEnv("env_1", num_agents=2, action_types="discrete", horizon=12, seed=0)
     wrapped = observation_wrappers(raw, frame_stack=2, obs="nav")  # what a --frame-stack 2 --obs nav run trains on
@@ -146,7 +150,10 @@ def _interrupt_at_first_checkpoint(run, step, score):
 @pytest.mark.parametrize("algo, envs", [("ppo", 1), ("ppo", 2), ("a3c", 1), ("impala", 2),
                                         ("dqn", 1), ("ddpg", 1), ("td3", 1)])
 def test_every_algorithm_trains_resumes_and_is_tested_on_nav_beside_an_image_ac(tmp_path, algo, envs):
-    from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.testing.checkpoints import find_checkpoints
+    from eval.testing.jobs import run_protocol
+    from eval.testing.policies import policy_factory
+    from eval.testing.protocol import ProtocolPlan
     from eval.testing.rollout import NavPolicy, StackedPolicy
 
     runs = tmp_path / "runs"

@@ -275,7 +275,7 @@ def test_td3_takes_the_continuous_autopilots_demonstrations(tmp_path):
 
 @pytest.mark.parametrize(("algo", "kwargs", "match"), [
     ("ppo", {"demo_steps": 100}, "--demo-steps fills a replay buffer: dqn, ddpg, td3 only, not ppo"),
-    ("dqn", {"demo_steps": -1}, "--demo-steps and --demo-updates must be >= 0"),
+    ("dqn", {"demo_steps": -1}, "--demo-steps must be >= 0 \\(0: off\\), got -1"),
     ("dqn", {"demo_updates": 10}, "--demo-updates pre-trains on the demonstrations: give them with --demo-steps"),
 ])
 def test_bad_demonstration_options_are_refused(algo, kwargs, match):

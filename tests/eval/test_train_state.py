@@ -44,7 +44,10 @@ def test_cosim_benchmark_obs_state_plans_one_vector_per_trial():
 
 
 def test_cosim_test_drives_a_state_ac_beside_an_image_ac_in_one_env(tmp_path):
-    from eval.testing.protocol import ProtocolPlan, find_checkpoints, policy_factory, run_protocol
+    from eval.testing.checkpoints import find_checkpoints
+    from eval.testing.jobs import run_protocol
+    from eval.testing.policies import policy_factory
+    from eval.testing.protocol import ProtocolPlan
 
     runs = tmp_path / "runs"
     assert main(["train", "--algo", "dqn", "--preset", "smoke", "--agents", "1", "--steps", "4",
