@@ -16,6 +16,7 @@ import importlib
 _EXPORTS = {
     "Agent": "agents.base", "AgentConfig": "agents.configs",
     "CheckpointError": "agents.checkpoint", "load_checkpoint": "agents.checkpoint",
+    "clone": "agents.imitation",
     "save_checkpoint": "agents.checkpoint",
     "AgentError": "agents.errors",
     "DDPG": "agents.ddpg", "DDPGConfig": "agents.configs",
@@ -52,6 +53,7 @@ __all__ = [
     "Agent",
     "AgentConfig",
     "CheckpointError",
+    "clone",
     "AgentError",
     "DDPGConfig",
     "DQNConfig",

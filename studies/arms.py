@@ -73,7 +73,7 @@ def test_rows(label: str, run: Path, episodes: int, out: Path) -> pd.DataFrame:
 
 def table(training: pd.DataFrame, test: pd.DataFrame | None, env: str) -> pd.DataFrame:
     """One row per (slot, arm), the slot's route beside it."""
-    from eval.reporting.science import slot_routes
+    from eval.reporting.multiseed import slot_routes
 
     t = training if test is None else training.merge(test, on=["arm", "slot"], how="left")
     t = t.merge(slot_routes(env), on="slot", how="left")

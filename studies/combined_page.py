@@ -27,7 +27,7 @@ from contact_table import caption, load, markdown, table
 from part_page import contact_charge_bullet, verdict_bullet
 
 from eval.labels import env_title
-from eval.reporting.science import MIN_SEEDS
+from eval.reporting.multiseed import MIN_SEEDS
 
 COPIED = ("summary.md", "results.md", "verdict.md", "iqm.md", "budget.csv", "convergence.png", "verdict.png", "iqm.png")
 HEADINGS = {"grid": "verdict per pair:", "target": "Issue 27's target per environment",

@@ -24,10 +24,10 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+from science_pages import over_seeds
 
 from eval.labels import algo_label, algo_order, env_title
 from eval.reporting.page import md_table
-from eval.reporting.science import over_seeds
 from eval.reporting.stats import bootstrap_ci
 
 FILE = "contact.csv"

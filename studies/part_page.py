@@ -28,11 +28,12 @@ from pathlib import Path
 import pandas as pd
 from contact_table import load as load_contact
 from contact_table import table as contact_table
+from science_pages import over_seeds, shows_reference
 from stops import LONG, contact_runs, episode_rows, load_records
 
 from eval.labels import algo_label, algo_order, env_title
+from eval.reporting.multiseed import MIN_SEEDS
 from eval.reporting.page import md_table
-from eval.reporting.science import MIN_SEEDS, over_seeds, shows_reference
 from eval.scale.gridstatus import grid_status
 from eval.testing.validity import DEGENERATE
 
@@ -166,7 +167,7 @@ def _names(labels: list[str]) -> str:
 
 def verdict_bullet(verdict: pd.DataFrame, targets: pd.DataFrame, env: str) -> str:
     """The verdict over the seeds together (a ``--combine`` folder's verdict.csv and targets.csv):
-    which pairs pass (on the driving score, eval/reporting/science.py verdict), whether the
+    which pairs pass (on the driving score, eval/reporting/multiseed.py verdict), whether the
     environment's target is met and what it lacks; where none passes, the two nearest (highest
     mean driving score) with their intervals and goal rates."""
     v = verdict[verdict.env == env].set_index("algorithm")

@@ -388,8 +388,8 @@ def references(out: Path, env: str, car: str, policies, agents: int, episodes: i
 # -- results -----------------------------------------------------------------------------------
 def slot_routes(env: str) -> pd.DataFrame:
     """Per slot of ``env``: its route's movement and whether it turns
-    (eval.reporting.science.slot_routes, which the 6x5 study's turning-slot goal rate uses)."""
-    from eval.reporting.science import slot_routes as routes
+    (eval.reporting.multiseed.slot_routes, which the 6x5 study's turning-slot goal rate uses)."""
+    from eval.reporting.multiseed import slot_routes as routes
 
     return routes(env)
 

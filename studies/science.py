@@ -22,7 +22,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
    uses small seeds), saved as ``OUT/test/<env>__seed<k>.parquet``;
 3. references: the autopilot, uniform random and degenerate suite (eval/testing/validity.py) on the
    same episode seeds, AC count and steps, saved as ``OUT/references/<env>.csv``;
-4. results (eval/reporting/science.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
+4. results (eval/reporting/multiseed.py, studies/science_pages.py): ``results.csv``/``results.md`` (mean and 95% bootstrap CI over
    seeds of every metric, reference rows beside), ``verdict.csv``/``verdict.md``/``verdict.png``,
    ``iqm.csv``/``iqm.md``/``iqm.png``, ``convergence.pdf``/``.png`` (+ ``convergence.csv``), ``budget.csv``
    (did each run's training return still rise at the end of its budget?),
@@ -32,7 +32,7 @@ and test records stay, only the new seeds are trained (or linked with ``--runs``
 ``--combine`` replaces stages 1-3: finished studies of different environments (run as
 separate processes, say one per core) are gathered into ``--out`` and stage 4 runs over
 all of them; each environment keeps its own number of training seeds, and the verdict
-asks for 3 (eval.reporting.science.MIN_SEEDS) whatever the intervals say.
+asks for 3 (eval.reporting.multiseed.MIN_SEEDS) whatever the intervals say.
 
 ``--export DEST`` copies a finished study's portable part (``science.json``, the held-out
 records, the references, each run's ``config.yaml``, ``episodes.csv``, ``manifest.json`` (commit,
@@ -56,15 +56,18 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from a checkout
-    sys.path.insert(0, str(ROOT))
+for path in (ROOT, ROOT / "studies"):  # run as a script from a checkout; studies/science_pages.py
+    if str(path) not in sys.path:
+        sys.path.insert(0, str(path))
 
 import pandas as pd  # noqa: E402
+import science_pages as pages  # noqa: E402
 
 from agents.errors import AgentError  # noqa: E402
 from agents.registry import ALGORITHMS  # noqa: E402
 from cosim.errors import CosimError  # noqa: E402
-from eval.reporting import science, stats  # noqa: E402
+from eval.labels import ENVS  # noqa: E402
+from eval.reporting import multiseed, stats  # noqa: E402
 from eval.reporting.report import env_title  # noqa: E402
 from eval.scale.benchmark import (  # noqa: E402
     TEST_SETTINGS,
@@ -76,7 +79,7 @@ from eval.scale.benchmark import (  # noqa: E402
     saved_plan,
 )
 from eval.testing.protocol import ProtocolPlan, rules  # noqa: E402
-from eval.testing.validity import HELD_OUT_SEED, POLICIES  # noqa: E402
+from eval.testing.validity import DEGENERATE, HELD_OUT_SEED, POLICIES  # noqa: E402
 from eval.training.config import COLLISION_RULES  # noqa: E402
 from eval.training.presets import load_presets  # noqa: E402
 
@@ -169,7 +172,7 @@ def parse(argv=None) -> argparse.Namespace:
                 setattr(args, k, v)
         args.no_ray = True
     args.preset = args.preset or default_preset()
-    args.envs = args.envs or list(science.ENVS)
+    args.envs = args.envs or list(ENVS)
     args.algos = args.algos or list(ALGORITHMS)
     args.seeds = 3 if args.seeds is None else args.seeds
     args.scenarios = sorted(set(args.scenarios or [1, 2]))
@@ -507,7 +510,7 @@ def combine(sources: list[Path], out: Path, say) -> tuple[BenchmarkPlan, dict, d
                 raise ScienceError(f"--combine: {env} seed {twice[0]} is in two of the studies; "
                                    "give each (environment, seed) once")
             seeds_of[env] = sorted(seeds_of.get(env, []) + own)
-    envs = [e for e in science.ENVS if e in seeds_of] + sorted(set(seeds_of) - set(science.ENVS))
+    envs = [e for e in ENVS if e in seeds_of] + sorted(set(seeds_of) - set(ENVS))
     plan = BenchmarkPlan(preset=b0["preset"], envs=tuple(envs), algos=tuple(b0["algos"]),
                          seeds=max(map(len, seeds_of.values())), steps=b0["steps"], agents=b0.get("agents"),
                          collisions=b0.get("collisions"), obs=b0.get("obs", "image"),
@@ -587,23 +590,21 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
             out: Path, command: str, seeds_of: dict[str, list[int]]) -> str:
     """Every results file; returns summary.md's text. ``seeds_of``: the training seeds of each
     environment (``plan.seed_list`` each, except in a --combine'd study)."""
-    from eval.reporting.report import per_episode, provenance, write_paper_report
+    from eval.reporting.report import provenance, write_paper_report
     from eval.testing.protocol import ProtocolPlan
 
     kept = kept_seeds(out, seeds_of, records)
-    measured = ([science.seed_means(pd.concat(
-        [per_episode(g).assign(train_seed=seed) for seed, g in records.groupby("train_seed", sort=True)],
-        ignore_index=True))] if len(records) else [])
+    measured = [multiseed.records_seed_means(records)] if len(records) else []
     seeds = pd.concat(measured + ([kept] if len(kept) else []), ignore_index=True)
-    table = science.seed_table(seeds)
-    ref_table = science.reference_table(refs)
-    verdict = science.verdict(table, ref_table)
-    iqm = science.iqm_table(seeds, ref_table)
+    table = multiseed.seed_table(seeds)
+    ref_table = multiseed.reference_table(refs)
+    verdict = multiseed.verdict(table, ref_table)
+    iqm = multiseed.iqm_table(seeds, ref_table)
     bench = out / "bench"
     runs = {(a, e, s): bench / "runs" / cell_name({"env": e, "algo": a, "seed": s})
             for e in plan.envs for a in plan.algos for s in seeds_of[e]}
-    curves = science.convergence_curves(runs)
-    budgets = science.budget_check(runs)
+    curves = pages.convergence_curves(runs)
+    budgets = multiseed.budget_check(runs)
 
     seeds.to_csv(out / "seeds.csv", index=False)
     pd.concat([table, ref_table], ignore_index=True).to_csv(out / "results.csv", index=False)
@@ -611,9 +612,9 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     iqm.to_csv(out / "iqm.csv", index=False)
     curves.to_csv(out / "convergence.csv", index=False)
     budgets.to_csv(out / "budget.csv", index=False)
-    science.convergence_figure(curves, out)
-    science.verdict_figure(verdict, seeds, ref_table[ref_table["scenario"] == 1], out)
-    science.iqm_figure(iqm, out)
+    pages.convergence_figure(curves, out)
+    pages.verdict_figure(verdict, seeds, ref_table[ref_table["scenario"] == 1], out)
+    pages.iqm_figure(iqm, out)
 
     t = study["test"]
     b = plan.to_dict()
@@ -640,55 +641,55 @@ def results(plan: BenchmarkPlan, study: dict, records: pd.DataFrame, refs: pd.Da
     full = ["# Science study: full results\n", how + "\n"]
     for s in t["scenarios"]:
         full.append(f"\n## Scenario {s} ({'multi-agent' if s == 1 else 'single-agent'})\n")
-        full.append(science.metrics_markdown(table, ref_table, s))
+        full.append(pages.metrics_markdown(table, ref_table, s))
     (out / "results.md").write_text("\n".join(full))
-    (out / "verdict.md").write_text(science.verdict_markdown(verdict))
-    (out / "iqm.md").write_text(science.iqm_markdown(iqm))
-    goals = science.targets(verdict)
+    (out / "verdict.md").write_text(multiseed.verdict_markdown(verdict))
+    (out / "iqm.md").write_text(multiseed.iqm_markdown(iqm))
+    goals = pages.targets(verdict)
     goals.to_csv(out / "targets.csv", index=False)
 
     passed = int(verdict["passed"].sum())
     summary = [
         "### Science study results\n", f"`{command}`: {how}\n",
         "Driving score (DS = route completion x infraction penalty, docs/task.md \"Driving score\"), "
-        "Scenario 1 (multi-agent):\n", science.grid_markdown(table, "DS", 1, ref_table),
-        "\nRoute completion, Scenario 1:\n", science.grid_markdown(table, "RC", 1, ref_table),
+        "Scenario 1 (multi-agent):\n", pages.grid_markdown(table, "DS", 1, ref_table),
+        "\nRoute completion, Scenario 1:\n", pages.grid_markdown(table, "RC", 1, ref_table),
         "\nSuccess rate (goal reached with no infraction), Scenario 1:\n",
-        science.grid_markdown(table, "success", 1, ref_table),
+        pages.grid_markdown(table, "success", 1, ref_table),
         "\nRoute completion of the turning slots (the AC-episodes whose slot's route turns; turns are "
         "learned where its CI's lower end clears the safe non-turner's), Scenario 1:\n",
-        science.grid_markdown(table, "RC_turning", 1, ref_table, ("autopilot", "safe-non-turner", "random")),
-        "\nReturn, Scenario 1:\n", science.grid_markdown(table, "return", 1, ref_table),
-        "\nGoal rate, Scenario 1:\n", science.grid_markdown(table, "goal", 1, ref_table),
+        pages.grid_markdown(table, "RC_turning", 1, ref_table, ("autopilot", "safe-non-turner", "random")),
+        "\nReturn, Scenario 1:\n", pages.grid_markdown(table, "return", 1, ref_table),
+        "\nGoal rate, Scenario 1:\n", pages.grid_markdown(table, "goal", 1, ref_table),
         "\nGoal rate of the turning slots (the AC-episodes whose slot's route turns), Scenario 1:\n",
-        science.grid_markdown(table, "goal_turning", 1, ref_table),
+        pages.grid_markdown(table, "goal_turning", 1, ref_table),
         *(["\nAlone (Scenario 2, each algorithm's `ac_0` with no other AC): return [95% CI over seeds] "
-           "(goal rate):\n", science.return_goal_grid_markdown(table, 2)] if 2 in t["scenarios"] else []),
+           "(goal rate):\n", pages.return_goal_grid_markdown(table, 2)] if 2 in t["scenarios"] else []),
         f"\nValidity verdict (issue 61): {passed} of {len(verdict)} (algorithm, "
         "environment) pairs have a driving score whose 95% CI's lower end clears every degenerate "
-        f"reference's ({', '.join(science.DEGENERATE)}), over at least {science.MIN_SEEDS} training "
+        f"reference's ({', '.join(DEGENERATE)}), over at least {multiseed.MIN_SEEDS} training "
         "seeds ('not shown': above with fewer seeds); ', turns': the turning slots' route completion "
         "CI's lower end clears the safe non-turner's. Driving score [95% CI over seeds] (goal rate) "
         "and verdict per pair:\n",
-        science.verdict_grid_markdown(verdict, ref_table[ref_table.scenario == 1]),
+        pages.verdict_grid_markdown(verdict, ref_table[ref_table.scenario == 1]),
         "\nThe same drawn (`verdict.png` / `verdict.pdf`): per environment each algorithm's "
         "seed means (dots) and mean with its 95% CI over seeds of the driving score (top, against the "
         "autopilot and the best degenerate reference) and of the turning slots' route completion "
         "(bottom, against the autopilot and the safe non-turner).\n",
-        "\nEach pair with what failed:\n", science.verdict_markdown(verdict),
+        "\nEach pair with what failed:\n", multiseed.verdict_markdown(verdict),
         "\nIQM across environments (Scenario 1 driving score normalised per environment: uniform "
         "random = 0, autopilot = 1; interquartile mean of every (environment, seed) score; "
         "95% stratified bootstrap CI resampling seeds within environments):\n",
-        science.iqm_markdown(iqm),
+        multiseed.iqm_markdown(iqm),
         "\nThe same drawn: `iqm.png` / `iqm.pdf`.\n",
         f"\nIssue 27's target per environment: {int(goals['met'].sum())} of {len(goals)} met (a "
         "discrete and a continuous algorithm pass the verdict; where a route turns, some "
-        "algorithm's turns are learned):\n", science.targets_markdown(goals),
-        f"\nDid the budgets suffice? Training return of the last {science.PLATEAU_FRACTION:.0%} of each "
-        f"run's budget minus the {science.PLATEAU_FRACTION:.0%} before (mean over seeds); rising k/n: in k "
+        "algorithm's turns are learned):\n", pages.targets_markdown(goals),
+        f"\nDid the budgets suffice? Training return of the last {multiseed.PLATEAU_FRACTION:.0%} of each "
+        f"run's budget minus the {multiseed.PLATEAU_FRACTION:.0%} before (mean over seeds); rising k/n: in k "
         "of n seeds the 95% bootstrap interval over AC-episodes lies above 0, so the curve had "
         "not flattened (bold); 0/n says no clear rise, which noisy returns can also give "
-        "(`budget.csv`):\n", science.budget_markdown(budgets),
+        "(`budget.csv`):\n", multiseed.budget_markdown(budgets),
         "\nConvergence (training return against environment steps, mean over seeds, band: "
         "min-max over seeds): `convergence.png` / `convergence.pdf`. Every metric with "
         "reference rows: `results.md`.\n"]

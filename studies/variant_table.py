@@ -3,7 +3,7 @@
 A pilot that changes the task (a scenario option, a training rule) is judged on the study's
 held-out episodes: each arm is one `cosim test` report (or a science study's records) and this
 puts them side by side, per algorithm and arm: Scenario 1 return, the same without the contact
-charge, goal rate, the turning slots' goal rate (eval/reporting/science.with_turning), contact
+charge, goal rate, the turning slots' goal rate (eval/reporting/multiseed.with_turning), contact
 steps and how many of them lie in runs of ``--long`` or more that began with the AC off its lane
 against a background car (the runs SUMO's cars cannot see: studies/stops.contact_runs), and
 Scenario 2's return and goal rate where the arm has it:
@@ -24,8 +24,8 @@ import pandas as pd
 from stops import LONG, contact_runs, episode_rows, load_records
 
 from eval.labels import algo_label, algo_order
+from eval.reporting.multiseed import with_turning
 from eval.reporting.page import md_table
-from eval.reporting.science import with_turning
 
 SYMLOG_RETURN = 1_000.0
 """Return axis: linear within +-1,000, logarithmic beyond (returns run from -10^4 to 10^3)."""

@@ -384,6 +384,11 @@ FILE_NOTES = {
     "report.md": "this page as printed by cosim test",
     "crossplay.csv": "cross-play: the ego's collision and goal rates per partner (per environment and pooled)",
     "crossplay.md": "cross-play matrix, Markdown",
+    "seeds.csv": "each training seed's means over its test episodes (eval/reporting/multiseed.py)",
+    "over_seeds.csv": "mean and 95% CI over training seeds of every metric",
+    "verdict.csv": "the verdict per (algorithm, environment): driving score over seeds against the references",
+    "iqm.csv": "IQM of the normalised driving score per algorithm, stratified bootstrap CI",
+    "budget.csv": "per run: did its training return still rise at the end of its budget?",
 }
 
 

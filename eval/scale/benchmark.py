@@ -601,7 +601,7 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
         for seed in plan.seed_list:
             ckpts = {}
             for algo in algos:
-                run = out / "runs" / f"{Path(env).stem}__{algo}__{seed}__bench"
+                run = out / "runs" / cell_name({"env": env, "algo": algo, "seed": seed})
                 chosen = selection.choose(run)
                 if chosen is None:
                     raise BenchmarkError(f"{run}: no checkpoint; rerun with --resume")
@@ -643,5 +643,23 @@ def write_report(plan: BenchmarkPlan, out: Path, command: Sequence[str] = (),
              f"{plan.seeds} seed(s) pooled (seeds {plan.first_seed}..{plan.seed_list[-1]}, "
              f"`cosim benchmark --preset {plan.preset}`); provenance "
              "lists every checkpoint (environment, seed, algorithm) with its hash and the AC chosen.\n")
-    return write_paper_report(records, out / "report", prov=prov,
-                              references=pd.concat(refs, ignore_index=True) if refs else None, extra_md=extra)
+    references = pd.concat(refs, ignore_index=True) if refs else None
+    if plan.seeds > 1:
+        extra += "\n" + seeds_section(plan, out, records, references)
+    return write_paper_report(records, out / "report", prov=prov, references=references, extra_md=extra)
+
+
+def seeds_section(plan: BenchmarkPlan, out: Path, records, references) -> str:
+    """With several training seeds, the report's "Over training seeds" section
+    (eval/reporting/multiseed.py: each seed's means, the verdict per (algorithm, environment) by
+    driving score with intervals over seeds, the IQM of the normalised driving score, the budget
+    check of every run), its tables written as CSV files beside the report's."""
+    from eval.reporting import multiseed
+
+    runs = {(algo, env, seed): out / "runs" / cell_name({"env": env, "algo": algo, "seed": seed})
+            for env in plan.envs for algo in plan.algos for seed in plan.seed_list}
+    tables = multiseed.seed_tables(records, references, runs)
+    (out / "report").mkdir(parents=True, exist_ok=True)
+    for name, table in tables.items():
+        table.to_csv(out / "report" / f"{name}.csv", index=False)
+    return multiseed.seeds_markdown(tables)

@@ -447,6 +447,9 @@ def test_benchmark_writes_the_report_in_one_command(tmp_path, ray_tmp):
     rq1 = (report / "rq1.md").read_text()
     assert all(algo.upper() in rq1.upper() for algo in ("ppo", "dqn", "td3"))
     assert "Benchmark grid" in (report / "index.md").read_text()
+    # two seeds: the statistics over seeds (eval/reporting/multiseed.py), one row per pair
+    assert "## Over training seeds" in (report / "index.md").read_text()
+    assert len(pd.read_csv(report / "verdict.csv")) == 3 and len(pd.read_csv(report / "budget.csv")) == 3 * 2
     # issue 28: every environment's and seed's checkpoints in provenance, the reference columns
     prov = json.loads((report / "provenance.json").read_text())
     assert len(prov["checkpoints"]) == 3 * 2 and prov["benchmark"]["preset"] == "smoke"

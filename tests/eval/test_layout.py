@@ -6,6 +6,7 @@ CSV columns, the presets)."""
 import ast
 import csv
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -189,6 +190,72 @@ def test_no_import_cycle_among_the_project_modules():
     assert not cycles, f"import cycles (function-level imports count): {cycles}"
 
 
+STUDIES = ROOT / "studies"
+"""The study scripts: they import the product; the product imports none of them
+(docs/design.md#module-map, "The product and the studies")."""
+
+
+def test_the_product_never_imports_a_study():
+    """Neither ``studies.x`` nor a study's bare name (``import science``, as the scripts import
+    their siblings with studies/ on ``sys.path``)."""
+    scripts = {p.stem for p in STUDIES.glob("*.py")}
+    assert {"science", "science_pages"} <= scripts
+    wrong = [f"{path.relative_to(ROOT)}:{line} imports {target}" for name, path in MODULES.items()
+             for target, line in _imports(name, path)
+             if target.split(".")[0] == "studies" or target.split(".")[0] in scripts]
+    assert not wrong, "the product imports a study:\n" + "\n".join(wrong)
+
+
+def _named_imports(name: str, path: Path) -> set[str]:
+    """The project modules ``path`` names in a string, imported on first use: a module's name
+    (agents/__init__.py's lazy exports: ``"agents.loop"``) or ``"module:attribute"``
+    (agents/registry.py's catalogue: ``"agents.ppo:PPO"``)."""
+    tree = ast.parse(path.read_text(), str(path))
+    return {n.value.split(":")[0] for n in ast.walk(tree) if isinstance(n, ast.Constant)
+            and isinstance(n.value, str) and n.value.count(":") <= 1 and n.value.split(":")[0] in MODULES}
+
+
+def _entry_points() -> set[str]:
+    """The modules a user starts from: every package (its ``__init__``), ``__main__`` modules,
+    the console scripts of pyproject.toml, and what the examples (users' code) import."""
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    entries = {name for name, path in MODULES.items() if path.name in ("__init__.py", "__main__.py")}
+    entries |= {target.split(":")[0] for target in scripts.values()}
+    for path in sorted((ROOT / "examples").rglob("*.py")):
+        entries |= {m for t, _ in _imports(path.stem, path) if (m := _project_module(t))}
+    return entries
+
+
+def unreached(graph: dict[str, set[str]], entries: set[str]) -> list[str]:
+    """The modules of ``graph`` (module -> the modules it imports) that no other module of it
+    imports and that are not among ``entries``: code only something outside (a study, a test)
+    could be using."""
+    imported = {m for source, targets in graph.items() for m in targets if m != source}
+    return sorted(m for m in graph if m not in imported and m not in entries)
+
+
+def test_unreached_finds_a_module_only_something_outside_imports():
+    graph = {"p": {"p.cli"}, "p.cli": {"p.report"}, "p.report": {"p.stats"}, "p.stats": set(),
+             "p.notebook": {"p.stats"}, "p.self": {"p.self"}}
+    assert unreached(graph, {"p", "p.cli"}) == ["p.notebook", "p.self"]  # importing itself is no use
+    graph["p.report"].add("p.notebook")
+    assert unreached(graph, {"p", "p.cli", "p.self"}) == []
+
+
+def test_every_product_module_is_imported_by_the_product_or_is_an_entry_point():
+    """No module of cosim/, agents/, eval/ is there only for studies/ or the tests: each is
+    imported by another product module (a ``"module:attribute"`` string counts), or is an entry
+    point (:func:`_entry_points`)."""
+    graph = _import_graph()
+    for name, path in MODULES.items():
+        graph[name] |= _named_imports(name, path) - {name}
+    assert "agents.ppo" in graph["agents.registry"] and "agents.loop" in graph["agents"]
+    assert "cosim.rllib" in _entry_points()  # examples/rllib_ppo.py
+    left = unreached(graph, _entry_points())
+    assert not left, ("product modules nothing in the product imports (move a study's to studies/, "
+                      f"or import it where it is used): {left}")
+
+
 def _ruff() -> list[str] | None:
     exe = shutil.which("ruff")
     if exe:
@@ -265,11 +332,10 @@ def test_the_environments_are_the_scenario_files():
     """Every "all the environments" default is the bundled scenario files, not a list of names."""
     from cosim.scenario import available_scenarios
     from eval.cli import build_parser
-    from eval.reporting import science
     from eval.scale import benchmark
 
     envs = tuple(available_scenarios())
-    assert labels.ENVS == envs == science.ENVS
+    assert labels.ENVS == envs
     assert protocol.ProtocolPlan().envs == envs == benchmark.BenchmarkPlan().envs
     parser = build_parser()
     assert parser.parse_args(["test"]).envs == list(envs) == parser.parse_args(["benchmark"]).envs
@@ -378,6 +444,38 @@ def test_the_standard_budgets_are_15_minutes_at_the_measured_rates():
     assert "| DDPG | 4 (kept) |" in doc and "| DDPG | 8 (not adopted) |" in doc
     assert (standard.agents, standard.horizon, standard.envs, standard.frame_stack) == (6, 600, 1, 4)  # 4 frames: docs/task.md, "Observation"
     assert (td3.random_steps, td3.random_low) == (2000, (-0.6, -1.0))
+
+
+def preset_comment_faults(text: str) -> list[str]:
+    """What breaks the presets' comment rule in a YAML file's ``text``: after a one-line header,
+    at most one comment line per value (a line of its own directly above the value's line, or at
+    the end of that line, not both), and no dated result (the reasons live in
+    docs/reference.md#presets, the measurements in docs/)."""
+    lines = text.splitlines()
+    faults = [f"line {n}: a dated result ({found.group()!r}): say why in docs/reference.md#presets"
+              for n, line in enumerate(lines, 1)
+              if (found := re.search(r"docs/results|git history|\b20\d\d-\d\d-\d\d\b", line))]
+    for n, (line, below) in enumerate(zip(lines[1:], [*lines[2:], ""], strict=True), 2):
+        if line.lstrip().startswith("#") and (not below.strip() or below.lstrip().startswith("#")
+                                              or " #" in below):
+            faults.append(f"line {n}: a comment not alone above its value's line")
+    return faults
+
+
+def test_the_preset_comment_rule_tells_a_good_file_from_a_bad_one():
+    good = "# header\n\n# why\nsmoke:\n  steps: 120  # rate x 900 s\n  # why\n  agents: 2\n"
+    assert preset_comment_faults(good) == []
+    for bad in ("# header\n# a second line\n\nsmoke: {}\n", "# h\n# one\n# two\nsmoke: {}\n",
+                "# h\n# above\nsteps: 1  # and beside\n", "# h\n# dangling\n\nsmoke: {}\n",
+                "# h\nsteps: 1  # (task version 1; in git history at 1b59d82)\n",
+                "# h\n# measured 2026-11-26\nsteps: 1\n"):
+        assert preset_comment_faults(bad), bad
+
+
+def test_every_preset_yaml_carries_one_comment_line_per_value_at_most():
+    for path in sorted(presets.HYPERPARAMS.glob("*.yaml")):
+        faults = preset_comment_faults(path.read_text())
+        assert not faults, f"{path.relative_to(ROOT)}: {faults}"
 
 
 def test_an_unknown_preset_key_is_refused_listing_the_valid_ones(tmp_path):

@@ -237,6 +237,6 @@ def test_smoke_study_end_to_end_and_rerun(tmp_path):
     assert cfg["env"].endswith("env_4_old.yaml") and cfg["collisions_end_episode"] is True
     assert cfg["frame_stack"] == 1 and cfg["validation_episodes"] == 0 and cfg["steps"] == 40
     summary = (tmp_path / "summary.md").read_text()
-    assert "| old ppo |" in summary and "## Target (issue 25)" in summary
+    assert "| old ppo |" in summary and "\n## Target\n" in summary
     again = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "0 to train, 0 to test" in again.stderr, again.stderr[-2000:]

@@ -1,6 +1,6 @@
 """studies/combined_page.py: the page of a --combine folder, its tables taken from summary.md.
 The sections of a summary.md that studies/science.py --combine writes over five environments:
-tests/eval/test_science.py, test_combined_page_finds_every_section_of_a_five_environment_summary."""
+tests/studies/test_science.py, test_combined_page_finds_every_section_of_a_five_environment_summary."""
 
 from __future__ import annotations
 

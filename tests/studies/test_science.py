@@ -1,5 +1,7 @@
-"""The science study (issue 14): its statistics (eval/reporting/science.py) against hand-computed
-values, and its smoke version (studies/science.py --smoke) end to end, rerun and refused."""
+"""The science study (studies/science.py): its pages (studies/science_pages.py: grids, targets,
+figures, convergence) against hand-computed values, and its smoke version (studies/science.py
+--smoke) end to end, rerun and refused. The statistics it builds on are the product's
+(eval/reporting/multiseed.py, tests/eval/test_multiseed.py)."""
 
 from __future__ import annotations
 
@@ -12,85 +14,21 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from eval.reporting import science, stats
+from eval.reporting import multiseed
 from eval.testing.validity import DEGENERATE, POLICIES
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "studies" / "science.py"
 
 
-# -- statistics ------------------------------------------------------------------------------
-def test_iqm_is_the_mean_of_the_middle_half():
-    assert stats.iqm(np.arange(1, 9)) == pytest.approx(4.5)     # cut 2 each end: 3, 4, 5, 6
-    assert stats.iqm(np.arange(15)) == pytest.approx(7.0)       # cut 3 each end: 3 .. 11
-    assert stats.iqm([5.0, -100.0, 6.0, 100.0]) == pytest.approx(5.5)  # outliers cut
-    rows = stats.iqm(np.array([[1, 2, 3, 4], [0, 0, 8, 8]]), axis=1)
-    np.testing.assert_allclose(rows, [2.5, 4.0])
+@pytest.fixture(scope="module")
+def pages(load_study):
+    """studies/science_pages.py."""
+    return load_study("science_pages")
 
 
-def test_stratified_bootstrap_resamples_seeds_within_each_environment():
-    # no spread within an environment: every resample is the data itself
-    assert stats.stratified_bootstrap({"a": [0, 0], "b": [1, 1]}) == pytest.approx((0.5, 0.5, 0.5))
-    # a: [0, 10] resamples to [0, 0] (p 1/4), [0, 10] (1/2), [10, 10] (1/4); b stays [5, 5]:
-    # pooled IQMs 2.5, 5, 7.5; both tails hold 25% > 2.5%, so the CI is [2.5, 7.5] exactly
-    assert stats.stratified_bootstrap({"a": [0, 10], "b": [5, 5]}) == pytest.approx((5.0, 2.5, 7.5))
-    # one environment [0, 0, 0, 10]: IQM (middle two of four) is 0 with at most one 10 drawn
-    # (p 0.738), 5 with two (0.211), 10 with three or four (0.051 > 2.5%): CI [0, 10]
-    assert stats.stratified_bootstrap({"a": [0, 0, 0, 10]}) == pytest.approx((0.0, 0.0, 10.0))
-    with pytest.raises(ValueError, match="at least one score"):
-        stats.stratified_bootstrap({"a": []})
-
-
-def _seeds(values: dict[str, list[float]], algo="ppo", env="env_1") -> pd.DataFrame:
-    n = len(next(iter(values.values())))
-    base = {m: [0.5] * n for m in science.METRICS}
-    base.update(values)
-    return pd.DataFrame({"scenario": 1, "env": env, "algorithm": algo, "train_seed": range(n), **base})
-
-
-def test_with_three_seeds_the_interval_runs_from_the_lowest_to_the_highest_seed():
-    """What the README says a pass with 3 seeds means (every seed cleared the reference): each
-    all-one-seed resample has probability 1/27 > 2.5%, so the percentile ends are the extremes."""
-    from eval.reporting.stats import bootstrap_ci
-
-    rng = np.random.default_rng(0)
-    for values in [[740.9, 805.5, 1474.4], *rng.normal(0, 1000, (20, 3)).tolist()]:
-        _, lo, hi, n = bootstrap_ci(values)
-        assert n == 3 and (lo, hi) == pytest.approx((min(values), max(values)))
-
-
-def test_seed_table_bootstraps_over_seeds():
-    seeds = _seeds({"return": [0, 0, 0, 10], "CP": [np.nan] * 4, "TTFC": [np.nan, 2, 4, np.nan]})
-    t = science.seed_table(seeds).set_index("metric")
-    # mean 2.5; resample means: 0 with no 10 drawn (p 0.316), 7.5 with three or more
-    # (0.051 > 2.5%) and 10 only with four (0.004 < 2.5%): the 95% CI is [0, 7.5]
-    assert tuple(t.loc["return", ["mean", "ci_low", "ci_high", "n"]]) == pytest.approx((2.5, 0, 7.5, 4))
-    assert t.loc["return", "cell"] == "2.5 [0.0, 7.5]"
-    assert t.loc["CP", "n"] == 0 and t.loc["CP", "cell"] == "-"
-    assert t.loc["TTFC", "n"] == 2 and t.loc["TTFC", "cell"].endswith("(n=2)")
-    assert t.loc["goal", "cell"] == "0.50 [0.50, 0.50]"  # no spread: zero width
-
-
-def test_the_turning_slots_goal_rate_counts_only_slots_whose_route_turns():
-    """Four-way: ac_0/ac_4/ac_5 turn left, ac_1 right, ac_2/ac_3 go straight; Straight has no
-    turn, so its turning-slot goal rate never applies ('-')."""
-    slots = [f"ac_{i}" for i in range(6)]
-    goals = {"ac_0": 1, "ac_1": 0, "ac_2": 1, "ac_3": 1, "ac_4": 0, "ac_5": 0}
-    per = pd.DataFrame([{"scenario": 1, "env": env, "algorithm": "ppo", "train_seed": 0,
-                         "episode": 0, "agent": a, "goal": bool(goals[a])}
-                        for env in ("env_3", "env_1") for a in slots])
-    routes = science.slot_routes("env_3").set_index("slot")
-    assert set(routes.index[routes["turning"]]) == {"ac_0", "ac_1", "ac_4", "ac_5"}
-    means = science.seed_means(per, metrics=("goal", "goal_turning")).set_index("env")
-    assert means.loc["env_3", "goal"] == pytest.approx(0.5)
-    assert means.loc["env_3", "goal_turning"] == pytest.approx(0.25)  # ac_0 of the four
-    assert np.isnan(means.loc["env_1", "goal_turning"]) and means.loc["env_1", "goal"] == 0.5
-    t = science.seed_table(means.reset_index(), metrics=("goal", "goal_turning"))
-    cell = t[(t["env"] == "env_1") & (t["metric"] == "goal_turning")]["cell"].item()
-    assert cell == "-"
-
-
-def test_targets_need_a_discrete_and_a_continuous_pass_and_turns_learned_where_routes_turn():
+# -- the pages ---------------------------------------------------------------------------------
+def test_targets_need_a_discrete_and_a_continuous_pass_and_turns_learned_where_routes_turn(pages):
     def row(env, algo, passed, rc, ok):
         return {"env": env, "algorithm": algo, "passed": passed, "RC_turning_mean": rc, "turning_ok": ok,
                 "turning_goal_mean": np.nan if np.isnan(rc) else 0.0}
@@ -105,88 +43,50 @@ def test_targets_need_a_discrete_and_a_continuous_pass_and_turns_learned_where_r
         row("env_1", "impala", True, np.nan, np.nan), row("env_1", "ddpg", True, np.nan, np.nan),
         # Merge: no continuous algorithm passes
         row("env_5", "ppo", True, 0.9, True), row("env_5", "td3", False, 0.9, True)])
-    t = science.targets(v).set_index("env")
+    t = pages.targets(v).set_index("env")
     assert t.loc["env_3", "met"] and t.loc["env_3", "turning"] == ["dqn"]
     assert t.loc["env_3", "discrete"] == ["ppo"] and t.loc["env_3", "continuous"] == ["td3"]
     assert not t.loc["env_4", "met"] and t.loc["env_4", "turning"] == []
     assert t.loc["env_1", "met"] and not t.loc["env_1", "has_turns"]
     assert not t.loc["env_5", "met"] and t.loc["env_5", "continuous"] == []
-    md = science.targets_markdown(science.targets(v))
+    md = pages.targets_markdown(pages.targets(v))
     assert "(no turning slot)" in md and md.count("not met") == 2
     assert "| Four-way | PPO | TD3 | DQN | met |" in md  # the names as the other tables write them
     # read back from verdict.csv (True/False/NaN as text and floats): the same targets
-    again = science.targets(v.astype({"turning_ok": str}).replace({"turning_ok": {"nan": np.nan}}))
+    again = pages.targets(v.astype({"turning_ok": str}).replace({"turning_ok": {"nan": np.nan}}))
     assert again.set_index("env").loc["env_3", "turning"] == ["dqn"]
 
 
-REF_METRICS = ("return", "goal", "DS", "RC_turning")
-
-
-def _refs(env="env_1", values: dict | None = None) -> pd.DataFrame:
-    """A reference long table: every policy's mean return, goal rate, driving score and turning
-    slots' route completion in ``env`` (``values``: policy -> a tuple of those, 0 where left out)."""
-    values = values or {}
-    rows = []
-    for p in POLICIES:
-        given = tuple(values.get(p, ()))
-        for m, v in zip(REF_METRICS, given + (0.0,) * (len(REF_METRICS) - len(given)), strict=True):
-            rows.append({"scenario": 1, "env": env, "kind": "reference", "name": p, "metric": m,
-                         "mean": v, "ci_low": v, "ci_high": v, "n": 3,
-                         "cell": science.fmt(m, v, v, v)})
-    return pd.DataFrame(rows)
-
-
-def test_verdict_needs_the_driving_score_ci_above_every_degenerate_reference():
-    """A pair passes when its DS interval's lower end clears every degenerate reference's DS
-    (the return no longer decides); its turns are learned where the turning slots' RC interval's
-    lower end clears the safe non-turner's."""
-    refs = _refs(values={"autopilot": (1000, 1.0, 0.95, 0.9), "always-forward": (300, 0.1, 0.08),
-                         "always-brake": (-500, 0.0, 0.0), "safe-non-turner": (700, 0.5, 0.6, 0.3)})
+def test_the_grids_write_the_verdict_as_the_readme_does(pages, seed_frame, reference_frame):
+    """The verdict test's case (tests/eval/test_multiseed.py) as the README's grids: each cell
+    'DS [95% CI] (goal rate), verdict', the references and the strongest degenerate below."""
+    refs = reference_frame(values={"autopilot": (1000, 1.0, 0.95, 0.9), "always-forward": (300, 0.1, 0.08),
+                                   "always-brake": (-500, 0.0, 0.0), "safe-non-turner": (700, 0.5, 0.6, 0.3)})
     table = pd.concat([
-        science.seed_table(_seeds({"DS": [0.2, 0.4, 0.6], "return": [-4000, -3000, -900],
-                                   "RC_turning": [0.4, 0.5, 0.6]}, "ppo")),
-        science.seed_table(_seeds({"DS": [0.05, 0.5, 0.9], "return": [900, 950, 990],
-                                   "RC_turning": [0.1, 0.5, 0.9]}, "dqn")),
-        science.seed_table(_seeds({"DS": [0.08, 0.3, 0.4]}, "td3")),
+        multiseed.seed_table(seed_frame({"DS": [0.2, 0.4, 0.6], "RC_turning": [0.4, 0.5, 0.6]}, "ppo")),
+        multiseed.seed_table(seed_frame({"DS": [0.05, 0.5, 0.9], "RC_turning": [0.1, 0.5, 0.9]}, "dqn")),
+        multiseed.seed_table(seed_frame({"DS": [0.08, 0.3, 0.4]}, "td3")),
     ])
-    v = science.verdict(table, refs).set_index("algorithm")
-    assert list(v.index) == ["ppo", "dqn", "td3"]  # the paper's order
-    # ppo: DS CI [0.2, 0.6] clears always-forward's 0.08, whatever its (negative) return
-    assert v.loc["ppo", "passed"] and v.loc["ppo", "why"] == "" and v.loc["ppo", "return_mean"] < 0
-    assert v.loc["ppo", "DS_best_reference"] == "always-forward" and v.loc["ppo", "DS_reference"] == 0.08
-    assert v.loc["ppo", "turning_ok"] and v.loc["ppo", "RC_turning_reference"] == 0.3  # 0.4 > 0.3
-    # dqn: a high return and mean DS, but its DS CI reaches down to 0.05; its turns not shown
-    assert not v.loc["dqn", "passed"] and not v.loc["dqn", "DS_ok"] and not v.loc["dqn", "turning_ok"]
-    assert v.loc["dqn", "why"] == "driving score CI low 0.050 <= always-forward 0.080"
-    # td3's CI starts at 0.08 = always-forward's: not excluded
-    assert not v.loc["td3", "passed"] and v.loc["td3", "why"].startswith("driving score CI low 0.080")
-    # above every reference, but with one seed: the verdict asks for three
-    one = science.verdict(science.seed_table(_seeds({"DS": [0.5], "goal": [0.5]}, "a3c")),
-                          refs).set_index("algorithm")
-    assert one.loc["a3c", "DS_ok"] and not one.loc["a3c", "seeds_ok"]
-    assert not one.loc["a3c", "passed"] and one.loc["a3c", "why"] == "1 seed(s), the verdict needs 3"
-    assert "| A3C | Straight | 1 |" in science.verdict_markdown(one.reset_index())  # the names as the README writes them
-    assert "not shown" in science.verdict_markdown(one.reset_index())
-    grid = science.grid_markdown(table, "DS", 1, refs)
+    v = multiseed.verdict(table, refs).set_index("algorithm")
+    one = multiseed.verdict(multiseed.seed_table(seed_frame({"DS": [0.5], "goal": [0.5]}, "a3c")),
+                            refs).set_index("algorithm")
+    grid = pages.grid_markdown(table, "DS", 1, refs)
     assert "| *autopilot* | 0.950 [0.950, 0.950] |" in grid
     assert [line.split(" | ")[0] for line in grid.splitlines()[2:5]] == ["| PPO", "| DQN", "| TD3"]
     assert "| *best degenerate* | 0.080 (always-forward) |" in grid
     both = pd.concat([v.reset_index(), one.reset_index()], ignore_index=True)
     cells = {line.split(" | ")[0].strip("| "): line.split(" | ")[1].rstrip(" |")
-             for line in science.verdict_grid_markdown(both, refs).splitlines()[2:]}
+             for line in pages.verdict_grid_markdown(both, refs).splitlines()[2:]}
     assert cells["PPO"] == "0.400 [0.200, 0.600] (0.50), **pass**, turns"
     assert cells["DQN"].endswith("(0.50), FAIL") and cells["TD3"].endswith(", FAIL, turns")  # its RC_turning 0.5 > 0.3
     assert cells["A3C"] == "0.500 (0.50; 1 seed), not shown, turns"
     assert cells["*autopilot*"] == "0.950 (1.00)" and cells["*safe non-turner*"] == "0.600 (0.50)"
-    no_turn = science.verdict_grid_markdown(both.assign(RC_turning_mean=np.nan, turning_goal_mean=np.nan), refs)
+    no_turn = pages.verdict_grid_markdown(both.assign(RC_turning_mean=np.nan, turning_goal_mean=np.nan), refs)
     assert "*safe non-turner*" not in no_turn and "*autopilot*" in no_turn  # no route turns: it is the autopilot
     assert cells["*best degenerate*"] == "0.080 (always-forward)"
-    assert set(DEGENERATE) >= {"random", "always-forward", "always-coast", "always-brake", "full-left"}
-    with pytest.raises(ValueError, match="no degenerate reference's driving score"):
-        science.verdict(table, refs[refs["metric"] != "DS"])  # references from before the score
 
 
-def test_iqm_figure_draws_each_algorithm_its_interval_and_the_reference_lines(tmp_path, monkeypatch):
+def test_iqm_figure_draws_each_algorithm_its_interval_and_the_reference_lines(pages, tmp_path, monkeypatch):
     """The IQM table drawn: a point and interval per algorithm in the paper's order (top down) at its
     values, lines at the autopilot, the strongest degenerate reference (named) and the safe non-turner."""
     import matplotlib
@@ -198,13 +98,13 @@ def test_iqm_figure_draws_each_algorithm_its_interval_and_the_reference_lines(tm
         *({"kind": "reference", "name": n, "iqm": v, "ci_low": np.nan, "ci_high": np.nan, "envs": 5, "runs": 5}
           for n, v in (("autopilot", 1.0), ("safe-non-turner", 0.9), ("random", 0.0), ("always-brake", 0.78),
                        ("always-coast", 0.3)))])
-    assert science.iqm_lines(t) == [("autopilot", 1.0, "-"), ("best degenerate (always-brake)", 0.78, "--"),
+    assert pages.iqm_lines(t) == [("autopilot", 1.0, "-"), ("best degenerate (always-brake)", 0.78, "--"),
                                     ("safe non-turner", 0.9, ":")]
     from eval.reporting import figures
 
     kept = []
     monkeypatch.setattr(figures, "_save", lambda fig, out, stem: kept.append(fig) or [out / f"{stem}.png"])
-    assert science.iqm_figure(t, tmp_path) == [tmp_path / "iqm.png"]
+    assert pages.iqm_figure(t, tmp_path) == [tmp_path / "iqm.png"]
     (ax,) = kept[0].axes
     assert [x.get_text() for x in ax.get_yticklabels()] == ["PPO", "DQN"]  # the paper's order, top down
     points = sorted((float(line.get_ydata()[0]), float(line.get_xdata()[0])) for line in ax.lines
@@ -216,28 +116,28 @@ def test_iqm_figure_draws_each_algorithm_its_interval_and_the_reference_lines(tm
     assert "5 environments" in ax.get_xlabel()
 
 
-def test_verdict_figure_draws_each_seed_the_interval_and_the_references_a_pair_must_clear(tmp_path, monkeypatch):
+def test_verdict_figure_draws_each_seed_the_interval_and_the_references_a_pair_must_clear(pages, seed_frame, reference_frame, tmp_path, monkeypatch):
     import matplotlib
 
     matplotlib.use("Agg")
-    refs = pd.concat([_refs("env_1", {"autopilot": (1000, 1.0, 0.97), "always-forward": (300, 0.1, 0.1),
+    refs = pd.concat([reference_frame("env_1", {"autopilot": (1000, 1.0, 0.97), "always-forward": (300, 0.1, 0.1),
                                       "safe-non-turner": (700, 0.5, 0.97)}),
-                      _refs("env_2", {"autopilot": (900, 0.9, 0.95, 0.9), "always-brake": (-500, 0.0, 0.0),
+                      reference_frame("env_2", {"autopilot": (900, 0.9, 0.95, 0.9), "always-brake": (-500, 0.0, 0.0),
                                       "always-forward": (-900, 0.05, 0.04), "safe-non-turner": (100, 0.2, 0.5, 0.3)})])
-    seeds = pd.concat([_seeds({"DS": [0.2, 0.4, 0.6], "RC_turning": [np.nan] * 3, "goal_turning": [np.nan] * 3},
+    seeds = pd.concat([seed_frame({"DS": [0.2, 0.4, 0.6], "RC_turning": [np.nan] * 3, "goal_turning": [np.nan] * 3},
                               "ppo"),  # no route turns in env_1
-                       _seeds({"DS": [0.0, 0.02, 0.3], "RC_turning": [0.1, 0.5, 0.6]}, "dqn", env="env_2")])
-    v = science.verdict(science.seed_table(seeds), refs)
-    assert science.verdict_lines(v, refs, "env_1", "DS") == [
+                       seed_frame({"DS": [0.0, 0.02, 0.3], "RC_turning": [0.1, 0.5, 0.6]}, "dqn", env="env_2")])
+    v = multiseed.verdict(multiseed.seed_table(seeds), refs)
+    assert pages.verdict_lines(v, refs, "env_1", "DS") == [
         ("autopilot", 0.97, "-"), ("best degenerate (always-forward)", 0.1, "--")]  # no turns: no safe non-turner
-    assert science.verdict_lines(v, refs, "env_2", "RC_turning") == [
+    assert pages.verdict_lines(v, refs, "env_2", "RC_turning") == [
         ("autopilot", 0.9, "-"), ("safe non-turner", 0.3, ":")]
 
     from eval.reporting import figures
 
     kept = []
     monkeypatch.setattr(figures, "_save", lambda fig, out, stem: kept.append(fig) or [out / f"{stem}.png"])
-    assert science.verdict_figure(v, seeds, refs, tmp_path) == [tmp_path / "verdict.png"]
+    assert pages.verdict_figure(v, seeds, refs, tmp_path) == [tmp_path / "verdict.png"]
     (fig,) = kept
     ds1, ds2, turn1, turn2 = (fig.axes[i] for i in (0, 1, 2, 3))  # rows: DS, RC turning; columns: env_1, env_2
     assert ds1.get_title(loc="left") == "Straight" and ds1.get_yscale() == "linear"
@@ -252,70 +152,31 @@ def test_verdict_figure_draws_each_seed_the_interval_and_the_references_a_pair_m
     assert [t.get_text() for t in turn1.texts] == ["no turning slot"] and len(turn2.texts) == 0
 
 
-def test_scenario_2_grid_gives_each_algorithm_alone_its_return_interval_and_goal_rate():
-    two = pd.concat([_seeds({"return": [100.0, 200.0, 300.0], "goal": [1.0, 0.5, 0.0]}, "dqn").assign(scenario=2),
-                     _seeds({"return": [-50.0], "goal": [0.0]}, "ppo", env="env_2").assign(scenario=2),
-                     _seeds({"return": [9e9, 9e9, 9e9], "goal": [1.0, 1.0, 1.0]}, "td3")])  # Scenario 1: not shown
-    table = science.seed_table(two)
+def test_scenario_2_grid_gives_each_algorithm_alone_its_return_interval_and_goal_rate(pages, seed_frame):
+    two = pd.concat([seed_frame({"return": [100.0, 200.0, 300.0], "goal": [1.0, 0.5, 0.0]}, "dqn").assign(scenario=2),
+                     seed_frame({"return": [-50.0], "goal": [0.0]}, "ppo", env="env_2").assign(scenario=2),
+                     seed_frame({"return": [9e9, 9e9, 9e9], "goal": [1.0, 1.0, 1.0]}, "td3")])  # Scenario 1: not shown
+    table = multiseed.seed_table(two)
     dqn = table.query("scenario == 2 and name == 'dqn' and metric == 'return'").iloc[0]
-    grid = science.return_goal_grid_markdown(table, 2)
+    grid = pages.return_goal_grid_markdown(table, 2)
     assert grid.splitlines()[0] == "| algorithm | Straight | Three-way |"
     assert (f"| DQN | {dqn['mean']:,.1f} [{dqn['ci_low']:,.1f}, {dqn['ci_high']:,.1f}] (0.50) |  |" in grid
             and dqn["ci_low"] < 200.0 < dqn["ci_high"])
     assert "| PPO |  | -50.0 (0.00; 1 seed) |" in grid and "TD3" not in grid and "9" * 6 not in grid
 
 
-def test_the_driving_score_is_normalised_between_random_and_the_autopilot():
-    refs = pd.concat([_refs("env_1", {"random": (-100, 0, 0.1), "autopilot": (300, 1, 0.9)}),
-                      _refs("env_2", {"random": (50, 0, 0.5), "autopilot": (50, 1, 0.5)})])
-    seeds = pd.concat([_seeds({"DS": [0.1, 0.5, 0.9, 1.0], "return": [9e9] * 4}, env="env_1"),
-                       _seeds({"DS": [0.1, 0.2, 0.3, 0.4]}, env="env_2")])
-    norm = science.normalise(seeds, refs).set_index(["env", "train_seed"])["score"]
-    np.testing.assert_allclose(norm.loc["env_1"], [0.0, 0.5, 1.0, 1.125])
-    assert norm.loc["env_2"].isna().all()  # the autopilot scores no more than random: no scale
-    t = science.iqm_table(seeds, refs).set_index("name")
-    assert t.loc["ppo", "iqm"] == pytest.approx(0.75) and t.loc["ppo", "envs"] == 1
-    assert t.loc["ppo", "ci_low"] <= 0.75 <= t.loc["ppo", "ci_high"]
-    assert t.loc["autopilot", "iqm"] == 1.0 and t.loc["random", "iqm"] == 0.0
-    assert "IQM (normalised driving score)" in science.iqm_markdown(t.reset_index())
-
-
-def test_convergence_curve_is_the_mean_of_the_latest_episodes():
+def test_convergence_curve_is_the_mean_of_the_latest_episodes(pages):
     episodes = pd.DataFrame({"env_step": [10, 20, 30], "return": [1.0, 2.0, 6.0]})
-    c = science.convergence_curve(episodes, budget=30, points=4, window=2)
+    c = pages.convergence_curve(episodes, budget=30, points=4, window=2)
     np.testing.assert_allclose(c["env_step"], [0, 10, 20, 30])
     np.testing.assert_allclose(c["return"], [np.nan, 1.0, 1.5, 4.0])
     curves = pd.concat([c.assign(algorithm="ppo", env="env_1", seed=0),
                         c.assign(algorithm="ppo", env="env_1", seed=1,
                                  **{"return": c["return"] + [np.nan, np.nan, 1, 1]})])
-    b = science.convergence_bands(curves)
+    b = pages.convergence_bands(curves)
     # the mean only where both seeds have a value; the band spans them
     np.testing.assert_allclose(b["mean"], [np.nan, np.nan, 2.0, 4.5])
     np.testing.assert_allclose(b["high"] - b["low"], [np.nan, np.nan, 1.0, 1.0])
-
-
-def test_budget_check_flags_a_run_whose_return_still_rises_at_its_end(tmp_path):
-    # budget 100: windows (60, 80] and (80, 100]; episodes before 60 do not count
-    flat = pd.DataFrame({"env_step": [10, 65, 70, 75, 85, 90, 95], "return": [-99, 1, 2, 3, 3, 1, 2]})
-    gain, lo, hi, n = science.late_gain(flat, 100)
-    assert gain == pytest.approx(0.0) and -2 <= lo < 0 < hi <= 2 and n == 3  # resamples span +-2
-    rising = flat.assign(**{"return": [-99, 1, 2, 3, 11, 12, 13]})
-    gain, lo, hi, n = science.late_gain(rising, 100)
-    assert gain == pytest.approx(10.0) and 8 <= lo < 10 < hi <= 12 and n == 3  # any resample: 8..12
-    assert np.isnan(science.late_gain(flat[flat.env_step < 80], 100)[0])  # no late episode
-
-    runs = {}
-    for name, episodes in (("flat", flat), ("rising", rising)):
-        run = tmp_path / name
-        run.mkdir()
-        (run / "config.yaml").write_text("steps: 100\n")
-        episodes.to_csv(run / "episodes.csv", index=False)
-        runs[("dqn", "env_1", len(runs))] = run
-    check = science.budget_check(runs)
-    assert check["rising"].tolist() == [False, True]
-    assert "**+5 (rising 1/2)**" in science.budget_markdown(check)
-    none = science.budget_check({("td3", "env_1", 0): runs[("dqn", "env_1", 0)]}).assign(n=0)
-    assert science.budget_markdown(none).splitlines()[-1] == "| TD3 | 100 | - |"
 
 
 # -- the smoke study ---------------------------------------------------------------------------
@@ -342,7 +203,7 @@ def test_smoke_study_writes_every_result_and_resumes(smoke):
     ours = results[results["kind"] == "algorithm"]
     assert set(zip(ours["name"], ours["env"], strict=True)) == {(a, e) for a in algos for e in envs}
     assert ours.groupby(["name", "env"])["metric"].apply(set).map(
-        lambda s: s == set(science.METRICS)).all()
+        lambda s: s == set(multiseed.METRICS)).all()
     always = ours[ours["metric"].isin(["return", "goal", "DISTANCE", "OS", "CO", "SPEED"])]
     assert (always["n"] == seeds).all() and np.isfinite(always["mean"]).all()
     applied = ours[ours["n"] > 0]
@@ -359,7 +220,7 @@ def test_smoke_study_writes_every_result_and_resumes(smoke):
         return low > value and not np.isclose(low, value)
 
     for _, r in verdict.iterrows():  # pass iff the DS CI's lower end clears the best degenerate row
-        expected = clears(r["DS_ci_low"], ref[(r["env"], "DS")]) and r["n"] >= science.MIN_SEEDS
+        expected = clears(r["DS_ci_low"], ref[(r["env"], "DS")]) and r["n"] >= multiseed.MIN_SEEDS
         assert bool(r["passed"]) == expected
         assert r["n"] == seeds
 
