@@ -334,9 +334,14 @@ def _train_help() -> str:
 
 
 def _child_env() -> dict[str, str]:
-    """This checkout first on the children's path (the installed cosim may be another's)."""
+    """This checkout first on the children's path (the installed cosim may be another's), and
+    the pid they die with: a `cosim train` child stops resumably (SIGTERM) when this driver
+    dies, even by kill -9 (eval/cli/learn.py OWNER_ENV, as `--algo all`'s children do)."""
+    from eval.cli.learn import OWNER_ENV
+
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    env[OWNER_ENV] = str(os.getpid())
     return env
 
 

@@ -240,3 +240,15 @@ def test_smoke_study_end_to_end_and_rerun(tmp_path):
     assert "| old ppo |" in summary and "\n## Target\n" in summary
     again = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "0 to train, 0 to test" in again.stderr, again.stderr[-2000:]
+
+
+def test_training_children_die_with_the_driver(pilot):
+    """The `cosim train` children get the driver's pid in COSIM_OWNER_PID: they stop resumably
+    when it dies (the mechanism: tests/eval/test_hardening.py, `--algo all`'s children)."""
+    import os
+
+    from eval.cli.learn import OWNER_ENV
+
+    env = pilot._child_env()
+    assert env[OWNER_ENV] == str(os.getpid())
+    assert env["PYTHONPATH"].split(os.pathsep)[0] == str(ROOT)
