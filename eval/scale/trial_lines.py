@@ -10,6 +10,11 @@ functions are module-level, so the pickle names them and a restore runs today's 
 imports nothing of the project (the benchmark hands it its functions: no import cycle).
 Before 2026-11-26 it was a class local to a function, pickled by value with its count: a
 restored grid said ``[1/30]`` for its third finished trial.
+
+The folder's count alone counts a trial twice when two end close together (the second's
+checkpoint is on disk before the first's line: ``[2/30]`` twice, no ``[1/30]``). So the count
+read at :meth:`TrialLines.setup` (each time a grid starts or is restored) is the base, and each
+line adds the trials this process has seen end since: each trial is counted once.
 """
 
 from __future__ import annotations
@@ -30,18 +35,36 @@ class TrialLines(tune.Callback):
         """``say``: prints a line; ``count``: (finished, all) trials now; ``name``: a trial's
         cell name from its config's ``cell``."""
         self.say, self.count, self.name, self.start = say, count, name, {}
+        self.base: int | None = None  # trials finished when this grid (re)started
+        self.ended: set[str] = set()  # trials seen finishing since
+
+    def __getstate__(self) -> dict:
+        # what a restore must not inherit: the count is read again at its setup
+        return {**self.__dict__, "base": None, "ended": set()}
 
     def __setstate__(self, state: dict) -> None:
         # a grid started between commits 4d850cc and ea5b0b4 pickled this class with ``out``
         # and ``say`` only: its restore says each line without the count (never fails the grid)
-        self.__dict__.update({"count": None, "name": None, "start": {}, **state})
+        self.__dict__.update({"count": None, "name": None, "start": {}, "base": None,
+                              "ended": set(), **state})
+
+    def setup(self, **info):
+        if self.count:
+            self.base = self.count()[0]
 
     def on_trial_start(self, iteration, trials, trial, **info):
         self.start[trial.trial_id] = time.monotonic()
 
     def _line(self, trial, what: str) -> None:
         took = time.monotonic() - self.start.get(trial.trial_id, time.monotonic())
-        counted = "[{}/{}] ".format(*self.count()) if self.count else ""
+        counted = ""
+        if self.count:
+            finished, total = self.count()
+            if what == "trained":
+                self.ended.add(trial.trial_id)
+            # without a setup (called by Tune before any trial) the folder's count is all we have
+            done = finished if self.base is None else min(self.base + len(self.ended), total)
+            counted = f"[{done}/{total}] "
         name = self.name(trial.config["cell"]) if self.name else str(trial)
         self.say(f"{counted}{what} {name} ({took:.0f} s)")
 

@@ -948,3 +948,32 @@ def test_a_trial_line_callback_pickled_by_an_older_grid_still_says_its_lines():
     new = TrialLines(said.append, lambda: (3, 30), lambda cell: "env_2__ppo__0__bench")
     new.on_trial_complete(0, [], Trial())
     assert said[1].startswith("[3/30] trained env_2__ppo__0__bench (")
+
+
+def test_two_trials_ending_together_are_counted_once_each():
+    """Issue 60: the console said "[2/30]" for two trials and no "[1/30]", the second trial's
+    checkpoint already on disk when the first one's line was said. A restored grid (the
+    callback unpickled) counts on from the folder's count at its setup."""
+    pytest.importorskip("ray")
+    from eval.scale.trial_lines import TrialLines
+
+    class Trial:
+        def __init__(self, tid):
+            self.trial_id, self.config = tid, {"cell": {"name": tid}}
+
+    finished, said = [0], []
+    lines = TrialLines(said.append, lambda: (finished[0], 30), lambda cell: cell["name"])
+    lines.setup()
+    for tid in ("a", "b"):
+        lines.on_trial_start(0, [], Trial(tid))
+    finished[0] = 2  # both checkpoints on disk before the first line
+    lines.on_trial_complete(0, [], Trial("a"))
+    lines.on_trial_complete(0, [], Trial("b"))
+    lines.on_trial_error(0, [], Trial("c"))
+    assert [s.split(" (")[0] for s in said] == ["[1/30] trained a", "[2/30] trained b", "[2/30] FAILED c"]
+    restored = TrialLines.__new__(TrialLines)  # what unpickling does (the lambdas do not pickle)
+    restored.__setstate__(lines.__getstate__())
+    assert restored.base is None and not restored.ended
+    restored.setup()
+    restored.on_trial_complete(0, [], Trial("d"))
+    assert said[-1].startswith("[3/30] trained d (")
