@@ -87,12 +87,37 @@ def strongest(pool: pd.DataFrame) -> str:
     return str(ret.idxmax())
 
 
+def reference_rows(refs: pd.DataFrame | None):
+    """(env, column, policy, its summary row) for every reference column ``refs`` fills in each
+    environment; the best-degenerate column's policy is that environment's :func:`strongest`."""
+    if refs is None or refs.empty:
+        return
+    for env, g in refs.groupby("env", sort=False):
+        g = g.set_index("policy")
+        for col in reference_columns(refs):
+            name = col
+            if col == BEST_DEGENERATE:
+                pool = g.loc[[p for p in g.index if p not in REFERENCE_COLUMNS and p not in _NOT_DEGENERATE]]
+                if pool.empty:
+                    continue
+                name = strongest(pool)
+            if name in g.index:
+                yield env, col, name, g.loc[name]
+
+
 def reference_cells(refs: pd.DataFrame | None, metrics: Sequence[str] = TABLE_METRICS) -> dict:
     """(env, column) -> {metric: printed mean, "n (episodes)": the AC-episodes}; the
     reference rows are means over episodes x ACs (no interval: eval.testing.validity.summarize)."""
     out: dict = {}
-    if refs is None or refs.empty:
-        return out
+    for env, col, name, r in reference_rows(refs):
+        cells = {"n (episodes)": (f"{name}, " if col == BEST_DEGENERATE else "")
+                 + f"{int(r['n'])} AC-episodes"}
+        for m in metrics:
+            v = float(r[m]) if m in r.index else float("nan")
+            cells[m] = (f"{v:.{_digits(m)}f}" if np.isfinite(v) else "--" if m == "TTFC"
+                        else "-" if m in r.index else "")
+        out[(env, col)] = cells
+    return out
     for env, g in refs.groupby("env", sort=False):
         g = g.set_index("policy")
         for col in reference_columns(refs):

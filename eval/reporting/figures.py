@@ -180,6 +180,68 @@ def survival(per: pd.DataFrame, out: Path, labels: Mapping[str, str], steps_s: f
     return _save(fig, out, "ttfc_survival")
 
 
+def driving_score_matrix(long: pd.DataFrame, references: pd.DataFrame | None,
+                         labels: Mapping[str, str]) -> pd.DataFrame:
+    """Scenario 1's mean driving score per row (each algorithm, then the reference columns of
+    Table RQ1 marked "(ref)") and environment (columns), with ``lo``/``hi`` the algorithms'
+    95% interval ends and ``clears`` whether an algorithm's lower end is above every degenerate
+    reference of that environment (random and the best degenerate; NaN without references)."""
+    from eval.reporting.cells import BEST_DEGENERATE, reference_rows
+
+    ds = long[(long["metric"] == "DS") & (long["scenario"] == (1 if (long["scenario"] == 1).any() else
+                                                               long["scenario"].min()))]
+    rows = []
+    floor: dict[str, float] = {}
+    for env, col, name, r in reference_rows(references):
+        value = float(r["DS"]) if "DS" in r.index else float("nan")
+        rows.append({"row": f"{name if col != BEST_DEGENERATE else 'best degenerate'} (ref)",
+                     "env": env, "DS": value, "lo": np.nan, "hi": np.nan, "reference": True})
+        if col in ("random", BEST_DEGENERATE) and np.isfinite(value):
+            floor[env] = max(floor.get(env, -np.inf), value)
+    rank = {a: i for i, a in enumerate(algo_order(ds["algorithm"].unique()))}  # the paper's order
+    for _, r in ds.sort_values("algorithm", key=lambda s: s.map(rank), kind="stable").iterrows():
+        rows.append({"row": labels.get(r["algorithm"], r["algorithm"]), "env": r["env"], "DS": r["mean"],
+                     "lo": r["ci_low"], "hi": r["ci_high"], "reference": False,
+                     "clears": (float(r["ci_low"]) > floor[r["env"]]) if r["env"] in floor else np.nan})
+    return pd.DataFrame(rows)
+
+
+def driving_score_heatmap(long: pd.DataFrame, references: pd.DataFrame | None, out: Path,
+                          labels: Mapping[str, str]) -> list[Path]:
+    """Who drives best where: Scenario 1's driving score per algorithm x environment (colour and
+    value; a box where the lower end of its interval clears every degenerate reference), the
+    reference rows below a line (:func:`driving_score_matrix`). ds_heatmap.pdf/.png."""
+    plt = _plt()
+    table = driving_score_matrix(long, references, labels)
+    if table.empty:
+        return []
+    envs = [e for e in dict.fromkeys(long["env"])]
+    algos = list(dict.fromkeys(table.loc[~table["reference"], "row"]))
+    refs = list(dict.fromkeys(table.loc[table["reference"], "row"]))
+    order = algos + refs
+    grid = table.pivot_table(index="row", columns="env", values="DS", aggfunc="first").reindex(
+        index=order, columns=envs)
+    fig, ax = plt.subplots(figsize=(1.1 + 0.9 * len(envs), 0.9 + 0.28 * len(order)))
+    ax.imshow(grid.to_numpy(dtype=float), vmin=0.0, vmax=1.0, cmap="viridis", aspect="auto")
+    clears = table[~table["reference"]].set_index(["row", "env"])["clears"]
+    for i, row in enumerate(order):
+        for j, env in enumerate(envs):
+            v = grid.iloc[i, j]
+            if not np.isfinite(v):
+                continue
+            ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=6,
+                    color="black" if v > 0.6 else "white")
+            if clears.get((row, env)) is True:
+                ax.add_patch(plt.Rectangle((j - 0.47, i - 0.45), 0.94, 0.9, fill=False,
+                                           edgecolor="#ff4040", linewidth=1.2))
+    if refs:
+        ax.axhline(len(algos) - 0.5, color="white", linewidth=2)
+    ax.set_xticks(range(len(envs)), [env_title(e) for e in envs])
+    ax.set_yticks(range(len(order)), order)
+    ax.set_title("Driving score, Scenario 1 (box: lower 95% end above every degenerate reference)")
+    return _save(fig, Path(out), "ds_heatmap")
+
+
 def write_all(records: pd.DataFrame, per: pd.DataFrame, long: pd.DataFrame, out: Path,
               labels: Mapping[str, str], dt: float | None = None) -> list[Path]:
     out = Path(out)

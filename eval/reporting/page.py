@@ -1,6 +1,7 @@
 """The report's index page (issue 28): what a reader sees first, in words and small tables.
 
-Its first screen says what produced the page (``cosim benchmark`` or ``cosim test``), what
+Its first screen answers who drives best where (:func:`who_drives_markdown`: the driving-score
+heat map, one sentence per environment), then says what produced the page (``cosim benchmark`` or ``cosim test``), what
 was tested and how much: the command, the preset and training budget per algorithm, the ACs,
 episodes and steps, the seeds, the task version (each environment's scenario files, hashed;
 the observation and action settings), the date and the commit; then the headline, the driving
@@ -19,6 +20,7 @@ import html
 import re
 from collections.abc import Mapping, Sequence
 
+import numpy as np
 import pandas as pd
 
 from eval.labels import algo_order, env_title
@@ -237,6 +239,42 @@ def headline_markdown(long: pd.DataFrame | None, references: pd.DataFrame | None
     return HEADLINE_NOTE + "\n" + md_table(header, rows)
 
 
+def who_drives_markdown(long: pd.DataFrame | None, references: pd.DataFrame | None,
+                        labels: Mapping[str, str], figure: str | None) -> str:
+    """The page's opening answer to "who drives best where": the driving-score heat map
+    (eval.reporting.figures.driving_score_heatmap) and one sentence per environment: the best
+    algorithm by mean DS with its interval, how many clear every degenerate reference by the
+    lower end of their interval (the verdict's rule), and the safe non-turner and autopilot."""
+    from eval.reporting.figures import driving_score_matrix
+
+    if long is None or long.empty or "DS" not in set(long["metric"]):
+        return ""
+    table = driving_score_matrix(long, references, labels)
+    lines = ["## Who drives best where\n"]
+    if figure:
+        lines.append(f"![{figure[:-4]}]({figure}) ([PDF]({figure[:-4]}.pdf))\n")
+    for env in dict.fromkeys(long["env"]):
+        here = table[table["env"] == env]
+        algos = here[~here["reference"]].sort_values("DS", ascending=False, kind="stable")
+        if algos.empty:
+            continue
+        best = algos.iloc[0]
+        text = (f"**{env_title(env)}**: {best['row']} drives best, DS {best['DS']:.2f}"
+                + (f" [{best['lo']:.2f}, {best['hi']:.2f}]" if np.isfinite(best["lo"]) else ""))
+        refs = here[here["reference"]].set_index("row")["DS"]
+        if algos["clears"].notna().any():
+            passing = list(algos.loc[algos["clears"] == True, "row"])  # noqa: E712 - NaN-safe
+            floor = refs[[r for r in refs.index if r.startswith(("random", "best degenerate"))]].max()
+            text += (f"; {len(passing)} of {len(algos)} clear every degenerate reference (the strongest"
+                     f" {floor:.2f}) by their interval's lower end"
+                     + (f" ({', '.join(passing)})" if passing else ""))
+        for name, what in (("safe-non-turner (ref)", "the safe non-turner"), ("autopilot (ref)", "the autopilot")):
+            if name in refs.index and np.isfinite(refs[name]):
+                text += f"; {what} {refs[name]:.2f}"
+        lines.append(text + ".\n")
+    return "\n".join(lines)
+
+
 def interval_note(long: pd.DataFrame | None) -> str:
     """What the cells' intervals are; says so when every cell is one episode."""
     one = long is not None and not long.empty and int(long["episodes"].max()) == 1
@@ -392,6 +430,8 @@ def index_markdown(prov: Mapping, rq1_md: str, *, figures: Sequence[str], refere
     labels = {t["algorithm"]: t["label"] for t in tested}
     algos = [t["algorithm"] for t in tested] or (algo_order(long["algorithm"].unique()) if long is not None else [])
     md = [f"# {title(prov)}\n"]
+    heatmap = next((f for f in figures if f == "ds_heatmap.png"), None)
+    md.append(who_drives_markdown(long, references, labels, heatmap))
     md += first_screen(prov, algos, labels)
     headline = headline_markdown(long, references, labels)
     if headline:
@@ -410,7 +450,7 @@ def index_markdown(prov: Mapping, rq1_md: str, *, figures: Sequence[str], refere
     md.append("\n## Figures\n")
     md.append(FIGURE_NOTE)
     for f in figures:
-        if f.endswith(".png"):
+        if f.endswith(".png") and f != heatmap:
             md.append(f"![{f[:-4]}]({f}) ([PDF]({f[:-4]}.pdf))\n")
     if replays:
         md += replays_markdown(replays)

@@ -360,6 +360,8 @@ def write_paper_report(records: pd.DataFrame, out: Path, *, prov: dict | None = 
     written = [out / n for n in ("records.parquet", "metrics.csv", "episodes.csv", "rq1_long.csv", "rq1_wide.csv", "rq1.md",
                                  "rq1.tex", "provenance.json")]
     figures_written = figs.write_all(records, per, long, out, labels, dt) if figures else []
+    if figures:
+        figures_written += figs.driving_score_heatmap(long, references, out, labels)
     written += figures_written
     index_md = rq1_markdown(*with_replay_links(header, rows, groups, cols, replays))
     written += write_index(out, index_md, prov, figures_written, references, replays, extra_md,
@@ -381,6 +383,7 @@ FILE_NOTES = {
     "rq1.tex": "Table RQ1, LaTeX (booktabs, multirow)",
     "provenance.json": "what was tested: checkpoints, hashes, versions, seeds, command",
     "references.csv": "reference rows (scripted policies)",
+    "ds_heatmap.png": "driving score per algorithm x environment, Scenario 1, references below (PDF beside)",
     "report.md": "this page as printed by cosim test",
     "crossplay.csv": "cross-play: the ego's collision and goal rates per partner (per environment and pooled)",
     "crossplay.md": "cross-play matrix, Markdown",

@@ -352,3 +352,34 @@ def test_the_budget_rows_say_when_actions_were_held(tmp_path):
     prov = {"checkpoints": [{"algorithm": "ppo", "trained": held}, {"algorithm": "dqn", "trained": plain}]}
     rows = {r[0]: r for r in budget_rows(prov, ["ppo", "dqn"], {})}
     assert rows["ppo"][-1] == "Discrete(9), each held 2 steps" and rows["dqn"][-1] == "Discrete(9)"
+
+
+def test_the_page_opens_with_who_drives_best_where(tmp_path):
+    """Issue 60: above the settings and the tables, the driving-score heat map (algorithms and
+    references x environments) and one sentence per environment naming the best algorithm, how
+    many clear every degenerate reference by their interval's lower end, and the safe non-turner."""
+    from eval.reporting.figures import driving_score_matrix
+
+    folder, _ = benchmark_report(tmp_path, episodes=3, figures_too=True)
+    md = (folder / "index.md").read_text()
+    assert md.index("## Who drives best where") < md.index("**What was tested.**") < md.index("## Table RQ1")
+    assert "![ds_heatmap](ds_heatmap.png)" in md and (folder / "ds_heatmap.png").stat().st_size > 0
+    assert md.count("![ds_heatmap]") == 1  # not again among the figures
+    long = pd.read_csv(folder / "rq1_long.csv")
+    table = driving_score_matrix(long, synthetic_references(), {})
+    refs = synthetic_references()
+    for env, title in (("env_1", "Straight"), ("env_3", "Four-way")):
+        ds = long[(long.env == env) & (long.scenario == 1) & (long.metric == "DS")].set_index("algorithm")
+        best = max(ALGOS, key=lambda a: (ds.loc[a, "mean"], -ALGOS.index(a)))  # a tie: the paper's order
+        sentence = next(line for line in _section(md, "## Who drives best where").splitlines()
+                        if line.startswith(f"**{title}**"))
+        assert sentence.startswith(f"**{title}**: {best} drives best, DS {ds.loc[best, 'mean']:.2f} "
+                                   f"[{ds.loc[best, 'ci_low']:.2f}, {ds.loc[best, 'ci_high']:.2f}]")
+        here = refs[refs.env == env].set_index("policy")["DS"]
+        degenerate = here.drop(["autopilot", "autopilot-discrete", "safe-non-turner"]).max()
+        clearing = sorted(a for a in ds.index if ds.loc[a, "ci_low"] > degenerate)
+        assert f"{len(clearing)} of 2 clear every degenerate reference (the strongest {degenerate:.2f})" in sentence
+        assert f"the safe non-turner {here['safe-non-turner']:.2f}" in sentence
+        mine = table[(table.env == env) & ~table.reference].set_index("row")
+        assert sorted(mine.index[mine["clears"] == True]) == clearing  # noqa: E712
+    assert {"autopilot (ref)", "safe-non-turner (ref)", "random (ref)", "best degenerate (ref)"} <= set(table.row)
