@@ -118,23 +118,3 @@ def reference_cells(refs: pd.DataFrame | None, metrics: Sequence[str] = TABLE_ME
                         else "-" if m in r.index else "")
         out[(env, col)] = cells
     return out
-    for env, g in refs.groupby("env", sort=False):
-        g = g.set_index("policy")
-        for col in reference_columns(refs):
-            name = col
-            if col == BEST_DEGENERATE:
-                pool = g.loc[[p for p in g.index if p not in REFERENCE_COLUMNS and p not in _NOT_DEGENERATE]]
-                if pool.empty:
-                    continue
-                name = strongest(pool)
-            if name not in g.index:
-                continue
-            r = g.loc[name]
-            cells = {"n (episodes)": (f"{name}, " if col == BEST_DEGENERATE else "")
-                     + f"{int(r['n'])} AC-episodes"}
-            for m in metrics:
-                v = float(r[m]) if m in r.index else float("nan")
-                cells[m] = (f"{v:.{_digits(m)}f}" if np.isfinite(v) else "--" if m == "TTFC"
-                            else "-" if m in r.index else "")
-            out[(env, col)] = cells
-    return out
