@@ -184,8 +184,9 @@ def driving_score_matrix(long: pd.DataFrame, references: pd.DataFrame | None,
                          labels: Mapping[str, str]) -> pd.DataFrame:
     """Scenario 1's mean driving score per row (each algorithm, then the reference columns of
     Table RQ1 marked "(ref)") and environment (columns), with ``lo``/``hi`` the algorithms'
-    95% interval ends and ``clears`` whether an algorithm's lower end is above every degenerate
-    reference of that environment (random and the best degenerate; NaN without references)."""
+    95% interval ends, ``floor`` the strongest degenerate reference of that environment (random
+    and the best degenerate) and ``clears`` whether an algorithm's lower end is above it (NaN
+    without references)."""
     from eval.reporting.cells import BEST_DEGENERATE, reference_rows
 
     ds = long[(long["metric"] == "DS") & (long["scenario"] == (1 if (long["scenario"] == 1).any() else
@@ -202,6 +203,7 @@ def driving_score_matrix(long: pd.DataFrame, references: pd.DataFrame | None,
     for _, r in ds.sort_values("algorithm", key=lambda s: s.map(rank), kind="stable").iterrows():
         rows.append({"row": labels.get(r["algorithm"], r["algorithm"]), "env": r["env"], "DS": r["mean"],
                      "lo": r["ci_low"], "hi": r["ci_high"], "reference": False,
+                     "floor": floor.get(r["env"], np.nan),
                      "clears": (float(r["ci_low"]) > floor[r["env"]]) if r["env"] in floor else np.nan})
     return pd.DataFrame(rows)
 

@@ -264,7 +264,7 @@ def who_drives_markdown(long: pd.DataFrame | None, references: pd.DataFrame | No
         refs = here[here["reference"]].set_index("row")["DS"]
         if algos["clears"].notna().any():
             passing = list(algos.loc[algos["clears"] == True, "row"])  # noqa: E712 - NaN-safe
-            floor = refs[[r for r in refs.index if r.startswith(("random", "best degenerate"))]].max()
+            floor = algos["floor"].iloc[0]
             text += (f"; {len(passing)} of {len(algos)} clear every degenerate reference (the strongest"
                      f" {floor:.2f}) by their interval's lower end"
                      + (f" ({', '.join(passing)})" if passing else ""))
