@@ -181,13 +181,13 @@ def parse(argv=None) -> argparse.Namespace:
 
 def test_settings(args) -> tuple[int, int]:
     """(episodes, steps) of the test: the options, else the preset's `cosim benchmark` test,
-    else the protocol's defaults (3 episodes of 500 steps)."""
+    else the protocol's defaults (3 episodes of the scenario's horizon: steps None)."""
     from eval.testing.protocol import ProtocolPlan
 
     base = TEST_SETTINGS.get(args.preset)
     episodes = args.episodes or (base.episodes if base else ProtocolPlan.episodes)
     steps = args.test_steps or (base.steps if base else ProtocolPlan.steps)
-    if episodes < 1 or steps < 1:
+    if episodes < 1 or (steps is not None and steps < 1):
         raise ScienceError(f"--episodes and --test-steps must be >= 1, got {episodes} and {steps}")
     return episodes, steps
 

@@ -217,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--scenario", choices=["1", "2", "both"], default="both",
                    help="1: the ACs together in traffic; 2: each AC alone; both")
     e.add_argument("--episodes", type=int_in(1), default=3, help="episodes per environment and scenario")
-    e.add_argument("--steps", type=int_in(1), default=500, help="steps per episode")
+    e.add_argument("--steps", type=int_in(1), default=None,
+                   help="steps per episode (default: the scenario's horizon, 600 for the bundled environments)")
     e.add_argument("--seed", type=_seed, default=0, help="seed of the first episode (episode e: seed + e)")
     e.add_argument("--fixed-slots", action="store_true",
                    help="Scenario 1: algorithm i always drives ac_i (default: the algorithms take "

@@ -613,8 +613,8 @@ def _test_command(args) -> list[str]:
     """The `cosim test` command line the parsed options stand for (for the report)."""
     who = ["--algos", *args.algos] if args.algos else ["--agents", str(args.agents)]
     cmd = ["test", *who, "--envs", *args.envs, "--scenario", args.scenario,
-           "--episodes", str(args.episodes), "--steps", str(args.steps), "--seed", str(args.seed),
-           "--policy", args.policy]
+           "--episodes", str(args.episodes), *(["--steps", str(args.steps)] if args.steps is not None else []),
+           "--seed", str(args.seed), "--policy", args.policy]
     cmd += ["--runs", str(args.runs)] if args.policy == "trained" else []
     for item in args.checkpoint:
         cmd += ["--checkpoint", item]

@@ -137,7 +137,10 @@ def first_screen(prov: Mapping, algos: Sequence[str], labels: Mapping[str, str])
     titles = [task.get(e, {}).get("title") or env_title(e) for e in envs]
     dt = _one(task.get(e, {}).get("dt", "?") for e in envs) if envs else "?"
     steps, episodes = plan.get("steps"), plan.get("episodes")
-    seconds = f" ({steps * float(dt):g} s)" if steps and dt.replace(".", "", 1).isdigit() else ""
+    seconds = (f" ({steps * float(dt):g} s)" if isinstance(steps, int) and dt.replace(".", "", 1).isdigit()
+               else "")
+    if isinstance(steps, dict):  # each scenario's own horizon, and they differ
+        steps = "/".join(str(v) for v in steps.values())
     scen = plan.get("scenarios", [1, 2])
     tested = " and ".join(
         [f"Scenario 1 ({plan.get('agents')} ACs together in the scenario's traffic)"] * (1 in scen)

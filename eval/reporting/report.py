@@ -228,6 +228,7 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
     from eval.training.runfolder import software
 
     ran = software(" ".join(["cosim", *command]) if command is not None else None)
+    task = task_version(plan.envs)
     selections = dict(selections or {})
     tested = []
     for algo in algos:
@@ -251,10 +252,10 @@ def provenance(*, policy: str, plan, algos: Sequence[str], checkpoints: Mapping 
         **ran,
         **({"benchmark": dict(benchmark)} if benchmark is not None else {}),
         "plan": {"envs": list(plan.envs), "scenarios": list(plan.scenarios),
-                 "episodes": plan.episodes, "steps": plan.steps, "agents": plan.agents,
+                 "episodes": plan.episodes, "steps": test_steps(plan.steps, task), "agents": plan.agents,
                  "seed": plan.seed, "episode_seeds": [plan.seed + e for e in range(plan.episodes)],
                  **rules(plan)},
-        "task": task_version(plan.envs),
+        "task": task,
         "ci": f"95% percentile bootstrap of the mean over episodes, {BOOTSTRAP} resamples, seed {CI_SEED}",
     }
 
@@ -302,6 +303,18 @@ def trained_with(run: Path | None) -> dict:
         return {}
     repeat = (cfg.get("agent_config") or {}).get("action_repeat", 1)
     return {k: cfg[k] for k in TRAINING_KEYS if k in cfg} | {"action_repeat": repeat}
+
+
+def test_steps(steps: int | None, task: Mapping) -> int | dict | None:
+    """The steps per test episode a plan ran: ``steps``, or with None (each scenario's horizon)
+    that horizon when the environments share it, else ``{env: horizon}`` (``task``:
+    :func:`task_version`'s)."""
+    if steps is not None:
+        return int(steps)
+    horizons = {env: t["horizon"] for env, t in task.items() if "horizon" in t}
+    if len(set(horizons.values())) == 1 and len(horizons) == len(task):
+        return next(iter(horizons.values()))
+    return horizons or None
 
 
 def task_version(envs: Sequence[str]) -> dict:

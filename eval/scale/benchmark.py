@@ -61,8 +61,8 @@ class TestSettings:
 
     episodes: int
     """Episodes per environment and scenario."""
-    steps: int
-    """Steps per test episode."""
+    steps: int | None
+    """Steps per test episode; None: the scenario's horizon (ProtocolPlan.steps)."""
     references: tuple[str, ...] = ()
     """Reference rows (eval/testing/validity.py POLICIES) added to the report."""
 
@@ -73,10 +73,10 @@ TEST_SETTINGS = {
     "smoke": TestSettings(episodes=1, steps=60, references=POLICIES),
     # the two autopilots (the discrete one is a discrete learner's ceiling), the safe
     # non-turner (did it learn to turn?) and random (docs/task.md, "Reference policies")
-    "quick": TestSettings(episodes=3, steps=500, references=QUICK_REFERENCES),
-    # the scenarios' 600-step horizon and the whole reference suite of `cosim check-scenarios`
-    "standard": TestSettings(episodes=5, steps=600, references=POLICIES),
-    "paper": TestSettings(episodes=3, steps=500, references=QUICK_REFERENCES),
+    "quick": TestSettings(episodes=3, steps=None, references=QUICK_REFERENCES),
+    # the scenarios' horizon and the whole reference suite of `cosim check-scenarios`
+    "standard": TestSettings(episodes=5, steps=None, references=POLICIES),
+    "paper": TestSettings(episodes=3, steps=None, references=QUICK_REFERENCES),
 }
 
 

@@ -2,9 +2,11 @@
 replays, its robustness runs, the validity suite, training's validation and `cosim view`
 drive is made here, under one rule set.
 
-- Collisions do not end an episode: every contact step is charged (SPEC §4's step
-  fractions CV, CP, CO need the episode to go on).
-- A fixed horizon: ``steps`` (None: the scenario's own).
+- Collisions do not end an episode: each collision event is charged once, the scenario's
+  contact rule (docs/task.md, "Collision rule"); the paper's step fractions CV, CP, CO need
+  the episode to go on.
+- A fixed horizon: ``steps`` (None, the default everywhere: the scenario's own ``horizon``,
+  the one source of the test's episode length).
 - Each AC's action kind follows the policy that drives it (:func:`action_kinds`): an
   algorithm's (the catalogue's, agents/registry.py), the autopilot's continuous.
 - Scenario 1 drives the ACs together in the scenario's traffic; Scenario 2 drives one AC

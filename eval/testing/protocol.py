@@ -59,14 +59,17 @@ class ProtocolError(CosimError, ValueError):
 
 @dataclass(frozen=True)
 class ProtocolPlan:
-    """What a test drives: its environments and scenarios, episodes of ``steps`` steps on
+    """What a test drives: its environments and scenarios, episodes of ``steps`` steps (None: the
+    scenario's horizon) on
     episode seeds ``seed``, ``seed + 1``, ..., Scenario 1 with ``agents`` ACs (rotated over
     the slots unless ``rotate`` is False), and each policy's mode with ``greedy``."""
 
     envs: tuple[str, ...] = ENVS
     scenarios: tuple[int, ...] = (1, 2)
     episodes: int = 3
-    steps: int = 500
+    steps: int | None = None
+    """Steps per test episode; None (the default): each scenario's own ``horizon`` (its YAML's, 600
+    for the bundled environments), the one source of the test's episode length (docs/task.md)."""
     seed: int = 0
     agents: int = 6
     rotate: bool = True
