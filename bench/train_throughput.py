@@ -24,6 +24,7 @@ the trainer's own clock from the first reset (agents/loop.py Progress.timing).
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --share-params both   # sharing vs not
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --action-repeat 1 2   # action repeat
     python bench/train_throughput.py --agents 6 --envs 1 --algos dqn ddpg td3 --train-freq 8   # update-to-data ratio
+    python bench/train_throughput.py --agents 6 --envs 1 --encoder enc.pt   # heads on a frozen encoder (issue 59)
 
 ``--train-freq 8`` adds, for DQN, DDPG and TD3, a row trained with one gradient step per 8 of
 each AC's transitions (``--set train_freq=8``; the quick preset makes one per 4) and a table of
@@ -88,9 +89,9 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
 
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
                agents: int = AGENTS, device: str = "cpu", share: bool = False, repeat: int = 1,
-               train_freq: int | None = None) -> dict[str, float]:
+               train_freq: int | None = None, encoder: str | None = None) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
-                      envs=n, device=device, torch_threads=threads, share_params=share,
+                      envs=n, device=device, torch_threads=threads, share_params=share, encoder=encoder,
                       validation_episodes=0)  # the learning loop alone: validation is timed apart
     changes = {"action_repeat": repeat} | ({"learning_starts": 200} if hasattr(cfg.agent_config, "learning_starts") else {})
     if train_freq is not None:
@@ -165,8 +166,12 @@ def main() -> None:
     parser.add_argument("--train-freq", type=int, nargs="+", default=[],
                         help="DQN/DDPG/TD3 also with one gradient step per this many of each AC's transitions "
                              "(rows 'algo train_freq F' beside the quick preset's, and the ratio)")
+    parser.add_argument("--encoder", default=None, metavar="FILE",
+                        help="every training row learns heads on this frozen perception encoder (cosim train "
+                             "--encoder; the raw env rows stay the plain camera env)")
     args = parser.parse_args()
     check_device(args.device)
+    rate = functools.partial(train_rate, encoder=args.encoder)
     raw: dict[int, dict] = {}
     rows: dict[tuple[str, int], dict] = {}
     with tempfile.TemporaryDirectory() as out:
@@ -176,28 +181,29 @@ def main() -> None:
             for algo in args.algos:
                 can_share = algo not in ("a3c", "impala")
                 for r in (x for x in args.action_repeat if x != 1):
-                    rows[(f"{algo} repeat {r}", n)] = train_rate(algo, n, args.steps, out, args.torch_threads,
-                                                                 args.agents, args.device, repeat=r)
+                    rows[(f"{algo} repeat {r}", n)] = rate(algo, n, args.steps, out, args.torch_threads,
+                                                           args.agents, args.device, repeat=r)
                     print(f"{algo} repeat {r}, {n} env(s): {rows[(f'{algo} repeat {r}', n)]}", flush=True)
                 if 1 not in args.action_repeat:
                     continue
                 if args.share_params != "on" or not can_share:
-                    rows[(algo, n)] = train_rate(algo, n, args.steps, out, args.torch_threads,
-                                                 args.agents, args.device)
+                    rows[(algo, n)] = rate(algo, n, args.steps, out, args.torch_threads,
+                                           args.agents, args.device)
                     print(f"{algo}, {n} env(s): {rows[(algo, n)]}", flush=True)
                 if args.share_params != "off" and can_share:
                     key = (algo, n) if args.share_params == "on" else (f"{algo} shared", n)
-                    rows[key] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
-                                           args.device, share=True)
+                    rows[key] = rate(algo, n, args.steps, out, args.torch_threads, args.agents,
+                                     args.device, share=True)
                     print(f"{algo} shared, {n} env(s): {rows[key]}", flush=True)
                 # the algorithms whose config has a train_freq (DQN, DDPG, TD3)
                 has_freq = hasattr(make_config(algo, "env_1", "quick").agent_config, "train_freq")
                 for f in args.train_freq if has_freq else ():
                     key = (f"{algo} train_freq {f}", n)
-                    rows[key] = train_rate(algo, n, args.steps, out, args.torch_threads, args.agents,
-                                           args.device, train_freq=f)
+                    rows[key] = rate(algo, n, args.steps, out, args.torch_threads, args.agents,
+                                     args.device, train_freq=f)
                     print(f"{key[0]}, {n} env(s): {rows[key]}", flush=True)
     shared = {"off": "", "on": ", one network for all ACs (--share-params)", "both": ""}[args.share_params]
+    shared += f", heads on the frozen encoder {args.encoder}" if args.encoder else ""
     print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset, learners on "
           f"{device_name(args.device)}, torch threads {args.torch_threads or 'default'}{shared}\n")
     names = [name for algo in args.algos

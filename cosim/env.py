@@ -12,6 +12,9 @@ Observation (per agent)
     ``camera=False`` (``parallel_env(obs="state")``): the state track, ``Box((65,), float32)``
     per agent (cosim.state: speed, route geometry, goal, previous control, next signal,
     nearest vehicles and pedestrians), and no PyBullet mirror is built or rendered.
+    ``draw_route`` (``parallel_env(obs="route")``): the camera frame of each AC named (True:
+    every AC) shows its own route's next 40 m as a magenta band on the ground (the route camera,
+    cosim.mirror.RouteBand; docs/task.md, "The route variant").
 Action (per agent, mixed in one env)
     ``Discrete(9)``: the paper's (throttle/brake, steer) table (SPEC §2), or
     ``Box(-1, 1, (2,), float32)``: (throttle(+)/brake(-), steer). No reverse.
@@ -46,6 +49,7 @@ Arguments
     "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci"),
     collision_charge ("event" or "step": overrides the scenario's Contact.charge),
     camera (default True; False: the state track, no PyBullet mirror; see Observation),
+    draw_route (default False; True or AC ids: the route camera of those ACs; see Observation),
     reward_scale (> 0, default 1.0: multiplies the returned rewards; reward_terms
     and ``cosim_episode`` stay unscaled), stall_truncate (a training option: truncate
     every AC's episode once all have stood still that many steps; Termination.stall_truncate).
@@ -112,6 +116,7 @@ class CosimParallelEnv(ParallelEnv):
         stall_truncate: int | None = None,
         collision_charge: str | None = None,
         camera: bool = True,
+        draw_route: bool | Sequence[str] = False,
     ):
         # everything pickle / deepcopy need to rebuild this env (see __getstate__)
         self._init_kwargs = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
@@ -159,6 +164,8 @@ class CosimParallelEnv(ParallelEnv):
             for a, t in self.action_types.items()
         }
         self._rng = np.random.default_rng(seed)
+        self._route_agents: frozenset[str] = frozenset()
+        self.draw_routes(draw_route)
         self._mirror = None
         self._closed = False
         self._needs_reset = True
@@ -295,10 +302,34 @@ class CosimParallelEnv(ParallelEnv):
         on an env built with the camera's default)."""
         self._camera = False
         self._init_kwargs["camera"] = False
+        self._route_agents = frozenset()
+        self._init_kwargs["draw_route"] = False
         self._obs_space = _state_space()
         if self._mirror is not None:
             self._mirror.close()
             self._mirror = None
+
+    def draw_routes(self, agents: bool | Sequence[str] = True) -> None:
+        """The route camera (``obs="route"``): each AC of ``agents`` (True: every AC, False or
+        none: no AC) sees its own route ahead drawn on the ground of its own camera frame
+        (cosim.mirror.RouteBand; docs/task.md, "The route variant"); the others see the plain
+        camera. Takes effect at the next observation; a copy of the env keeps it."""
+        if isinstance(agents, str):
+            agents = [agents]
+        chosen = list(self.possible_agents) if agents is True else [] if agents is False else list(agents)
+        unknown = [a for a in chosen if a not in self.possible_agents]
+        if unknown:
+            raise ValueError(f"draw_route: unknown agent id(s) {unknown}; the agents are {self.possible_agents}")
+        if chosen and not self._camera:
+            raise ValueError("draw_route draws the route into the AC cameras, which are off (camera=False, "
+                             "the state track); use obs='route' with the cameras on")
+        self._route_agents = frozenset(chosen)
+        self._init_kwargs["draw_route"] = agents if isinstance(agents, bool) else list(chosen)
+
+    @property
+    def route_agents(self) -> frozenset[str]:
+        """The ACs whose camera frames show their own route ahead (:meth:`draw_routes`)."""
+        return self._route_agents
 
     @property
     def mirror(self):
@@ -322,10 +353,19 @@ class CosimParallelEnv(ParallelEnv):
         self._mirror.sync(self._world.snapshot)
         t1 = time.perf_counter()
         poses = [self._world.ac_state(a)[:3] for a in agents]
-        images = self._mirror.cameras(poses)
+        images = self._mirror.cameras(poses, self._routes_ahead(agents, poses))
         self.timings["mirror_sync"] += t1 - t0
         self.timings["render"] += time.perf_counter() - t1
         return {a: images[i] for i, a in enumerate(agents)}
+
+    def _routes_ahead(self, agents: list[str], poses) -> list | None:
+        """Each route-camera AC's own route ahead (cosim.roadmap.Route.ahead), None for the others."""
+        if not self._route_agents:
+            return None
+        from cosim.mirror import ROUTE_AHEAD, ROUTE_SPACING
+
+        return [self._world.route(a).ahead(x, y, ROUTE_AHEAD, ROUTE_SPACING) if a in self._route_agents
+                else None for a, (x, y, _) in zip(agents, poses, strict=True)]
 
     def _controls(self, actions: Mapping[str, object]) -> dict[str, tuple[float, float]]:
         if not isinstance(actions, Mapping):
@@ -455,7 +495,9 @@ def parallel_env(scenario: str | Scenario = "env_3", frame_stack: int = 1, obs: 
     the observation ``cosim train`` uses by default (K = 4); ``obs="nav"`` adds the
     measurements vector beside them in a Dict (cosim.wrappers.NavObservation; docs/task.md,
     "Observation"); ``obs="state"`` is the state track: a 65-number vector per AC and the
-    cameras off (``CosimParallelEnv(camera=False)``, cosim.state; frame_stack must be 1).
+    cameras off (``CosimParallelEnv(camera=False)``, cosim.state; frame_stack must be 1);
+    ``obs="route"``: the camera frames with each AC's own route ahead drawn on the ground
+    (``CosimParallelEnv.draw_routes``; docs/task.md, "The route variant").
     """
     from cosim.wrappers import (
         check_frame_stack,

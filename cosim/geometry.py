@@ -132,6 +132,11 @@ class Polyline:
         t = 0.0 if seg == 0 else (s - self.cumlen[i]) / seg
         return self.points[i] + t * (self.points[i + 1] - self.points[i])
 
+    def at(self, s: np.ndarray) -> np.ndarray:
+        """Vectorised :meth:`point_at`: the points (k, 2) at arc lengths ``s`` (k,)."""
+        return np.stack([np.interp(s, self.cumlen, self.points[:, 0]),
+                         np.interp(s, self.cumlen, self.points[:, 1])], axis=-1)
+
     def heading_at(self, s: float) -> float:
         s = min(max(s, 0.0), self.length)
         i = int(np.searchsorted(self.cumlen, s, side="right") - 1)

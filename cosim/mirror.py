@@ -24,6 +24,14 @@ colour raster with mip levels. The ground is flat and the camera's height and
 pitch are fixed, so every pixel below the horizon meets the ground at a fixed
 offset in the car's heading frame: one rotation and one gather per camera.
 
+With ``routes`` (the ``route`` observation variant) :meth:`Mirror.cameras` draws each AC's own
+route ahead into its frame: the pixels whose ground footprint lies within ROUTE_WIDTH / 2 of
+the route's centreline (:class:`RouteBand`, the camera's own rays) take ROUTE_COLOR. With
+TinyRenderer they are part of the backdrop, so whatever the mirror draws (cars, people,
+poles, walls) hides them exactly as it hides the ground; with EGL, whose ground is meshes,
+they are painted after the render where the depth buffer says the nearest surface is the
+ground (lower than ROUTE_GROUND_TOP), so nearer objects hide them too.
+
 Measured facts this design rests on (pybullet 3.2.7 TinyRenderer; docs/mirror.md):
 
 - An 84x84 image costs ~0.18 ms empty, plus ~0.17 us per triangle anywhere in the
@@ -109,6 +117,13 @@ MIP_LEVELS = 5
 PARK = (0.0, 0.0, -1000.0)
 _DEPTH_CLEAR = 0.9999999  # depth-buffer value where nothing was drawn (both renderers clear to 1)
 BOX_TRIANGLES = 12
+# The route camera (obs="route"; docs/task.md, "The route variant"): an AC's own route ahead,
+# drawn on the ground of its own frame (RouteBand).
+ROUTE_AHEAD = 40.0  # metres of route from the AC's projection on it (to the goal at most): ~2.9 s at 13.9 m/s
+ROUTE_WIDTH = 0.5  # metres: the band on the ground, centred on the route's centreline (a lane is ~3.2 m)
+ROUTE_COLOR = (255, 0, 255)  # RGB, unlit: magenta, which no material, the grass or the sky comes near
+ROUTE_SPACING = 0.15  # metres between the centreline samples whose discs make the band (edge ripple 1.2 cm)
+ROUTE_GROUND_TOP = 0.2  # EGL: a route pixel whose nearest surface is lower (the ground layers, <= 0.15 m) shows it
 # Lighting of TinyRenderer: sun high in the south-west, strong ambient so vertical
 # faces (car sides, building walls) stay close to their colour.
 LIGHT = dict(lightDirection=(-0.4, -0.3, 1.0), lightAmbientCoeff=0.65,
@@ -310,6 +325,80 @@ def ground_rays(size: int, fov_deg: float, res: float):
     return np.flatnonzero(hits), forward_m, left_m, level.astype(int)
 
 
+class RouteBand:
+    """Which pixels of a camera show the ground near a route's centreline: the route camera.
+
+    Over flat ground, with the camera's fixed height and pitch and no roll, image row r meets
+    the ground on the line ``ahead = F_r`` of the car's heading frame (metres ahead of the eye)
+    and its columns step ``t_r / f`` metres across it (t_r: the row's depth along the view,
+    f: the focal length in pixels): the rays of :func:`ground_rays`. A pixel is route when its
+    ground footprint (its row's span of ``ahead``, its column's span across) touches the band,
+    the union of discs of radius ``width / 2`` around centreline samples (:meth:`pixels`): near
+    the car the band is exactly ``width`` wide, far away it stays at least a pixel wide instead
+    of falling between rows. Every row and sample of every camera is one array operation.
+    """
+
+    def __init__(self, size: int, fov_deg: float, width: float = ROUTE_WIDTH):
+        self.size, self.half = int(size), float(width) / 2
+        f = (size / 2) / math.tan(math.radians(fov_deg) / 2)
+        cp, sp = math.cos(CAMERA_PITCH), math.sin(CAMERA_PITCH)
+
+        def ahead(dv):  # metres ahead of the eye where a ray at image height dv meets the ground
+            rise = sp + dv * cp
+            with np.errstate(divide="ignore"):
+                return np.where(rise < -1e-9, CAMERA_HEIGHT / np.maximum(-rise, 1e-12) * (cp - dv * sp),
+                                np.inf)
+
+        rows = np.arange(size)
+        rise = sp + (size / 2 - rows - 0.5) / f * cp
+        self.rows = np.flatnonzero(rise < -1e-6)  # below the horizon: the rows of ground_rays
+        self.depth = np.zeros(size)  # each image row's ground depth along the view axis (0: sky)
+        self.depth[self.rows] = CAMERA_HEIGHT / -rise[self.rows]
+        self.near = ahead((size / 2 - self.rows - 1) / f)  # the row's ground span: its lower edge
+        self.far = ahead((size / 2 - self.rows) / f)  # and its upper one (inf at the horizon)
+        self.columns_per_metre = f / self.depth[self.rows]  # across the view, in the row
+        self._near_up, self._far_up = self.near[::-1].copy(), self.far[::-1].copy()  # ascending
+        self._row_start = self.rows * size  # flat index of each row's first pixel
+
+    def pixels(self, points: list[np.ndarray | None]) -> list[np.ndarray]:
+        """Per camera, the flat (row-major) indices of its route pixels, some more than once.
+        ``points[i]``: that camera's centreline samples (k, 2) as (metres ahead, metres to the
+        left) of its eye, or None (no route: no pixels)."""
+        out = [np.empty(0, np.int64)] * len(points)
+        given = [i for i, p in enumerate(points) if p is not None and len(p)]
+        if not given:
+            return out
+        fwd, left = (np.concatenate([points[i] for i in given]) if len(given) > 1 else points[given[0]]).T
+        # the rows whose span of ground ahead comes within half the width of a sample: near and
+        # far fall row by row, so they are one run [first, last) of rows per sample
+        n_rows = len(self.rows)
+        first = n_rows - np.searchsorted(self._near_up, fwd + self.half)
+        runs = np.maximum(n_rows - np.searchsorted(self._far_up, fwd - self.half, side="right") - first, 0)
+        ends = np.cumsum(runs)
+        if ends[-1] == 0:
+            return out
+        k = np.repeat(np.arange(len(fwd)), runs)  # one (sample, row) pair each
+        r = np.arange(ends[-1]) - np.repeat(ends - runs - first, runs)
+        gap = np.maximum(np.maximum(self.near[r] - fwd[k], fwd[k] - self.far[r]), 0.0)
+        per_metre = self.columns_per_metre[r]
+        # the pixels of row r whose footprint (half a column either side) the sample's disc
+        # touches (gap < half: the run's rows are those strictly within reach)
+        span = 0.5 + np.sqrt(self.half**2 - gap * gap) * per_metre
+        centre = (self.size / 2 - 0.5) - left[k] * per_metre  # the sample's column
+        c0 = np.maximum(np.ceil(centre - span), 0).astype(np.int64)
+        width = np.maximum(np.minimum(np.floor(centre + span) + 1, self.size).astype(np.int64) - c0, 0)
+        done = np.cumsum(width)
+        flat = np.arange(done[-1]) - np.repeat(done - width - self._row_start[r] - c0, width)
+        if len(given) == 1:
+            out[given[0]] = flat
+            return out
+        # samples come camera by camera, so pairs and pixels do too: cut at the cameras' ends
+        cut = np.concatenate([[0], done])[np.concatenate([[0], ends])[np.cumsum([len(points[i]) for i in given])]]
+        for i, part in zip(given, np.split(flat, cut[:-1]), strict=True):
+            out[i] = part
+        return out
+
+
 # -- camera maths ---------------------------------------------------------------------------
 
 
@@ -508,6 +597,8 @@ class Mirror:
             self.fov_deg, 1.0, NEAR, FAR, physicsClientId=cid
         )
         self._backdrop = _rgba32(camera_backdrop(self.image_size, self.fov_deg))
+        self._route_band = RouteBand(self.image_size, self.fov_deg)
+        self._route_rgba = _rgba32(ROUTE_COLOR)
         log.info("mirror of %s: %d triangles, renderer %s", roadmap.scenario.name,
                  self.triangle_count, self.renderer)
 
@@ -535,15 +626,26 @@ class Mirror:
         self._pose(self._ped_pool, pxy, np.asarray(snapshot.person_heading, float),
                    PEDESTRIAN_SIZE[2] / 2, "pedestrians")
 
-    def cameras(self, poses: list[tuple[float, float, float]]) -> np.ndarray:
-        """Front-camera images, one per (x, y, heading) of an AC's centre: uint8 (n, S, S, 3)."""
+    def cameras(self, poses: list[tuple[float, float, float]], routes=None) -> np.ndarray:
+        """Front-camera images, one per (x, y, heading) of an AC's centre: uint8 (n, S, S, 3).
+
+        ``routes`` (the route camera): per pose None or that AC's route ahead, centreline
+        points (k, 2) in world metres (``Route.ahead``), drawn on the ground of that camera's
+        frame alone in ROUTE_COLOR (:class:`RouteBand`; hidden by nearer objects)."""
         p, cid, size = self._p, self._require_open(), self.image_size
         rgba = np.empty((len(poses), size, size, 4), np.uint8)
-        for i, (x, y, heading) in enumerate(poses):
-            heading = float(heading)
-            eye, forward = camera_eye(float(x), float(y), heading, self.vehicle.length)
+        eyes = [camera_eye(float(x), float(y), float(h), self.vehicle.length) for x, y, h in poses]
+        bands = self._route_pixels(eyes, poses, routes)
+        for i, (_, _, heading) in enumerate(poses):
+            eye, forward = eyes[i]
             view = p.computeViewMatrix(eye, eye + forward, (0.0, 0.0, 1.0), physicsClientId=cid)
-            self._render_into(rgba[i], view, self._projection, self._camera_backdrop(eye, heading))
+            backdrop = self._camera_backdrop(eye, float(heading))
+            band = bands[i] if bands is not None else None
+            if band is not None and self._ground is not None:  # TinyRenderer: this camera's backdrop
+                backdrop.reshape(-1)[band] = self._route_rgba
+            depth = self._render_into(rgba[i], view, self._projection, backdrop)
+            if band is not None and self._ground is None:  # EGL: the ground is meshes
+                self._paint_route_on_ground(rgba[i], depth, band)
         return rgba[..., :3].copy()
 
     def overview(self, size: tuple[int, int] = (320, 320), center=None, extent=None) -> np.ndarray:
@@ -719,6 +821,34 @@ class Mirror:
             self._ground_view, eye[0], eye[1], heading)
         return backdrop
 
+    def _route_pixels(self, eyes, poses, routes) -> list[np.ndarray] | None:
+        """The route pixels of each camera (RouteBand.pixels), or None when no camera has a route."""
+        if routes is None or all(r is None for r in routes):
+            return None
+        if len(routes) != len(poses):
+            raise ValueError(f"routes: one entry (None or (k, 2) points) per pose, got {len(routes)} "
+                             f"for {len(poses)} poses")
+        local = []
+        for (eye, _), (_, _, heading), route in zip(eyes, poses, routes, strict=True):
+            if route is None:
+                local.append(None)
+                continue
+            c, s = math.cos(float(heading)), math.sin(float(heading))
+            d = np.asarray(route, float).reshape(-1, 2) - eye[:2]
+            local.append(np.stack([d[:, 0] * c + d[:, 1] * s, d[:, 1] * c - d[:, 0] * s], axis=1))
+        return self._route_band.pixels(local)
+
+    def _paint_route_on_ground(self, out: np.ndarray, depth: np.ndarray, band: np.ndarray) -> None:
+        """EGL draws the ground as meshes: paint the route pixels whose nearest surface is the
+        ground, i.e. where the view ray, at the depth the buffer holds, is lower than
+        ROUTE_GROUND_TOP (a car, person or wall in front of the ground point is higher)."""
+        d = depth.reshape(-1)[band].astype(np.float64)
+        linear = FAR * NEAR / (FAR - (FAR - NEAR) * d)  # eye-space depth of the nearest surface
+        ground = self._route_band.depth[band // self.image_size]  # the ground point's depth
+        height = CAMERA_HEIGHT * (1.0 - linear / ground)
+        shown = band[(d >= _DEPTH_CLEAR) | (height <= ROUTE_GROUND_TOP)]
+        out.view(np.uint32).reshape(-1)[shown] = self._route_rgba
+
     def _park(self, body: int) -> None:
         """Out of sight, and transparent: TinyRenderer skips alpha-0 shapes entirely."""
         p, cid = self._p, self._client
@@ -727,9 +857,10 @@ class Mirror:
                             physicsClientId=cid)
         self._parked[body] = True
 
-    def _render_into(self, out: np.ndarray, view, projection, backdrop) -> None:
+    def _render_into(self, out: np.ndarray, view, projection, backdrop) -> np.ndarray:
         """Render into `out` (H, W, 4) uint8; pixels where nothing was drawn take `backdrop`,
-        RGBA packed as uint32 ((H, W) or one value; see :func:`_rgba32`)."""
+        RGBA packed as uint32 ((H, W) or one value; see :func:`_rgba32`). Returns the depth
+        buffer (H, W) float32."""
         p = self._p
         height, width = out.shape[:2]
         if self.renderer == "egl":
@@ -741,9 +872,10 @@ class Mirror:
                                    shadow=0, flags=p.ER_NO_SEGMENTATION_MASK,
                                    physicsClientId=self._client, **LIGHT)
         out[...] = np.asarray(img[2], np.uint8).reshape(height, width, 4)
-        empty = np.asarray(img[3], np.float32).reshape(height, width) >= _DEPTH_CLEAR
+        depth = np.asarray(img[3], np.float32).reshape(height, width)
         # whole pixels as uint32: one masked copy instead of three strided ones
-        np.copyto(out.view(np.uint32).reshape(height, width), backdrop, where=empty)
+        np.copyto(out.view(np.uint32).reshape(height, width), backdrop, where=depth >= _DEPTH_CLEAR)
+        return depth
 
     def _require_open(self) -> int:
         if self._client is None:

@@ -60,6 +60,22 @@ class Route:
             return self.path.project(x, y)[0]
         return self.field.project(x, y)
 
+    def ahead(self, x: float, y: float, length: float, spacing: float) -> np.ndarray:
+        """The centreline from the route's point nearest to (x, y) on for ``length`` metres, up
+        to the goal: its points (k, 2) at the multiples of ``spacing`` metres of arc length in
+        that stretch, none past the goal (what the route camera draws, cosim.mirror.RouteBand;
+        docs/task.md, "The route variant"). The route is sampled once per spacing."""
+        s = self.arc_length(x, y)
+        table = self._samples.get(spacing)
+        if table is None:
+            table = self._samples[spacing] = self.path.at(np.arange(math.floor(self.goal_s / spacing) + 1) * spacing)
+        return table[math.ceil(s / spacing):math.floor(min(s + length, self.goal_s) / spacing) + 1]
+
+    @functools.cached_property
+    def _samples(self) -> dict[float, np.ndarray]:
+        """spacing -> the route's points at every multiple of it up to the goal (:meth:`ahead`)."""
+        return {}
+
     @functools.cached_property
     def goal_point(self) -> tuple[float, float]:
         gx, gy = self.path.point_at(self.goal_s)

@@ -27,7 +27,8 @@ class SingleAgentEnv(gym.Env):
     default (K = 4; docs/task.md, "Observation"); 1 (the default here) the camera itself.
     ``obs="nav"``: a Dict of those frames and the measurements vector
     (cosim.wrappers.NavObservation); ``obs="state"``: the state track, a 65-number vector with
-    the camera off (cosim.state; frame_stack 1).
+    the camera off (cosim.state; frame_stack 1); ``obs="route"``: the frames with the AC's route
+    ahead drawn in (the route camera).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}

@@ -1,6 +1,6 @@
 """ParallelEnv wrappers: frame stacking (:class:`FrameStack`, :class:`FrameHistory`), the
 ``nav`` observation (:class:`NavObservation`: image and measurements), the ``state`` track
-(cameras off, cosim.state), action repeat
+(cameras off, cosim.state), the ``route`` camera (the env draws it), action repeat
 (:class:`ActionRepeat`), and :class:`BlackDeath` for libraries that need every agent present
 at every step. :func:`observation_wrappers` builds an AC's observation from these
 (docs/task.md, "Observation" and "Action repeat").
@@ -154,10 +154,12 @@ def check_action_repeat(k) -> int:
     return int(k)
 
 
-OBS_VARIANTS = ("image", "nav", "state")
+OBS_VARIANTS = ("image", "nav", "state", "route")
 """What an AC observes: its camera frames ("image"), those beside a measurements vector
-("nav": :class:`NavObservation`), or, with the cameras off, its state vector ("state": the
-state track, cosim.state; ``CosimParallelEnv(camera=False)``)."""
+("nav": :class:`NavObservation`), with the cameras off its state vector ("state": the
+state track, cosim.state; ``CosimParallelEnv(camera=False)``), or its camera frames with its
+own route ahead drawn on the ground ("route": the route camera,
+``CosimParallelEnv.draw_routes``, cosim.mirror.RouteBand; the same space as "image")."""
 
 
 def observation_wrappers(env, frame_stack: int = 1, obs: str = "image", action_repeat: int = 1):
@@ -167,7 +169,9 @@ def observation_wrappers(env, frame_stack: int = 1, obs: str = "image", action_r
     action held for R steps (:class:`ActionRepeat`, innermost: the frames stacked are those
     the agent decided on). With ``obs="state"`` the env's cameras are switched off
     (``CosimParallelEnv.cameras_off``, before its first reset: no PyBullet mirror) and each AC
-    observes its state vector (cosim.state); ``frame_stack`` must then be 1. The one place the
+    observes its state vector (cosim.state); ``frame_stack`` must then be 1. With
+    ``obs="route"`` every AC's camera frame shows its own route ahead
+    (``CosimParallelEnv.draw_routes``), stacked like "image". The one place the
     training, validation and library factories build an AC's observation (docs/task.md,
     "Observation")."""
     k = check_frame_stack(frame_stack)
@@ -176,6 +180,8 @@ def observation_wrappers(env, frame_stack: int = 1, obs: str = "image", action_r
     repeat = check_action_repeat(action_repeat)
     if obs == "state" and env.unwrapped.camera:
         env.unwrapped.cameras_off()
+    if obs == "route":
+        env.unwrapped.draw_routes(True)
     env = ActionRepeat(env, repeat) if repeat > 1 else env
     env = FrameStack(env, k) if k > 1 else env
     return NavObservation(env) if obs == "nav" else env

@@ -9,6 +9,11 @@ warm-up) catch all six ACs driving, with pedestrians on the crossings; by step
 right ahead at the red light.
 
     python tools/make_mosaic.py [--scenario env_3] [--steps 40] [--seed 3] [--out docs/camera_mosaic.png]
+
+``--route`` draws each AC's own route ahead into its camera (the ``route`` observation
+variant, cosim.mirror.RouteBand); docs/route_cameras.png is
+
+    python tools/make_mosaic.py --route --scenario env_2 --steps 25 --seed 3 --out docs/route_cameras.png
 """
 
 from __future__ import annotations
@@ -17,17 +22,19 @@ import argparse
 from pathlib import Path
 
 from cosim.controller import Autopilot
-from cosim.mirror import Mirror
+from cosim.mirror import ROUTE_AHEAD, ROUTE_SPACING, Mirror
 from cosim.viz import mosaic, save_png, side_by_side
 from cosim.world import World
 
 
 def camera_mosaic(scenario: str = "env_3", steps: int = 40, seed: int = 3, cols: int = 3,
-                  scale: int = 2, image_size: int = 84, extent: float | None = 100.0):
+                  scale: int = 2, image_size: int = 84, extent: float | None = 100.0,
+                  route: bool = False):
     """The mosaic image (uint8 H x W x 3) after `steps` Autopilot steps from `seed`.
 
     Cameras of ACs that already finished are taken at their last pose; `extent` is
-    the width in metres of the top-down view (None: the whole region).
+    the width in metres of the top-down view (None: the whole region); `route`: each
+    camera shows its own AC's route ahead, as with ``obs="route"``.
     """
     world = World(scenario)
     try:
@@ -38,9 +45,11 @@ def camera_mosaic(scenario: str = "env_3", steps: int = 40, seed: int = 3, cols:
                 break
             world.step({a: tuple(pilots[a].act()) for a in world.active})
         poses = [world.ac_state(a)[:3] for a in world.ac_ids]
+        routes = [world.route(a).ahead(x, y, ROUTE_AHEAD, ROUTE_SPACING)
+                  for a, (x, y, _) in zip(world.ac_ids, poses, strict=True)] if route else None
         with Mirror(world.roadmap, image_size=image_size) as mirror:
             mirror.sync(world.snapshot)
-            grid = mosaic(mirror.cameras(poses), cols=cols, scale=scale)
+            grid = mosaic(mirror.cameras(poses, routes), cols=cols, scale=scale)
             side = grid.shape[0]
             top = mirror.overview((side, side), extent=extent)
     finally:
@@ -56,8 +65,10 @@ def main() -> None:
     ap.add_argument("--extent", type=float, default=100.0,
                     help="metres across the top-down view; 0 = the whole region")
     ap.add_argument("--out", type=Path, default=Path("docs/camera_mosaic.png"))
+    ap.add_argument("--route", action="store_true", help="draw each AC's own route ahead (obs=route)")
     args = ap.parse_args()
-    img = camera_mosaic(args.scenario, args.steps, args.seed, extent=args.extent or None)
+    img = camera_mosaic(args.scenario, args.steps, args.seed, extent=args.extent or None,
+                        route=args.route)
     path = save_png(args.out, img)
     print(f"wrote {path}")
 

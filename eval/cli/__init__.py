@@ -11,6 +11,7 @@ What `cosim --help` says cosim is: :data:`DESCRIPTION`; its list of commands (th
     cosim train --algo ppo --env env_1      train N ACs of one algorithm together
     cosim test --agents 6                   the test protocol (Scenario 1 and 2) and its report
     cosim benchmark --preset smoke          train the grid on Ray Tune, test it, write the report
+    cosim encoder train --out enc.pt        build the frozen perception encoder (--encoder)
     cosim replay REPORT/replays/X/state.json  reopen a failure replay's SUMO state
     cosim check-scenarios env_4             degenerate-policy suite: does a scenario measure driving?
 """
@@ -23,7 +24,7 @@ import os
 import sys
 from pathlib import Path
 
-from eval.cli import learn, sim
+from eval.cli import encoder, learn, sim
 from eval.training.options import MAX_SEED, int_in, names_text
 
 
@@ -242,6 +243,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the checkpoint of one algorithm's AC in every slot and environment instead "
                         "of the newest under --runs (repeatable), e.g. --checkpoint "
                         "ppo=runs/x/checkpoints/ac_0/best.pt (default: none)")
+    e.add_argument("--encoder", type=Path, default=None, metavar="FILE",
+                   help="the frozen perception encoder of the checkpoints trained with --encoder (default: "
+                        "the file each run recorded); a file with another sha256 than the run's is refused")
     e.add_argument("--out", type=Path, default=Path("reports"),
                    help="where reports go, each in a new <date>-<time> folder")
     e.add_argument("--references", default="all",
@@ -261,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=learn.cmd_test)
 
     _benchmark_parser(sub, presets, preset_error)
+    encoder.add_parser(sub, HelpFormatter)  # cosim encoder train: eval/cli/encoder.py
 
     rp = sub.add_parser("replay", help="reopen a failure replay's SUMO state (from a cosim test report)")
     rp.add_argument("state", type=Path, help="replays/<...>/state.json (or state.xml) of a report")

@@ -313,7 +313,7 @@ def _test_request(args, plan, algos: list[str], references: list[str]):
                        policy=args.policy, fixed=tuple(given), references=tuple(references),
                        replays=not args.no_replays, labels={a: slot_label(args.policy, a) for a in algos},
                        cross_play=args.cross_play_group if args.cross_play else 0, sweeps=sweeps,
-                       workers=args.workers)
+                       workers=args.workers, encoder=None if args.encoder is None else str(args.encoder))
 
 
 def _write_test(args, request, out: Path) -> int:
@@ -618,6 +618,7 @@ def _test_command(args) -> list[str]:
     cmd += ["--runs", str(args.runs)] if args.policy == "trained" else []
     for item in args.checkpoint:
         cmd += ["--checkpoint", item]
+    cmd += ["--encoder", str(args.encoder)] if getattr(args, "encoder", None) is not None else []
     cmd += ["--no-replays"] * args.no_replays + ["--greedy"] * args.greedy + ["--fixed-slots"] * args.fixed_slots
     if args.cross_play:
         cmd += ["--cross-play", "--cross-play-group", str(args.cross_play_group)]

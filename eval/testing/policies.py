@@ -25,19 +25,20 @@ class TrainedPolicies:
     pickled without the loaded networks, it loads each checkpoint again where it runs."""
 
     def __init__(self, checkpoints: dict[str, Path] | None = None, fixed: Collection[str] = (),
-                 greedy: bool = False, loaded: dict | None = None):
+                 greedy: bool = False, loaded: dict | None = None, encoder: Path | str | None = None):
         self.checkpoints = dict(checkpoints or {})
         self.fixed, self.greedy = tuple(fixed), greedy
+        self.encoder = encoder  # `cosim test --encoder`: the file of the runs trained with --encoder
         self.loaded = {} if loaded is None else loaded
         for a, p in self.checkpoints.items():  # the given ones load now: a bad file fails before any episode runs
             if p not in self.loaded:
-                self.loaded[p] = load_for_slot(p, a)
+                self.loaded[p] = load_for_slot(p, a, encoder=encoder)
 
     def __call__(self, env, agent: str, algo: str):
         path = (self.checkpoints[algo] if algo in self.fixed
                 else slot_checkpoint(self.checkpoints[algo], agent))
         if path not in self.loaded:
-            self.loaded[path] = load_for_slot(path, algo)
+            self.loaded[path] = load_for_slot(path, algo, encoder=self.encoder)
         seed = slot_index(agent) if algo in SAMPLED and not self.greedy else None
         return drive(self.loaded[path], seed, env, agent)  # one frame history (and draw stream) per AC
 
@@ -68,20 +69,20 @@ class ReferencePolicies:
 
 
 def env_policy_factory(per_env: Mapping[str, Mapping[str, Path]], fixed: Collection[str] = (),
-                       greedy: bool = False) -> PolicyFactory:
+                       greedy: bool = False, encoder: Path | str | None = None) -> PolicyFactory:
     """:func:`policy_factory` ("trained") with each environment's own checkpoints
     (``per_env``: environment name or scenario file -> algorithm -> checkpoint); a checkpoint
     several environments share is loaded once."""
     from cosim.scenario import load_scenario
 
     loaded: dict[Path, object] = {}
-    return EnvPolicies({load_scenario(env).name: TrainedPolicies(dict(ckpts), fixed, greedy, loaded)
+    return EnvPolicies({load_scenario(env).name: TrainedPolicies(dict(ckpts), fixed, greedy, loaded, encoder)
                         for env, ckpts in per_env.items()})
 
 
 def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
                    fixed: Collection[str] = (), greedy: bool = False,
-                   loaded: dict | None = None) -> PolicyFactory:
+                   loaded: dict | None = None, encoder: Path | str | None = None) -> PolicyFactory:
     """How each AC gets its policy: trained checkpoints, the autopilot, or random.
 
     Trained: slot ``ac_k`` of algorithm ``a`` is driven by :func:`~eval.testing.checkpoints.slot_checkpoint`
@@ -89,10 +90,12 @@ def policy_factory(kind: str, checkpoints: dict[str, Path] | None = None,
     ``fixed`` (given with ``--checkpoint``), whose checkpoint drives every slot. The
     :data:`~eval.testing.protocol.SAMPLED` algorithms draw their actions from their policy (seeded per slot
     and episode) unless ``greedy``; the others act greedily. ``loaded``: a cache of loaded
-    checkpoints (path -> agent) to share with other factories. Every factory returned can be
+    checkpoints (path -> agent) to share with other factories; ``encoder``: the frozen encoder
+    file of the checkpoints trained with ``--encoder`` (default: the one each run recorded; its
+    hash is checked, eval.testing.loading.frame_encoder). Every factory returned can be
     pickled, so :func:`~eval.testing.jobs.run_protocol` can hand it to worker processes."""
     if kind == "trained":
-        return TrainedPolicies(checkpoints, fixed, greedy, loaded)
+        return TrainedPolicies(checkpoints, fixed, greedy, loaded, encoder)
     if kind in ("autopilot", "random"):
         return ReferencePolicies(kind)
     raise ProtocolError(f"unknown policy kind {kind!r}; valid: trained, autopilot, random")

@@ -3,7 +3,8 @@
 A policy is anything with ``act(obs, deterministic=True)`` (every trained agent)
 or a callable ``policy(obs) -> action``. :class:`RandomPolicy` and
 :class:`AutopilotPolicy` are the two references; :class:`StackedPolicy` feeds a
-policy trained on stacked frames its own frame history, :class:`NavPolicy` one trained on
+policy trained on stacked frames its own frame history, :class:`EncodedPolicy` one trained on
+a frozen encoder's features its own features, :class:`NavPolicy` one trained on
 the ``nav`` observation its own measurements, :class:`StatePolicy` one trained on the state
 track its own state vector, :class:`RepeatPolicy` holds the actions of one
 trained with an action repeat. :func:`use_cameras` turns a test env's cameras off when no
@@ -88,6 +89,35 @@ class StackedPolicy:
 
     def act(self, obs, deterministic: bool = True):
         return _act(self.policy, self.history.push(obs))
+
+
+class EncodedPolicy:
+    """A policy trained on a frozen encoder's features (`cosim train --encoder`,
+    eval.training.encoder.observation), driving one AC of a test env that gives camera frames:
+    it encodes each frame of its AC (agents.encoder.FrozenEncoder, the same features as the
+    training env's batch gave: fixed-size chunks) and keeps that AC's last ``k`` feature
+    vectors (cosim.wrappers.FrameHistory, oldest first, cleared at ``reset()``), as the
+    training env's FrameStack over the features did.
+    """
+
+    def __init__(self, policy, encoder, k: int):
+        from cosim.wrappers import FrameHistory
+
+        self.policy, self.encoder, self.history = policy, encoder, FrameHistory(k)
+        self.algo = getattr(policy, "algo", None)
+        self.name = getattr(policy, "name", None) or type(policy).__name__
+
+    @property
+    def frame_stack(self) -> int:
+        return self.history.k
+
+    def reset(self) -> None:
+        self.history.clear()
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def act(self, obs, deterministic: bool = True):
+        return _act(self.policy, self.history.push(self.encoder.encode(obs)))
 
 
 class RepeatPolicy:
@@ -277,5 +307,5 @@ def mean_return(records: pd.DataFrame) -> float:
     return float(records.groupby(["episode", "agent"])["reward"].sum().mean())
 
 
-__all__ = ["AutopilotPolicy", "NavPolicy", "RandomPolicy", "RepeatPolicy", "StackedPolicy", "StatePolicy", "mean_return",
+__all__ = ["AutopilotPolicy", "EncodedPolicy", "NavPolicy", "RandomPolicy", "RepeatPolicy", "StackedPolicy", "StatePolicy", "mean_return",
            "needs_camera", "run_episodes", "use_cameras", "np"]

@@ -69,6 +69,9 @@ class TestRequest:
     """Perturbation -> levels (eval.testing.robustness.parse_sweeps)."""
     workers: int = 1
     """Processes running the plan's jobs (the records are the same as with one)."""
+    encoder: str | None = None
+    """The frozen encoder file of the checkpoints trained with ``--encoder`` (`cosim test
+    --encoder`); None: the file each such run recorded. Its hash must be the run's."""
 
     def __post_init__(self):
         if self.policy not in POLICIES:
@@ -89,12 +92,13 @@ class TestRequest:
         then, so a file that cannot drive its slot fails before any episode runs.
 
         Raises:
-            ProtocolError: a checkpoint holds another algorithm, action space or camera size.
+            ProtocolError: a checkpoint holds another algorithm, action space or camera size, or its
+                run's frozen encoder is missing or not the file given (eval.testing.loading.frame_encoder).
             agents.CheckpointError: a checkpoint is missing or corrupt.
         """
         if self.policy != "trained":
             return policy_factory(self.policy, None, greedy=self.plan.greedy)
-        return env_policy_factory(self.checkpoints, fixed=self.fixed, greedy=self.plan.greedy)
+        return env_policy_factory(self.checkpoints, fixed=self.fixed, greedy=self.plan.greedy, encoder=self.encoder)
 
     @property
     def slots(self) -> pd.DataFrame | None:

@@ -153,6 +153,16 @@ class TrainConfig:
     policy_dtype: str = "float32"
     """How each AC's best.pt stores its float weights: float32 (exact) or float16 (half the
     bytes, rounded; the smoke preset's): the preset's policy_dtype (eval/training/presets.py)."""
+    encoder: str | None = None
+    """None (the default): the networks see camera frames and learn their CNN end to end. A
+    frozen perception encoder file (``--encoder``, built by `cosim encoder train`; an absolute
+    path): each AC observes the encoder's 512 features of each of its ``frame_stack`` frames,
+    concatenated oldest first, and every algorithm learns MLP heads (the preset's
+    ``state_hidden``) on them (eval/training/encoder.py ``observation``; docs/task.md, "The
+    frozen perception encoder")."""
+    encoder_sha256: str | None = None
+    """The SHA-256 of the ``encoder`` file when the run was resolved: a resume, and every test
+    of the run's checkpoints, refuses an encoder file with another hash."""
 
     def __post_init__(self):
         try:
@@ -197,7 +207,8 @@ def resolve(options: RunOptions) -> TrainConfig:
 
     ``envs`` and ``frame_stack`` default to the preset's (for A3C and IMPALA ``envs`` defaults to
     the preset's ``workers``: A3C runs one learner thread per environment, IMPALA acts in all);
-    ``--obs state`` takes frame stack 1 and the preset's ``state_hidden`` MLP sizes.
+    ``--obs state`` takes frame stack 1 and the preset's ``state_hidden`` MLP sizes, as ``--encoder``
+    takes those MLP sizes (its file's hash recorded).
     ``validation_episodes`` defaults to the preset's, else :data:`VALIDATION_EPISODES`;
     ``validation_steps`` to the preset's horizon, at most the scenario's (the test's episode length).
     ``collisions`` sets TrainConfig.collisions_end_episode and .collision_charge; ``hyper``
@@ -207,7 +218,7 @@ def resolve(options: RunOptions) -> TrainConfig:
         TrainError: ``--algo all`` (resolve each algorithm's options: RunOptions.for_algo), unknown
             preset (listing the valid ones), an action type the algorithm cannot use (with the
             reason), a variant the algorithm cannot run, a bad hyperparameter, --init-from without
-            a checkpoint.
+            a checkpoint, --encoder without a file or with --obs nav or state.
         cosim.errors.ScenarioError: unknown environment (listing the valid ones).
     """
     from cosim.scenario import load_scenario
@@ -239,10 +250,12 @@ def resolve(options: RunOptions) -> TrainConfig:
     # the preset's episode length, at most the test's (the scenario's horizon): docs/task.md
     validation_steps = min(p.horizon, scenario.horizon) if o.validation_steps is None else o.validation_steps
     _check_variants(o.algo, o.share_params, o.stall_truncate, o.demo_steps, o.demo_updates)
+    encoder, encoder_sha256 = _encoder_source(o.encoder, o.obs)
     config_cls = registry.get_config_class(o.algo)  # PPOConfig, ... (agents/configs.py, no torch)
     try:  # the preset's typed config (with its YAML's changes), then the --set changes
         # the state track's MLPs: the preset's state_hidden, unless the algorithm's YAML sets hidden
-        state = {"hidden": tuple(p.state_hidden)} if o.obs == "state" else {}
+        # (and a frozen encoder's features: a vector, as the state)
+        state = {"hidden": tuple(p.state_hidden)} if o.obs == "state" or encoder else {}
         base = config_cls.preset(o.agent_preset or p.agent_preset,
                                  **{"reward_scale": p.reward_scale, **state, **p.overrides.get(o.algo, {})})
         agent_config = base.replace(**parse_hyper(base, o.hyper, o.algo))
@@ -256,7 +269,7 @@ def resolve(options: RunOptions) -> TrainConfig:
         collisions_end_episode=o.collisions == "end", collision_charge="step" if o.collisions == "step" else "event",
         validation_episodes=validation_episodes, validation_steps=validation_steps, policy_dtype=p.policy_dtype,
         share_params=o.share_params, init_from=_init_source(o.init_from), stall_truncate=o.stall_truncate,
-        demo_steps=o.demo_steps, demo_updates=o.demo_updates,
+        demo_steps=o.demo_steps, demo_updates=o.demo_updates, encoder=encoder, encoder_sha256=encoder_sha256,
     )
 
 
@@ -282,6 +295,30 @@ def _check_variants(algo: str, share_params: bool, stall_truncate: int, demo_ste
     if share_params and algo in ASYNC_ALGOS:
         raise TrainError(f"--share-params is for {', '.join(a for a in ALGORITHMS if a not in ASYNC_ALGOS)}; "
                          f"{algo} builds its own learners: drop --share-params for it")
+
+
+NOT_CAMERA = ("nav", "state")
+"""The ``--obs`` variants a frozen encoder cannot take: the state vector has no camera frame, and
+``nav`` joins its frames to measurements in a Dict (an encoder with it is left for later)."""
+
+
+def _encoder_source(encoder: str | Path | None, obs: str) -> tuple[str | None, str | None]:
+    """``--encoder`` as an absolute path and its file's SHA-256, refused with a variant that has
+    no camera frames of its own (:data:`NOT_CAMERA`) or without a file."""
+    if encoder is None:
+        return None, None
+    if obs in NOT_CAMERA:
+        what = "gives no camera frames (cameras off)" if obs == "state" else "joins the frames to measurements"
+        cameras = " or ".join(v for v in OBS_VARIANTS if v not in NOT_CAMERA)
+        raise TrainError(f"--encoder encodes camera frames; --obs {obs} {what}: use --obs {cameras} with "
+                         "--encoder, or drop --encoder")
+    path = Path(encoder).resolve()
+    if not path.is_file():
+        raise TrainError(f"--encoder {path}: no such file; build one with `cosim encoder train --out {path}`")
+    import hashlib
+
+    with open(path, "rb") as f:
+        return str(path), hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _init_source(init_from: str | Path | None) -> str | None:

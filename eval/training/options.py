@@ -185,9 +185,9 @@ class RunOptions:
         note=" (1: a single camera frame)", metavar="K", report=True)
     obs: str = option(
         "image", "--obs", "what an AC observes: image (default: its camera frames, the paper's), nav (the frames "
-        "beside speed, route command and distance to the goal) or state (65 numbers: route geometry, goal, signal, "
-        "nearest cars and people; cameras off, frame stack 1; docs/task.md, Observation); tests of the run build "
-        "the same for its ACs", choices=OBS_VARIANTS, benchmark=True, report=True,
+        "beside speed, route command and distance to the goal), state (65 numbers: route geometry, goal, signal, "
+        "nearest cars and people; cameras off, frame stack 1) or route (the frames with the AC's own next 40 m of "
+        "route drawn on the ground; docs/task.md, Observation); tests of the run build the same for its ACs", choices=OBS_VARIANTS, benchmark=True, report=True,
         benchmark_help=f"what the trials' ACs observe (as `cosim train --obs`: {', '.join(OBS_VARIANTS)}; default "
                        "image, the paper's)")
     collisions: str = option(
@@ -218,6 +218,14 @@ class RunOptions:
         0, "--demo-updates", "with --demo-steps: N gradient steps on the demonstrations before the first env step "
         "(DQfD's pre-training; default 0); their losses: dqn --set demo_margin=0.8, ddpg td3 --set demo_bc=W",
         low=0, note=" (0: off)", metavar="N", report=True)
+    encoder: str | None = option(
+        None, "--encoder", "a frozen perception encoder file (`cosim encoder train`): each AC observes the encoder's 512 "
+        "features of each of its K camera frames and learns MLP heads (the preset's state_hidden) on them, replay "
+        "holding features; camera observations only (not --obs nav or state); the run records the file's sha256 "
+        "and its tests refuse another (default: none, the CNN learns end to end; docs/task.md)",
+        path=True, metavar="FILE", benchmark=True, report=True, config=("encoder", "encoder_sha256"),
+        benchmark_help="every trial learns heads on this frozen perception encoder's features (as `cosim train "
+                       "--encoder`; default: none)")
     init_from: str | None = option(
         None, "--init-from", "warm start: each AC's policy weights from this run folder (its ac_k/best.pt) or "
         "checkpoint file, optimizers fresh (a curriculum; default: random weights; docs/agents.md)",
@@ -243,8 +251,9 @@ class RunOptions:
         if not isinstance(hyper, Mapping):  # the command line's FIELD=VALUE texts
             hyper = parse_set(hyper)
         object.__setattr__(self, "hyper", {str(k): str(v) for k, v in hyper.items()})
-        if self.init_from is not None:
-            object.__setattr__(self, "init_from", str(self.init_from))
+        for name in ("init_from", "encoder"):  # a Path from the command line: its text
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, str(getattr(self, name)))
         for name, spec in declared():
             problem = spec.refusal(getattr(self, name))
             if problem:

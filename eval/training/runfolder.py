@@ -4,6 +4,7 @@ A run (eval/training/trainer.py) lives in ``runs/<env>__<algo>__<seed>__<timesta
 
     config.yaml        the resolved configuration (what `--resume` reads back)
     manifest.json      package versions, git commit, seeds, hashes of the SUMO/scenario files
+                       (and of the frozen encoder, with --encoder)
     episodes.csv       one row per AC per finished episode: return, length, reward-term sums,
                        event counts, mean speed, DISTANCE, goal
     tb/                TensorBoard scalars: charts/, losses/, driving/, time/
@@ -246,6 +247,8 @@ def manifest(cfg: TrainConfig) -> dict[str, Any]:
         **software(),
         "seeds": {"run": cfg.seed, "agents": {f"ac_{k}": cfg.seed + k for k in range(cfg.agents)}},
         "files_sha256": {str(p.name): hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in files},
+        # the frozen perception encoder the ACs learn on (--encoder), by its file's hash
+        **({"encoder": {"path": cfg.encoder, "sha256": cfg.encoder_sha256}} if cfg.encoder else {}),
     }
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from eval.training.config import ASYNC_ALGOS, TrainConfig, TrainError
+from eval.training.encoder import run_encoder
 from eval.training.plots import plot_convergence
 from eval.training.runfolder import (
     RunLock,
@@ -61,6 +62,7 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
     if resume is not None:
         run = Path(resume)
         cfg = load_run_config(run)
+        run_encoder(cfg)  # the encoder file the run recorded, by its hash, before anything changes
         lock = RunLock(run)
         try:
             state = read_state(run)
@@ -76,6 +78,7 @@ def train(cfg: TrainConfig, out: Path = Path("runs"), *, resume: Path | None = N
             lock.release()
             raise
     else:
+        run_encoder(cfg)  # a missing or unfit --encoder is refused before a run folder exists
         if cfg.init_from is not None:  # a source that does not fit is refused before a run folder exists
             _check_init_source(cfg)
         run = new_run_dir(out, cfg, keep)
@@ -366,9 +369,11 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
     with ``obs`` "nav" beside its measurements (cosim.wrappers.NavObservation), with the
     agents' ``action_repeat`` R > 1 each action held for R steps (cosim.wrappers.ActionRepeat);
     collisions end an AC's episode unless ``collisions_end_episode`` is off; with
-    ``stall_truncate`` N an episode is truncated once every AC has stood still N steps."""
+    ``stall_truncate`` N an episode is truncated once every AC has stood still N steps; with
+    ``encoder`` each AC observes the frozen encoder's features of its last K frames
+    (eval.training.encoder.observation)."""
     from cosim.env import CosimParallelEnv
-    from cosim.wrappers import observation_wrappers
+    from eval.training.encoder import observation
 
     cfg = cfg if isinstance(cfg, TrainConfig) else TrainConfig(**cfg)
     env = CosimParallelEnv(
@@ -378,8 +383,8 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
         collision_charge=cfg.collision_charge,
         stall_truncate=cfg.stall_truncate or None,
     )
-    return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs,
-                                action_repeat=cfg.agent_config.action_repeat)
+    # with --envs N > 1 this is a worker process of one env: its encoder forward on one thread
+    return observation(env, cfg, threads=1 if cfg.envs > 1 else None)
 
 
 def decisions(cfg: TrainConfig, start_step: int) -> int:

@@ -53,15 +53,14 @@ class Validator:
         self._env = None
 
     def _make_env(self):
-        from cosim.wrappers import observation_wrappers
         from eval.testing.conditions import TestConditions
+        from eval.training.encoder import observation
 
         cfg = self.cfg
         # the run's own action kind (--action-type), one per AC: the ACs under validation
         env = TestConditions.of(1, self.steps).env(cfg.env, cfg.action_type, cfg.agents,
                                                     seed=self.seeds[0], image_size=cfg.image_size)
-        return observation_wrappers(env, frame_stack=cfg.frame_stack, obs=cfg.obs,
-                                    action_repeat=cfg.agent_config.action_repeat)
+        return observation(env, cfg)  # the run's own (its frozen encoder's features too)
 
     def scores(self, agents: Mapping[str, object]) -> dict[str, float]:
         """Each AC's mean return over the validation episodes (AC id -> score)."""

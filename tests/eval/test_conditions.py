@@ -22,6 +22,7 @@ USES = {
     "eval/testing/robustness.py": 2,  # cross-play, sweeps
     "eval/testing/validity.py": 1,  # the degenerate-policy suite (and the references)
     "eval/training/validation.py": 1,  # held-out validation episodes
+    "eval/training/encoder.py": 1,  # the perception encoder's frames (`cosim encoder train`)
     "eval/cli/sim.py": 1,  # cosim view
     "studies/train_env1.py": 1,
     "studies/greedy_vs_sampled.py": 1,

@@ -27,13 +27,23 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
     return dict(sub.choices)
 
 
+def _actions(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The commands that take options: each command, and for one with actions of its own
+    (`cosim encoder train`) each of those instead, by their words after `cosim`."""
+    out = {}
+    for name, command in _subparsers(parser).items():
+        nested = any(isinstance(a, argparse._SubParsersAction) for a in command._actions)
+        out.update({f"{name} {n}": c for n, c in _subparsers(command).items()} if nested else {name: command})
+    return out
+
+
 def test_every_option_has_help_and_shows_its_default():
     parser = build_parser()
     assert "benchmark for multi-agent deep reinforcement learning" in parser.format_help()
     assert "the top layer" not in parser.format_help()  # the description, not an internal note
-    commands = _subparsers(parser)
+    commands = _actions(parser)
     assert {"scenarios", "drive", "view", "nets", "train", "test", "benchmark", "replay",
-            "check-scenarios"} <= set(commands)
+            "check-scenarios", "encoder train"} <= set(commands)
     missing = []
     for name, command in [("cosim", parser), *commands.items()]:
         formatter = command._get_formatter()
@@ -58,11 +68,11 @@ def test_every_option_has_help_and_shows_its_default():
 
 
 def test_help_of_every_command_prints(capsys):
-    for name in _subparsers(build_parser()):
+    for name in [*_subparsers(build_parser()), *_actions(build_parser())]:
         with pytest.raises(SystemExit) as done:
-            main([name, "--help"])
+            main([*name.split(), "--help"])
         assert done.value.code == 0
-        assert "(default: " in capsys.readouterr().out or name in ("scenarios",)
+        assert "(default: " in capsys.readouterr().out or name in ("scenarios", "encoder")  # encoder: its actions
 
 
 # -- cosim test: which checkpoint drives which slot, and where it was trained ------------

@@ -7,6 +7,7 @@ was not in the report."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import io
 import json
 import subprocess
@@ -22,8 +23,8 @@ from eval.training.options import RunOptions, TrainError, benchmark_names, confi
 EXAMPLE = {  # a value other than the default for every option, valid together (dqn: a replay learner)
     "algo": "dqn", "env": "env_2", "preset": "smoke", "agents": 1, "steps": 40, "seed": 3,
     "action_type": "discrete", "agent_preset": "paper", "hyper": {"action_repeat": "2"}, "envs": 2,
-    "frame_stack": 2, "obs": "nav", "collisions": "step", "share_params": True, "stall_truncate": 25,
-    "demo_steps": 30, "demo_updates": 5, "init_from": "SOURCE", "validation_episodes": 3,
+    "frame_stack": 2, "obs": "route", "collisions": "step", "share_params": True, "stall_truncate": 25,
+    "demo_steps": 30, "demo_updates": 5, "encoder": "ENCODER", "init_from": "SOURCE", "validation_episodes": 3,
     "validation_steps": 7, "device": "cpu", "torch_threads": 1, "learner_threads": 2,
 }
 """Adding an option adds its example here: the walk below fails until it does."""
@@ -39,7 +40,9 @@ def example(tmp_path) -> dict:
     source = tmp_path / "source"  # what --init-from accepts: a run folder with ac_0's best.pt
     (source / "checkpoints" / "ac_0").mkdir(parents=True)
     (source / "checkpoints" / "ac_0" / "best.pt").write_bytes(b"")
-    return {**EXAMPLE, "init_from": str(source)}
+    encoder = tmp_path / "encoder.pt"  # what --encoder accepts when a run is resolved: a file (its hash recorded)
+    encoder.write_bytes(b"an encoder")
+    return {**EXAMPLE, "init_from": str(source), "encoder": str(encoder)}
 
 
 def _argv(values: dict) -> list[str]:
@@ -105,6 +108,8 @@ def test_each_option_changes_what_the_run_trains_with(example):
         if keys == (name,):
             assert getattr(cfg, name) == (str(Path(example[name]).resolve()) if name == "init_from"
                                           else example[name]), name
+    assert cfg.encoder == str(Path(example["encoder"]).resolve())
+    assert cfg.encoder_sha256 == hashlib.sha256(b"an encoder").hexdigest()
 
 
 def test_cosim_train_sees_every_option(example, trained, tmp_path):

@@ -39,12 +39,12 @@ def test_obs_is_part_of_the_config_and_a_bad_value_is_refused(tmp_path):
     assert make_config("ppo", "env_1", "smoke").obs == "image"  # the paper's observation
     cfg = make_config("td3", "env_1", "smoke", obs="nav")
     assert cfg.to_dict()["obs"] == "nav"
-    with pytest.raises(TrainError, match="--obs must be image or nav or state, got 'rgb'"):
+    with pytest.raises(TrainError, match="--obs must be image or nav or state or route, got 'rgb'"):
         make_config("ppo", "env_1", "smoke", obs="rgb")
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
     assert load_run_config(tmp_path).obs == "nav"
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({**cfg.to_dict(), "obs": "rgb"}))
-    with pytest.raises(TrainError, match="config.yaml: 'obs' must be image or nav or state, got 'rgb'"):
+    with pytest.raises(TrainError, match="config.yaml: 'obs' must be image or nav or state or route, got 'rgb'"):
         load_run_config(tmp_path)
     older = {k: v for k, v in cfg.to_dict().items() if k != "obs"}  # written before the option
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(older))
