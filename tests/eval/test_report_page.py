@@ -383,3 +383,49 @@ def test_the_page_opens_with_who_drives_best_where(tmp_path):
         mine = table[(table.env == env) & ~table.reference].set_index("row")
         assert sorted(mine.index[mine["clears"] == True]) == clearing  # noqa: E712
     assert {"autopilot (ref)", "safe-non-turner (ref)", "random (ref)", "best degenerate (ref)"} <= set(table.row)
+
+
+FIRST_SCREEN_IMAGES_JS = """<script>
+window.addEventListener('load', function () {
+  var seen = [];
+  document.querySelectorAll('img').forEach(function (el) {
+    var r = el.getBoundingClientRect();
+    if (r.bottom > 0 && r.top < window.innerHeight && r.width > 100 && el.naturalWidth > 0) {
+      seen.push(el.getAttribute('src'));
+    }
+  });
+  var pre = document.createElement('pre');
+  pre.id = 'first-screen';
+  pre.textContent = seen.join('\\n');
+  document.body.appendChild(pre);
+});
+</script>"""
+"""Writes the src of every image drawn (loaded, > 100 px wide) inside the first screen."""
+
+
+def test_chromium_shows_who_drives_best_where_on_a_real_benchmarks_first_screen(tmp_path, monkeypatch):
+    """A real `cosim benchmark` (smoke, one junction, DQN and TD3): its report's first screen, as
+    headless Chromium lays it out at 1280x800, shows the driving-score heat map and the one-line
+    verdict of the environment, above the settings table."""
+    browser = chromium()
+    if browser is None:
+        pytest.skip("no chromium binary (Debian: apt-get install chromium; .ci/run installs it)")
+    from eval.cli import main
+
+    out = tmp_path / "b"
+    assert main(["benchmark", "--preset", "smoke", "--envs", "env_2", "--algos", "dqn", "td3", "--steps", "20",
+                 "--no-ray", "--out", str(out), "--quiet"]) == 0
+    page = out / "report" / "index.html"
+    seen = first_screen_text(page, browser)
+    lines = seen.splitlines()
+    assert "Who drives best where" in lines
+    verdict = next(line for line in lines if line.startswith("Three-way:"))
+    assert re.search(r"^Three-way: (dqn|td3) drives best, DS \d\.\d\d \[", verdict), verdict
+    assert "clear every degenerate reference" in verdict and "the safe non-turner" in verdict
+    assert lines[:2] == ["cosim benchmark report (preset smoke)", "Who drives best where"]  # above the rest
+    probe = page.with_name("first_screen_probe.html")
+    probe.write_text(page.read_text().replace("</body>", FIRST_SCREEN_IMAGES_JS + "</body>"))
+    done = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--window-size=1280,800",
+                           "--dump-dom", probe.resolve().as_uri()], capture_output=True, text=True, timeout=120)
+    images = re.search(r'<pre id="first-screen">(.*?)</pre>', done.stdout, re.S)
+    assert images and "ds_heatmap.png" in images.group(1).split(), done.stdout[-500:]
