@@ -28,7 +28,11 @@ Arms (docs/task.md), each with the same budget (``--preset``, ``--steps``):
   the other arms, the pretrain's counted in. A cell starts once its pretrain has finished;
 - ``warm`` (not run unless named, with ``--init-from CKPT``): ``nav-shared-r2`` started from
   the weights of a checkpoint of that config (``cosim train --init-from``), e.g. the behaviour
-  clone of the discrete autopilot that studies/bc_warmstart.py writes.
+  clone of the discrete autopilot that studies/bc_warmstart.py writes;
+- ``route``, ``encoder``, ``encoder-route`` (the camera track's variants, not run unless named):
+  ``new`` with ``--obs route`` (the AC's route drawn into its camera), with ``--encoder FILE``
+  (heads on a frozen perception encoder), and with both (``--route-encoder FILE``, an encoder
+  built with ``cosim encoder train --obs route``).
 
 Every run is trained by a ``cosim train`` subprocess (``--jobs`` at once) into
 ``OUT/runs/<arm>/``, its output in ``OUT/logs/``. A rerun of the same command skips finished
@@ -81,7 +85,7 @@ from cosim.scenario import load_scenario, scenario_data, scenario_file  # noqa: 
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum", "warm",
-        "state", "state-step", "state-end", "state-atfault")
+        "state", "state-step", "state-end", "state-atfault", "route", "encoder", "encoder-route")
 DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -103,7 +107,15 @@ ARM_FLAGS = {
     "state-step": ["--obs", "state", "--collisions", "step"],
     "state-end": ["--obs", "state", "--collisions", "end"],
     "state-atfault": ["--obs", "state"],
+    # the camera track's variants (docs/task.md, "The route variant", "The frozen perception
+    # encoder"): ``new`` is the camera as it is; the encoder arms add ``--encoder`` (below)
+    "route": ["--obs", "route"],
+    "encoder": [],
+    "encoder-route": ["--obs", "route"],
 }
+ENCODER_ARMS = {"encoder": "encoder", "encoder-route": "route_encoder"}
+"""The arms that learn heads on a frozen encoder, and the option naming its file: an encoder
+takes the camera variant it was built on (`cosim encoder train --obs route` for encoder-route)."""
 SCENARIO_ARMS = {"old": ("_old", {"vehicle": OLD_VEHICLE}),
                  "state-atfault": ("_atfault", {"contact": {"fault": "at_fault"}})}
 """Arms that train on a copy of the scenario: the copy's name suffix and the keys it changes.
@@ -118,7 +130,8 @@ OLD_REFERENCES = ("autopilot-discrete",)
 """References also driven with the old wheel when the old arm runs (the old arm's ceiling)."""
 SMOKE = {"preset": "smoke", "envs": ["env_4"], "algos": ["ppo", "dqn"], "steps": 40,
          "episodes": 1, "test_steps": 40}
-PLAN_KEYS = ("preset", "steps", "seed", "episodes", "test_steps", "pretrain_steps", "init_from")
+PLAN_KEYS = ("preset", "steps", "seed", "episodes", "test_steps", "pretrain_steps", "init_from", "encoder",
+             "route_encoder")
 
 
 class PilotError(CosimError, ValueError):
@@ -158,6 +171,10 @@ def parse(argv=None) -> argparse.Namespace:
                         f"(default {PRETRAIN_STEPS:,})")
     p.add_argument("--init-from", default=None, metavar="CKPT",
                    help="the warm arm's starting weights (a PPO or DQN checkpoint of nav-shared-r2's config)")
+    p.add_argument("--encoder", default=None, metavar="FILE",
+                   help="the encoder arm's frozen encoder (`cosim encoder train --out FILE`)")
+    p.add_argument("--route-encoder", default=None, metavar="FILE",
+                   help="the encoder-route arm's (`cosim encoder train --obs route --out FILE`)")
     p.add_argument("--jobs", type=int, default=1, help="training runs at once (default 1)")
     p.add_argument("--smoke", action="store_true",
                    help="the CI check: --preset smoke --envs env_4 --algos ppo dqn --steps 40 "
@@ -183,6 +200,14 @@ def parse(argv=None) -> argparse.Namespace:
         p.error("the warm arm and --init-from CKPT go together")
     if args.init_from is not None:
         args.init_from = str(Path(args.init_from).resolve())
+    for arm, key in ENCODER_ARMS.items():
+        flag = "--" + key.replace("_", "-")
+        if (arm in args.arms) != (getattr(args, key) is not None):
+            p.error(f"the {arm} arm and {flag} FILE go together")
+        if getattr(args, key) is not None:
+            if not Path(getattr(args, key)).is_file():
+                p.error(f"{flag} {getattr(args, key)}: no such file; build one with `cosim encoder train`")
+            setattr(args, key, str(Path(getattr(args, key)).resolve()))
     args.out = args.out.resolve()
     return args
 
@@ -317,6 +342,8 @@ def train_command(out: Path, cell: Cell, args, run: Path | None) -> list[str]:
         cmd += ["--init-from", str(found)]
     if cell.arm == "warm":
         cmd += ["--init-from", args.init_from]
+    if cell.arm in ENCODER_ARMS:
+        cmd += ["--encoder", getattr(args, ENCODER_ARMS[cell.arm])]
     return cmd + ARM_FLAGS[cell.arm]
 
 

@@ -109,6 +109,29 @@ def test_the_curriculum_arm_pretrains_on_straight_first_then_warm_starts_each_ce
             _args(pilot, tmp_path, *alone)
 
 
+def test_the_camera_arms_train_on_the_route_and_on_their_own_frozen_encoder(pilot, tmp_path, capsys):
+    image, route = tmp_path / "image.pt", tmp_path / "route.pt"
+    image.write_bytes(b"x")
+    route.write_bytes(b"y")
+    args = _args(pilot, tmp_path, "--arms", "new", "route", "encoder", "encoder-route", "--algos", "dqn",
+                 "--encoder", str(image), "--route-encoder", str(route))
+    cmds = {arm: pilot.train_command(tmp_path, pilot.Cell(arm, "env_2", "dqn"), args, None)
+            for arm in args.arms}
+    assert "--obs" not in cmds["new"] and "--encoder" not in cmds["new"]
+    assert cmds["route"][cmds["route"].index("--obs") + 1] == "route" and "--encoder" not in cmds["route"]
+    assert cmds["encoder"][cmds["encoder"].index("--encoder") + 1] == str(image) and "--obs" not in cmds["encoder"]
+    both = cmds["encoder-route"]
+    assert both[both.index("--encoder") + 1] == str(route) and both[both.index("--obs") + 1] == "route"
+    for wrong in (["--arms", "encoder"], ["--arms", "new", "--encoder", str(image)],
+                  ["--arms", "encoder", "--encoder", str(tmp_path / "missing.pt")]):
+        with pytest.raises(SystemExit):
+            _args(pilot, tmp_path, *wrong)
+    assert "no such file; build one with `cosim encoder train`" in capsys.readouterr().err
+    pilot.check_plan(tmp_path, args)
+    with pytest.raises(pilot.PilotError, match="started with"):  # another encoder is another plan
+        pilot.check_plan(tmp_path, _args(pilot, tmp_path, "--arms", "encoder", "--encoder", str(route)))
+
+
 def test_a_rerun_with_another_plan_is_refused_and_nav_needs_the_obs_flag(pilot, tmp_path):
     pilot.check_plan(tmp_path, _args(pilot, tmp_path, "--steps", "500"))
     pilot.check_plan(tmp_path, _args(pilot, tmp_path, "--steps", "500", "--arms", "new"))  # arms may change
