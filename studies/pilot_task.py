@@ -85,7 +85,8 @@ from cosim.scenario import load_scenario, scenario_data, scenario_file  # noqa: 
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum", "warm",
-        "state", "state-step", "state-end", "state-atfault", "route", "encoder", "encoder-route")
+        "state", "state-step", "state-end", "state-atfault", "state-utd2", "route", "encoder",
+        "encoder-route")
 DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
 OLD_VEHICLE = {"discrete_steer_reference": 35, "max_lateral_accel": None}
@@ -107,6 +108,9 @@ ARM_FLAGS = {
     "state-step": ["--obs", "state", "--collisions", "step"],
     "state-end": ["--obs", "state", "--collisions", "end"],
     "state-atfault": ["--obs", "state"],
+    # DQN/DDPG/TD3 with a gradient step per 2 of each AC's transitions, not the standard preset's 8,
+    # which was chosen for the CNN's cost (docs/benchmarks.md "Update-to-data ratio")
+    "state-utd2": ["--obs", "state", "--set", "train_freq=2"],
     # the camera track's variants (docs/task.md, "The route variant", "The frozen perception
     # encoder"): ``new`` is the camera as it is; the encoder arms add ``--encoder`` (below)
     "route": ["--obs", "route"],
