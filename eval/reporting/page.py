@@ -244,8 +244,8 @@ def headline_markdown(long: pd.DataFrame | None, references: pd.DataFrame | None
 
 def who_drives_markdown(long: pd.DataFrame | None, references: pd.DataFrame | None,
                         labels: Mapping[str, str], figure: str | None) -> str:
-    """The page's opening answer to "who drives best where": the driving-score heat map
-    (eval.reporting.figures.driving_score_heatmap) and one sentence per environment: the best
+    """The page's opening answer to "who drives best where": one sentence per environment, then
+    the driving-score heat map (eval.reporting.figures.driving_score_heatmap). Each sentence: the best
     algorithm by mean DS with its interval, how many clear every degenerate reference by the
     lower end of their interval (the verdict's rule), and the safe non-turner and autopilot."""
     from eval.reporting.figures import driving_score_matrix
@@ -254,8 +254,6 @@ def who_drives_markdown(long: pd.DataFrame | None, references: pd.DataFrame | No
         return ""
     table = driving_score_matrix(long, references, labels)
     lines = ["## Who drives best where\n"]
-    if figure:
-        lines.append(f"![{figure[:-4]}]({figure}) ([PDF]({figure[:-4]}.pdf))\n")
     for env in dict.fromkeys(long["env"]):
         here = table[table["env"] == env]
         algos = here[~here["reference"]].sort_values("DS", ascending=False, kind="stable")
@@ -275,6 +273,8 @@ def who_drives_markdown(long: pd.DataFrame | None, references: pd.DataFrame | No
             if name in refs.index and np.isfinite(refs[name]):
                 text += f"; {what} {refs[name]:.2f}"
         lines.append(text + ".\n")
+    if figure:  # below the one-line verdicts, so that both fit the first screen
+        lines.append(f"![{figure[:-4]}]({figure}) ([PDF]({figure[:-4]}.pdf))\n")
     return "\n".join(lines)
 
 
