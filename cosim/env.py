@@ -1,4 +1,4 @@
-"""cosim_v4: the multi-agent urban driving environment (PettingZoo ParallelEnv).
+"""cosim_v5: the multi-agent urban driving environment (PettingZoo ParallelEnv).
 
 Agents
     ``ac_0`` .. ``ac_{N-1}``: learning cars (ACs), N = 1..6 (``num_agents``), fixed
@@ -20,8 +20,10 @@ Action (per agent, mixed in one env)
     ``Box(-1, 1, (2,), float32)``: (throttle(+)/brake(-), steer). No reverse.
 Reward (per agent, per step; weights from the scenario YAML)
     collision (-50 once per collision event with a car, object or pedestrian: one event per
-    other actor, the same one again within 5 s being the same event; ``collision_charge="step"``
-    charges every contact step, task version 3; docs/task.md, "Collision rule")
+    other actor, the same one again within 5 s being the same event; a car contact only for the
+    car at fault, ``collision_fault="both"`` charges both, task version 4;
+    ``collision_charge="step"`` charges every contact step, task version 3; docs/task.md,
+    "Collision rule")
     + efficiency (10 * (metres gained towards the goal + speed / speed limit))
     + lane (-0.5 per step off the road or outside its lanes) + step (-1).
     Each weighted term is in ``infos[agent]["reward_terms"]``.
@@ -48,6 +50,7 @@ Arguments
     pedestrians, terminate_on_collision, horizon, renderer ("tiny", "egl",
     "auto"), render_mode ("rgb_array"), backend ("auto", "libsumo", "traci"),
     collision_charge ("event" or "step": overrides the scenario's Contact.charge),
+    collision_fault ("at_fault" or "both": overrides the scenario's Contact.fault),
     camera (default True; False: the state track, no PyBullet mirror; see Observation),
     draw_route (default False; True or AC ids: the route camera of those ACs; see Observation),
     reward_scale (> 0, default 1.0: multiplies the returned rewards; reward_terms
@@ -57,9 +60,10 @@ Pickling
     ``pickle`` and ``copy.deepcopy`` rebuild the environment from its constructor
     arguments (SUMO and PyBullet state cannot be copied): the copy starts un-reset.
 Version history
-    The id's suffix is ``cosim.TASK_VERSION``: v4 (2026-12-01) charges a contact once per
-    collision event, makes cars ahead solid, has traffic see ACs off their lanes and adds the
-    driving score; v0 was the name of task versions 1-3 (see ``cosim.TASK_VERSION``).
+    The id's suffix is ``cosim.TASK_VERSION``: v5 (2026-12-02) charges a vehicle contact only
+    to the car at fault; v4 (2026-12-01) charges a contact once per collision event, makes cars
+    ahead solid, has traffic see ACs off their lanes and adds the driving score; v0 was the name
+    of task versions 1-3 (see ``cosim.TASK_VERSION``).
 """
 
 from __future__ import annotations
@@ -77,10 +81,11 @@ from pettingzoo import ParallelEnv
 from cosim.dynamics import action_to_control
 from cosim.errors import ActionError, EnvStateError, OptionError, ScenarioError
 from cosim.events import EVENT_FLAGS
-from cosim.scenario import CONTACT_CHARGES, Scenario, load_scenario
+from cosim.scenario import CONTACT_CHARGES, CONTACT_FAULTS, Scenario, load_scenario
 from cosim.score import episode_score
 from cosim.state import state_space as _state_space
 from cosim.state import state_vectors
+from cosim.version import TASK_VERSION
 from cosim.world import World
 
 log = logging.getLogger(__name__)
@@ -95,7 +100,7 @@ EPISODE_EVENTS = (*(e for e in EVENT_FLAGS if e not in ("goal_reached", "out_of_
 class CosimParallelEnv(ParallelEnv):
     """See the module docstring (the spec card)."""
 
-    metadata = {"name": "cosim_v4", "render_modes": ["rgb_array"], "render_fps": 10,
+    metadata = {"name": f"cosim_v{TASK_VERSION}", "render_modes": ["rgb_array"], "render_fps": 10,
                 "is_parallelizable": True}
 
     def __init__(
@@ -115,6 +120,7 @@ class CosimParallelEnv(ParallelEnv):
         reward_scale: float = 1.0,
         stall_truncate: int | None = None,
         collision_charge: str | None = None,
+        collision_fault: str | None = None,
         camera: bool = True,
         draw_route: bool | Sequence[str] = False,
     ):
@@ -135,6 +141,11 @@ class CosimParallelEnv(ParallelEnv):
                 raise ValueError(f"collision_charge must be one of {', '.join(CONTACT_CHARGES)}, "
                                  f"got {collision_charge!r}")
             sc = sc.with_overrides(contact=dataclasses.replace(sc.contact, charge=collision_charge))
+        if collision_fault is not None:  # Contact.fault: "at_fault" (the default) or "both"
+            if collision_fault not in CONTACT_FAULTS:
+                raise ValueError(f"collision_fault must be one of {', '.join(CONTACT_FAULTS)}, "
+                                 f"got {collision_fault!r}")
+            sc = sc.with_overrides(contact=dataclasses.replace(sc.contact, fault=collision_fault))
         if stall_truncate is not None:  # a training option (Termination.stall_truncate)
             sc = sc.with_overrides(
                 termination=dataclasses.replace(sc.termination, stall_truncate=stall_truncate)

@@ -38,8 +38,9 @@ EVENT_FLAGS = (
 )
 """The per-step boolean events of one AC, in report order (records, CSV counts, CLI).
 ``collision_*``: in contact this step (the paper's CV/CO/CP count these steps); ``event_*``:
-a new collision event starts this step (what the collision weight charges by default and the
-driving score's infraction penalty counts; docs/task.md, "Collision rule")."""
+a new collision event starts this step, whoever caused it (what the driving score's infraction
+penalty counts); the collision weight charges the AC's own share of them, ``Events.charged_event``
+(docs/task.md, "Collision rule")."""
 COLLISION_KINDS = ("vehicle", "pedestrian", "object")
 RED = "rR"  # SUMO signal states that forbid entering the junction
 # A footprint corner may overhang the drivable surface by this much (metres) before the car
@@ -77,6 +78,9 @@ class Events:
     """A new collision event with a vehicle starts this step (World's per-actor count)."""
     event_pedestrian: bool = False
     event_object: bool = False
+    charged_vehicle: bool = False
+    """A vehicle event that the reward charges this AC: with Contact.fault "at_fault" (the
+    default since task version 5) only one it drove into; with "both" every event_vehicle."""
     route_completion: float = 0.0
     """The AC-episode's route completion so far, 0..1 (cosim/score.py)."""
     touching: list = field(default_factory=list)
@@ -90,6 +94,12 @@ class Events:
     def collision_event(self) -> bool:
         """A new collision event of any kind starts this step."""
         return self.event_vehicle or self.event_pedestrian or self.event_object
+
+    @property
+    def charged_event(self) -> bool:
+        """A collision event the reward charges starts this step: every pedestrian and object
+        event, and the vehicle events of Contact.fault (``charged_vehicle``)."""
+        return self.charged_vehicle or self.event_pedestrian or self.event_object
 
     @property
     def lane_violation(self) -> bool:
@@ -206,14 +216,15 @@ def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float,
                  per_step: bool = False) -> dict[str, float]:
     """The weighted reward terms (docs/task.md, "Collision rule"); the reward is their sum.
 
-    The collision weight charges each new collision event (``ev.collision_event``), or, with
+    The collision weight charges each new collision event charged to this car
+    (``ev.charged_event``: at fault for vehicles by default, Contact.fault), or, with
     ``per_step`` (``Contact.charge == "step"``, task version 3), every step in contact."""
     # F: speed along the route, not along the car's heading, and negative when driving
     # against it, so that circling at speed averages to nothing (policies exploited both
     # the heading version and a [0, 1] clip; see docs/design.md, "F, the speed term")
     forward = min(max(ev.route_speed / speed_limit, -1.0), 1.0)
     return {
-        "collision": weights.collision * float(ev.collision if per_step else ev.collision_event),
+        "collision": weights.collision * float(ev.collision if per_step else ev.charged_event),
         "efficiency": weights.efficiency * (ev.progress + forward),
         "lane": weights.lane * float(ev.lane_violation),
         "step": weights.step,

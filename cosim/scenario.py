@@ -105,7 +105,7 @@ class Termination:
 CONTACT_CHARGES = ("event", "step")
 """``Contact.charge``: once per collision event (the default) or every step in contact."""
 CONTACT_FAULTS = ("both", "at_fault")
-"""``Contact.fault``: who of a vehicle contact is charged (docs/task.md, "Collision rule")."""
+"""``Contact.fault``: who of a vehicle contact the reward charges (docs/task.md, "Collision rule")."""
 
 
 @dataclass(frozen=True)
@@ -119,10 +119,12 @@ class Contact:
     contact (task version 3, ``cosim train --collisions step``)."""
     window: float = 5.0
     """Seconds after a charged event with one actor during which contact with it is that event."""
-    fault: str = "both"
-    """``both`` (the default): every AC in a contact is charged; ``at_fault``: an AC is charged
-    for a vehicle contact only when it drove into the other (it moved at >= 0.5 m/s and the
-    other's centre lies ahead of its own), as nuPlan counts at-fault collisions."""
+    fault: str = "at_fault"
+    """Who of a vehicle contact the reward charges: ``at_fault`` (the default since task version
+    5): an AC only when it drove into the other (it moved at >= 0.5 m/s and the other's centre
+    lies ahead of its own), as nuPlan counts at-fault collisions; ``both`` (task version 4):
+    every AC in the contact (``cosim train --fault both``). The test's driving score counts every
+    event a car is in either way (Events.event_vehicle)."""
 
     def __post_init__(self) -> None:
         if self.charge not in CONTACT_CHARGES:

@@ -10,14 +10,14 @@ import gymnasium as gym
 
 from cosim.env import CosimParallelEnv, _check_seed
 from cosim.scenario import Scenario
+from cosim.version import TASK_VERSION
 
 GYM_IDS = {
-    "cosim/Straight-v4": "env_1",
-    "cosim/ThreeWay-v4": "env_2",
-    "cosim/FourWay-v4": "env_3",
-    "cosim/Roundabout-v4": "env_4",
-    "cosim/Merge-v4": "env_5",
+    f"cosim/{name}-v{TASK_VERSION}": env
+    for name, env in (("Straight", "env_1"), ("ThreeWay", "env_2"), ("FourWay", "env_3"),
+                      ("Roundabout", "env_4"), ("Merge", "env_5"))
 }
+"""Gymnasium id -> scenario; the ids' suffix is the task version (cosim.TASK_VERSION)."""
 
 
 class SingleAgentEnv(gym.Env):
@@ -84,7 +84,7 @@ def single_env(scenario: str | Scenario = "env_1", **kwargs) -> SingleAgentEnv:
 
 
 def register_envs() -> None:
-    """Register the five environments with Gymnasium (``gym.make("cosim/FourWay-v4")``)."""
+    """Register the five environments with Gymnasium (``gym.make("cosim/FourWay-v5")``)."""
     for env_id, name in GYM_IDS.items():
         if env_id not in gym.registry:
             gym.register(env_id, entry_point="cosim.single:SingleAgentEnv",

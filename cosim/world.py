@@ -151,8 +151,10 @@ class World:
             )
         self.active = list(self.ac_ids)
         self.step_count = 0
-        self._charged: list[dict[tuple[str, str], float]] = [{} for _ in self.ac_ids]
-        """Per AC: (kind, actor id) -> simulated time of its last charged collision event."""
+        self._events_seen: list[dict[tuple[str, str], float]] = [{} for _ in self.ac_ids]
+        """Per AC: (kind, actor id) -> simulated time of its last collision event (the test's count)."""
+        self._charged: list[dict[str, float]] = [{} for _ in self.ac_ids]
+        """Per AC: vehicle id -> simulated time of its last vehicle event charged at fault."""
         self._completion = [RouteCompletion(max(r.goal_s - r.spawn_s, 1e-6)) for r in self.routes]
         self._still = np.zeros(self.num_acs, dtype=int)  # consecutive standing steps (_stalled)
         self.times = StepTimes()
@@ -242,22 +244,30 @@ class World:
         return j if dx * math.cos(h) + dy * math.sin(h) > 0.0 else None
 
     def _count_events(self, i: int, ev: Events) -> None:
-        """Mark the collision events that start this step (``ev.event_*``): a contact with an
-        actor is a new event unless that actor's last charged event with this AC is less than
-        Contact.window seconds old. With Contact.fault "at_fault", a vehicle contact is this
-        AC's event only when it drove into the other (moving, the other's centre ahead)."""
+        """Mark the collision events that start this step: ``ev.event_*``, the events the test
+        scores (every actor in contact is a new event unless that actor's last event with this
+        AC is less than Contact.window seconds old, whoever caused it), and
+        ``ev.charged_vehicle``, a vehicle event the reward charges this AC. With Contact.fault
+        "at_fault" (the default since task version 5) a vehicle contact is charged only when
+        this AC drove into the other (moving, the other's centre ahead), with its own window;
+        with "both" every vehicle event is charged."""
         contact = self.scenario.contact
         now = float(self.snapshot.time)
-        memory = self._charged[i]
+        memory, charged = self._events_seen[i], self._charged[i]
         for kind, other in ev.touching:
-            if kind == "vehicle" and contact.fault == "at_fault" and not (
-                self._state[i, 3] >= PEDESTRIAN_MIN_SPEED and self._ahead(i, other) is not None
-            ):
-                continue
             last = memory.get((kind, other))
             if last is None or now - last >= contact.window - 1e-9:
                 memory[(kind, other)] = now
                 setattr(ev, f"event_{kind}", True)
+                if kind == "vehicle" and contact.fault == "both":
+                    ev.charged_vehicle = True
+            if kind == "vehicle" and contact.fault == "at_fault" and (
+                self._state[i, 3] >= PEDESTRIAN_MIN_SPEED and self._ahead(i, other) is not None
+            ):
+                last = charged.get(other)
+                if last is None or now - last >= contact.window - 1e-9:
+                    charged[other] = now
+                    ev.charged_vehicle = True
 
     def _backed_off(self, i: int, before: np.ndarray) -> tuple[float, float, float]:
         """AC `i`'s pose BACK_OFF metres behind `before` (x, y, heading, ...) along its heading

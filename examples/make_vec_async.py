@@ -2,7 +2,7 @@
 
 Each sub-environment runs in its own worker process (one in-process SUMO each), and
 Gymnasium's vector RecordEpisodeStatistics reports finished episodes. Importing
-``cosim`` registers the ids (``cosim/Straight-v4`` ... ``cosim/Merge-v4``); keyword
+``cosim`` registers the ids (``cosim/Straight-v5`` ... ``cosim/Merge-v5``); keyword
 arguments reach each environment's constructor.
 
     python examples/make_vec_async.py --steps 128 --num-envs 2
@@ -25,7 +25,7 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=32, help="steps before truncation")
     args = parser.parse_args()
 
-    envs = gym.make_vec("cosim/Straight-v4", num_envs=args.num_envs, vectorization_mode="async",
+    envs = gym.make_vec("cosim/Straight-v5", num_envs=args.num_envs, vectorization_mode="async",
                         background=False, pedestrians=False, horizon=args.horizon,
                         reward_scale=0.01)
     envs = gym.wrappers.vector.RecordEpisodeStatistics(envs)

@@ -85,7 +85,7 @@ from cosim.scenario import load_scenario, scenario_data, scenario_file  # noqa: 
 from eval.testing.validity import HELD_OUT_SEED  # noqa: E402
 
 ARMS = ("old", "new", "nav", "shared", "nav-shared", "nav-shared-r2", "curriculum", "warm",
-        "state", "state-step", "state-end", "state-atfault", "state-utd2", "route", "encoder",
+        "state", "state-both", "state-step", "state-end", "state-utd2", "route", "encoder",
         "encoder-route")
 DEFAULT_ARMS = ("old", "new", "nav")
 """The arms the issue asks for; ``shared`` and ``nav-shared`` are the parameter-sharing variants."""
@@ -103,11 +103,12 @@ ARM_FLAGS = {
     "curriculum": R2_FLAGS,
     "warm": R2_FLAGS,
     "pretrain": R2_FLAGS,  # the curriculum's first stage (pretrain_cell), not an arm of its own
-    # task version 4's state track (issue 61): the default collision rule and the two it replaced
+    # the state track (issue 61): the default collision rule (task version 5: charged once per
+    # event, to the car at fault) and the ones it replaced (both cars charged: version 4)
     "state": ["--obs", "state"],
+    "state-both": ["--obs", "state", "--fault", "both"],
     "state-step": ["--obs", "state", "--collisions", "step"],
     "state-end": ["--obs", "state", "--collisions", "end"],
-    "state-atfault": ["--obs", "state"],
     # DQN/DDPG/TD3 with a gradient step per 2 of each AC's transitions, not the standard preset's 8,
     # which was chosen for the CNN's cost (docs/benchmarks.md "Update-to-data ratio")
     "state-utd2": ["--obs", "state", "--set", "train_freq=2"],
@@ -120,11 +121,9 @@ ARM_FLAGS = {
 ENCODER_ARMS = {"encoder": "encoder", "encoder-route": "route_encoder"}
 """The arms that learn heads on a frozen encoder, and the option naming its file: an encoder
 takes the camera variant it was built on (`cosim encoder train --obs route` for encoder-route)."""
-SCENARIO_ARMS = {"old": ("_old", {"vehicle": OLD_VEHICLE}),
-                 "state-atfault": ("_atfault", {"contact": {"fault": "at_fault"}})}
-"""Arms that train on a copy of the scenario: the copy's name suffix and the keys it changes.
-The old arm is tested on its copy (its car); the at-fault arm on the bundled scenario (the
-test's rule charges every car in a contact)."""
+SCENARIO_ARMS = {"old": ("_old", {"vehicle": OLD_VEHICLE})}
+"""Arms that train on a copy of the scenario: the copy's name suffix and the keys it changes
+(the old arm is tested on its copy: its car)."""
 PRETRAIN_ENV = "env_1"
 """Where the curriculum arm learns to drive first: Straight, no turn (the quick PPO reached 0.94
 of its goals there)."""
@@ -462,7 +461,7 @@ def slot_table(episodes: pd.DataFrame, routes: pd.DataFrame, **labels) -> pd.Dat
 
 
 SCORE_COLS = ("DS", "RC", "events")
-"""Per (episode, slot): driving score, route completion, collision events (task version 4)."""
+"""Per (episode, slot): driving score, route completion, collision events (task versions 4-5)."""
 
 
 def results(out: Path, args) -> pd.DataFrame:
@@ -598,8 +597,7 @@ def run_test(out: Path, cell: Cell, args) -> bool:
     run = find_run(out, cell, args.seed)
     start = time.monotonic()
     try:
-        records = test_run(run, cell.algo, args.episodes, test_steps(args, cell.env),
-                           env=cell.env if cell.arm == "state-atfault" else None)
+        records = test_run(run, cell.algo, args.episodes, test_steps(args, cell.env))
     except Exception as exc:  # noqa: BLE001 - one failed test must not stop the others
         say(f"test {cell.name}: FAILED ({type(exc).__name__}: {exc}); rerun to retry")
         return False

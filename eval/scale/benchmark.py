@@ -80,7 +80,7 @@ TEST_SETTINGS = {
 }
 
 
-SAVED_ALWAYS = ("preset", "steps", "collisions")
+SAVED_ALWAYS = ("preset", "steps", "collisions", "fault")
 """Run options benchmark.json always holds; the others only when set, so a plan saved before
 they existed still reads back as equal (the grid is resumed only with the options it started with)."""
 

@@ -113,6 +113,9 @@ class TrainConfig:
     collision_charge: str = "event"
     """``event`` (the default): the collision weight once per collision event; ``step``
     (``--collisions step``): every contact step (cosim.scenario.Contact.charge)."""
+    collision_fault: str = "at_fault"
+    """Who of a vehicle contact the reward charges: ``at_fault`` (the default since task version
+    5) or ``both`` (``--fault both``, task version 4; cosim.scenario.Contact.fault)."""
 
     validation_episodes: int = 0
     """Held-out episodes the run's ACs drive under the test's rules at every checkpoint; each
@@ -267,6 +270,7 @@ def resolve(options: RunOptions) -> TrainConfig:
         agent_config=agent_config, envs=envs, device=o.device, torch_threads=o.torch_threads,
         frame_stack=frame_stack, obs=o.obs, learner_threads=o.learner_threads,
         collisions_end_episode=o.collisions == "end", collision_charge="step" if o.collisions == "step" else "event",
+        collision_fault=o.fault,
         validation_episodes=validation_episodes, validation_steps=validation_steps, policy_dtype=p.policy_dtype,
         share_params=o.share_params, init_from=_init_source(o.init_from), stall_truncate=o.stall_truncate,
         demo_steps=o.demo_steps, demo_updates=o.demo_updates, encoder=encoder, encoder_sha256=encoder_sha256,

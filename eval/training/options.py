@@ -35,7 +35,7 @@ from cosim.errors import CosimError
 from cosim.wrappers import OBS_VARIANTS
 from eval.labels import ENVS
 
-__all__ = ["COLLISION_RULES", "DEVICES", "MAX_SEED", "Option", "RunOptions", "TrainError", "add_flags",
+__all__ = ["COLLISION_RULES", "DEVICES", "FAULT_RULES", "MAX_SEED", "Option", "RunOptions", "TrainError", "add_flags",
            "benchmark_names", "declared", "int_in", "names_text", "option", "parse_set", "report_keys"]
 
 
@@ -50,6 +50,10 @@ collision and each collision event is charged once; ``step``: the episode goes o
 contact step is charged (task version 3); ``end``: a collision ends the AC's training episode
 (the paper's rule). TrainConfig.collision_charge and .collisions_end_episode; docs/task.md,
 "Collision rule"."""
+FAULT_RULES = ("at_fault", "both")
+"""``--fault``: who of a vehicle contact the reward charges: ``at_fault`` (the default since task
+version 5), the car that drove into the other; ``both`` (task version 4), every car in it.
+TrainConfig.collision_fault, cosim.scenario.Contact.fault; docs/task.md, "Collision rule"."""
 DEVICES = ("auto", "cpu", "cuda")
 """``--device``: the learners' torch device (auto: cuda when available)."""
 MAX_SEED = 2**31 - 1
@@ -197,6 +201,12 @@ class RunOptions:
         report=True, config=("collisions_end_episode", "collision_charge"),
         benchmark_help="training episodes at a collision (as `cosim train --collisions`; default event: the test's "
                        "rule, docs/task.md)")
+    fault: str = option(
+        "at_fault", "--fault", "who of a car contact the reward charges: at_fault (default: the car that drove "
+        "into the other) or both (every car in it, task version 4); the test's driving score counts every event "
+        "either way (docs/task.md, Collision rule)", choices=FAULT_RULES, benchmark=True, report=True,
+        config=("collision_fault",),
+        benchmark_help="who of a car contact the trials' reward charges (as `cosim train --fault`; default at_fault)")
     share_params: bool = option(
         False, "--share-params", "the run's ACs act with ONE network that learns from all their transitions "
         "(parameter sharing; default: one network per AC, the paper's; ppo dqn ddpg td3; docs/agents.md)",

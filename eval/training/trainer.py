@@ -380,7 +380,7 @@ def make_env(cfg: TrainConfig | dict, worker_seed: int | None = None):
         cfg.env, num_agents=cfg.agents, action_types=cfg.action_type,
         seed=cfg.seed if worker_seed is None else worker_seed, image_size=cfg.image_size,
         horizon=cfg.horizon, terminate_on_collision=cfg.collisions_end_episode,
-        collision_charge=cfg.collision_charge,
+        collision_charge=cfg.collision_charge, collision_fault=cfg.collision_fault,
         stall_truncate=cfg.stall_truncate or None,
     )
     # with --envs N > 1 this is a worker process of one env: its encoder forward on one thread

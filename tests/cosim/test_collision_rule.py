@@ -9,8 +9,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cosim.events import Events
-from cosim.scenario import Contact, SpawnJitter, load_scenario
+from cosim.events import Events, reward_terms
+from cosim.scenario import Contact, RewardWeights, SpawnJitter, load_scenario
+from cosim.score import episode_score
 from cosim.world import World
 
 
@@ -109,7 +110,7 @@ def test_a_blocked_ac_backs_off_and_can_steer_round_what_stopped_it(back_off, mo
 def _bare_world(**contact):
     """A World that is never reset: enough for the per-actor event count."""
     w = World(_straight(contact=Contact(**contact)), 1, background=False)
-    w._charged = [{}]
+    w._events_seen, w._charged = [{}], [{}]
     w._state[0] = (0.0, 0.0, 0.0, 5.0)  # at the origin, facing +x, moving
     return w
 
@@ -136,16 +137,38 @@ def test_the_same_actor_within_5_s_is_one_event_and_another_actor_is_its_own():
 
 
 def test_at_fault_charges_only_the_car_that_drove_into_the_other():
-    w = _bare_world(fault="at_fault")
-    assert _count(w, 1.0, [("vehicle", "ahead")], {"ahead": (4.0, 0.0)}).event_vehicle
-    assert not _count(w, 1.0, [("vehicle", "behind")], {"behind": (-4.0, 0.0)}).event_vehicle
+    w = _bare_world()  # the default since task version 5
+    assert w.scenario.contact.fault == "at_fault"
+    hit = _count(w, 1.0, [("vehicle", "ahead")], {"ahead": (4.0, 0.0)})
+    assert hit.event_vehicle and hit.charged_vehicle and hit.charged_event
+    behind = _count(w, 1.0, [("vehicle", "behind")], {"behind": (-4.0, 0.0)})
+    assert behind.event_vehicle, "the test's score counts every event the car is in"
+    assert not behind.charged_vehicle and not behind.charged_event, "hit from behind: not its fault"
     w._state[0, 3] = 0.0  # standing: hit, not hitting
-    assert not _count(w, 9.0, [("vehicle", "ahead")], {"ahead": (4.0, 0.0)}).event_vehicle
-    both = _bare_world()
+    standing = _count(w, 9.0, [("vehicle", "ahead")], {"ahead": (4.0, 0.0)})
+    assert standing.event_vehicle and not standing.charged_vehicle
+    w._state[0, 3] = 5.0  # hit from behind at 20 s, then drives into the same car 2 s later
+    assert not _count(w, 20.0, [("vehicle", "x")], {"x": (-4.0, 0.0)}).charged_vehicle
+    late = _count(w, 22.0, [("vehicle", "x")], {"x": (4.0, 0.0)})
+    assert late.charged_vehicle and not late.event_vehicle, "its own fault is charged; the score's event began at 20 s"
+    both = _bare_world(fault="both")
     both._state[0, 3] = 0.0
-    assert _count(both, 1.0, [("vehicle", "behind")], {"behind": (-4.0, 0.0)}).event_vehicle
+    ev = _count(both, 1.0, [("vehicle", "behind")], {"behind": (-4.0, 0.0)})
+    assert ev.event_vehicle and ev.charged_vehicle
     w.close()
     both.close()
+
+
+def test_the_reward_charges_the_cars_own_events_and_the_score_counts_all():
+    weights = RewardWeights()
+    mine = Events(event_vehicle=True, charged_vehicle=True)
+    not_mine = Events(event_vehicle=True)
+    assert reward_terms(mine, weights, 7.0)["collision"] == weights.collision == -50.0
+    assert reward_terms(not_mine, weights, 7.0)["collision"] == 0.0
+    for kind in ("pedestrian", "object"):  # a person or a pole: always the AC's own
+        assert reward_terms(Events(**{f"event_{kind}": True}), weights, 7.0)["collision"] == -50.0
+    one, clean = episode_score(1.0, True, vehicle=1), episode_score(1.0, True)
+    assert one["DS"] == pytest.approx(0.6 * clean["DS"]) and one["success"] == 0.0 < clean["success"]
 
 
 def test_route_completion_counts_the_route_driven():

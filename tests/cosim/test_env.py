@@ -45,7 +45,7 @@ def test_gymnasium_check_env(action_type):
 
 def test_registered_ids_and_empty_world():
     assert set(cosim.GYM_IDS) <= set(gym.registry)
-    env = gym.make("cosim/FourWay-v4", background=False, pedestrians=False, horizon=5)
+    env = gym.make(f"cosim/FourWay-v{cosim.TASK_VERSION}", background=False, pedestrians=False, horizon=5)
     try:
         obs, info = env.reset(seed=0)
         assert obs.shape == (84, 84, 3) and obs.dtype == np.uint8

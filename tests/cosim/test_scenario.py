@@ -40,10 +40,10 @@ def test_solid_cars_and_the_contact_rule_are_read_from_the_yaml_and_the_defaults
     assert not load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(solid_cars=False))).solid_cars
     assert all(load_scenario(f"env_{k}").solid_cars for k in range(1, 6))  # task version 4
     sc = load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(
-        contact={"charge": "step", "window": 2.0, "fault": "at_fault"})))
-    assert (sc.contact.charge, sc.contact.window, sc.contact.fault) == ("step", 2.0, "at_fault")
+        contact={"charge": "step", "window": 2.0, "fault": "both"})))
+    assert (sc.contact.charge, sc.contact.window, sc.contact.fault) == ("step", 2.0, "both")
     assert all(load_scenario(f"env_{k}").contact == Contact() for k in range(1, 6))
-    assert (Contact().charge, Contact().window, Contact().fault) == ("event", 5.0, "both")
+    assert (Contact().charge, Contact().window, Contact().fault) == ("event", 5.0, "at_fault")  # task version 5
     with pytest.raises(ScenarioError, match="charge must be one of event, step"):
         load_scenario(_copy_yaml(tmp_path, edit=lambda d: d.update(contact={"charge": "once"})))
     with pytest.raises(ScenarioError, match=r"unknown key\(s\) \['windw'\]"):

@@ -311,7 +311,7 @@ def test_provenance_and_a_run_manifest_record_what_ran_alike():
     assert ran <= set(prov) and ran <= set(manifest)
     import cosim
 
-    assert prov["task_version"] == manifest["task_version"] == cosim.TASK_VERSION == 4
+    assert prov["task_version"] == manifest["task_version"] == cosim.TASK_VERSION == 5
     assert prov["command"] == "cosim test --agents 1"
     assert prov["cosim_version"] == prov["versions"]["cosim"]
     assert set(prov["versions"]) == set(manifest["versions"]) == set(runfolder.PACKAGES)

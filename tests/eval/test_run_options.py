@@ -23,7 +23,7 @@ from eval.training.options import RunOptions, TrainError, benchmark_names, confi
 EXAMPLE = {  # a value other than the default for every option, valid together (dqn: a replay learner)
     "algo": "dqn", "env": "env_2", "preset": "smoke", "agents": 1, "steps": 40, "seed": 3,
     "action_type": "discrete", "agent_preset": "paper", "hyper": {"action_repeat": "2"}, "envs": 2,
-    "frame_stack": 2, "obs": "route", "collisions": "step", "share_params": True, "stall_truncate": 25,
+    "frame_stack": 2, "obs": "route", "collisions": "step", "fault": "both", "share_params": True, "stall_truncate": 25,
     "demo_steps": 30, "demo_updates": 5, "encoder": "ENCODER", "init_from": "SOURCE", "validation_episodes": 3,
     "validation_steps": 7, "device": "cpu", "torch_threads": 1, "learner_threads": 2,
 }
