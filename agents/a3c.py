@@ -215,7 +215,14 @@ class A3C(Agent):
 
     @torch.no_grad()
     def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        logits, _ = self.model(obs_to_tensor(obs, self.device))
+        return self.act_from(self.model(obs_to_tensor(obs, self.device)), columns, deterministic)
+
+    def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
+        return (self.model,)
+
+    @torch.no_grad()
+    def act_from(self, outputs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        logits, _ = outputs
         if deterministic:
             return logits.argmax(-1).cpu().numpy()
         # Sampled on the model's device with the agent's own generator (same device).

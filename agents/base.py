@@ -15,6 +15,10 @@ loop (:func:`agents.loop.run_loop`) can drive any mix of them over N environment
    DQN's ``gradient_steps / train_freq`` per transition holds for any N) and
    returns namespaced metrics (``losses/...``, ``charts/...``), else ``{}``.
 
+An algorithm whose ``act_batch`` is a forward pass followed by picking actions also names
+the pass (``acting_chain``) and the picking (``act_from``), so that the loop can run the pass
+for several ACs at once (agents/batched.py) and leave each AC its own picking.
+
 ``act(obs)`` and ``observe(...)`` for ONE observation are derived from the batch
 pair here, once: ``act`` is a batch of one outside any environment (it keeps
 nothing for ``observe``, so acting between training steps, as a validation
@@ -268,6 +272,20 @@ class Agent(abc.ABC):
     @abc.abstractmethod
     def update(self) -> dict[str, float]:
         """Learn what is due; return namespaced metrics, or ``{}`` if nothing was learned."""
+
+    # ---- acting in a group with other ACs (agents/batched.py) -----------------------
+    def acting_chain(self, deterministic: bool = False) -> tuple[torch.nn.Module, ...] | None:
+        """The modules that :meth:`act_batch`'s forward pass applies in turn to the observation
+        tensor, when :meth:`act_from` picks the actions from their output; None (the default)
+        when this step's actions need no such pass (TD3's random phase) or the algorithm has
+        none: the AC then acts on its own, with :meth:`act_batch`."""
+        return None
+
+    def act_from(self, outputs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        """:meth:`act_batch` after its forward pass: the actions (and what learning keeps of
+        them) from ``outputs``, the :meth:`acting_chain`'s output for this batch, drawing from
+        the agent's generators exactly as :meth:`act_batch` does."""
+        raise NotImplementedError(f"{type(self).__name__} has no acting chain")
 
     def prepare_envs(self, num_envs: int) -> None:  # noqa: B027 - optional hook
         """Called once before a loop steps ``num_envs`` environments (e.g. replay rings)."""

@@ -68,6 +68,11 @@ class AgentConfig:
     skipping, Mnih et al. 2015's k = 4). A property of the policy, so its checkpoint carries it
     and every test drives it at that rate (cosim.wrappers.ActionRepeat in training,
     eval/testing/rollout.py ``RepeatPolicy`` in the test). 1: an action every step."""
+    batched_acting: bool = True
+    """Act in one grouped forward pass with the loop's other ACs of this algorithm and
+    architecture (agents/batched.py: their weights stacked, re-copied when they change), bit
+    for bit what each AC's own pass gives; False: one forward pass per AC, the path before
+    issue 59 (for comparison; it learns the same)."""
 
     def __post_init__(self):
         check_range("reward_scale", self.reward_scale, 0, low_inclusive=False)
@@ -150,6 +155,16 @@ class PPOConfig(AgentConfig):
     """global gradient-norm clip."""
     norm_adv: bool = True
     """normalise advantages per minibatch."""
+    value_norm: str = "none"
+    """value targets normalised by the running mean and standard deviation of the returns (the
+    value head predicts ``(R - mean) / std``, denormalised wherever a value is used: GAE,
+    bootstraps; MAPPO's ValueNorm, Yu et al. 2022): "all"; "shared": only when the policy and
+    the value share one encoder (images: the Nature CNN, whose gradient the value loss otherwise
+    swamps, docs/agents.md); "none": raw returns, the update before issue 59."""
+    shared_value_grad: float = 1.0
+    """scale of the value loss's gradient into an encoder the value shares with the policy
+    (images: the Nature CNN); the value head learns from the whole loss either way, separate
+    encoders (vectors) ignore it. 1: the update before issue 59; docs/agents.md."""
     hidden: tuple[int, ...] = (64, 64)
     """MLP hidden sizes for vector observations (images use the Nature CNN)."""
 
@@ -176,6 +191,13 @@ class PPOConfig(AgentConfig):
         check_range("vf_coef", self.vf_coef, 0)
         check_range("ent_coef", self.ent_coef, 0)
         check_range("max_grad_norm", self.max_grad_norm, 0, None, low_inclusive=False)
+        check_range("shared_value_grad", self.shared_value_grad, 0, 1)
+        if self.value_norm not in VALUE_NORMS:
+            raise ValueError(f"value_norm={self.value_norm!r} must be one of {', '.join(VALUE_NORMS)}")
+
+
+VALUE_NORMS = ("none", "shared", "all")
+"""PPOConfig.value_norm's values."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -98,7 +98,14 @@ class DQN(ReplayAgent):
 
     @torch.no_grad()
     def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        actions = self.q_network(obs_to_tensor(obs, self.device)).argmax(-1).cpu().numpy()
+        return self.act_from(self.q_network(obs_to_tensor(obs, self.device)), columns, deterministic)
+
+    def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
+        return (self.q_network,)
+
+    @torch.no_grad()
+    def act_from(self, outputs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        actions = outputs.argmax(-1).cpu().numpy()
         if not deterministic:
             explore = self.rng.random(len(actions)) < self.epsilon
             actions = np.where(explore, self.rng.integers(self.action_space.n, size=len(actions)), actions)

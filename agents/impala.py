@@ -139,7 +139,14 @@ class IMPALA(Agent):
 
     @torch.no_grad()
     def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        logits, _ = self.model(obs_to_tensor(obs, self.device))
+        return self.act_from(self.model(obs_to_tensor(obs, self.device)), columns, deterministic)
+
+    def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
+        return (self.model,)
+
+    @torch.no_grad()
+    def act_from(self, outputs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        logits, _ = outputs
         log_probs = torch.log_softmax(logits, dim=-1)
         if deterministic:
             chosen = log_probs.argmax(-1, keepdim=True)

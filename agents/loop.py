@@ -7,7 +7,9 @@ taken as a vector env of one) and calls the same hooks of every algorithm:
 1. ``state = venv.reset(seed=seed)``: env ``i``, episode ``k`` resets with
    ``seed + i + k * N``; ``state.alive[a]`` says where agent ``a`` acts.
 2. Each agent acts for its slot in every environment of a group where it is
-   alive in ONE batched forward pass: ``act_batch(obs, envs)``.
+   alive in ONE batched forward pass: ``act_batch(obs, envs)``; ACs of one algorithm and
+   architecture share one grouped pass for all of them (agents/batched.py, each config's
+   ``batched_acting``), each then drawing its actions with its own generators.
 3. The group steps (``step_async`` / ``step_wait``); an environment whose
    agents have all finished resets itself, and its episode's returns and
    lengths are recorded.
@@ -50,7 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents import observations
+from agents import batched, observations
 from agents.base import Agent
 from agents.vector import InProcessVectorEnv
 from agents.workers import EPISODE_INFO, EpisodeReport
@@ -313,17 +315,22 @@ def _schedule(venv, groups: list[np.ndarray], state, agents: Mapping[str, Agent]
     extras: list[dict[str, dict]] = [{} for _ in range(n)]
     times = {"env": 0.0, "act": 0.0}
 
+    grouper = batched.Grouper()  # the ACs' stacked weights for grouped acting, kept between steps
+
     def act_and_send(group: np.ndarray, obs_rows, alive) -> dict:
-        """Act for every agent alive in the envs of ``group`` (one forward pass per agent) and send."""
+        """Act for every agent alive in the envs of ``group`` (one forward pass per agent, or one
+        for all the ACs that act together: agents/batched.py) and send."""
         start = clock()
         acted: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # id -> (envs, obs copy, actions)
         full_actions = {}
+        requests = []
         for a in ids:
             envs = group[alive[a][group]]
-            if envs.size == 0:
-                continue
-            obs = observations.take(obs_rows[a], envs)  # a copy: the vector env overwrites its arrays on step
-            actions = np.asarray(agents[a].act_batch(obs, envs, deterministic=deterministic))
+            if envs.size:  # a copy: the vector env overwrites its arrays on step
+                requests.append((a, envs, observations.take(obs_rows[a], envs)))
+        chosen = batched.act_all(agents, requests, deterministic, grouper)
+        for a, envs, obs in requests:
+            actions = chosen[a]
             batch = np.zeros((n, *actions.shape[1:]), actions.dtype)
             batch[envs] = actions
             full_actions[a] = batch

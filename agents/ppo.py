@@ -9,6 +9,11 @@ from the value of their final observation. With N environments the rollout
 holds the agent's ``rollout_steps`` transitions from all of them (about
 ``rollout_steps / N`` per environment, so the learning per transition does not
 change with N), and GAE runs over each environment's column separately.
+
+Two options on the value loss (issue 59, docs/agents.md), both off in the library's presets:
+``shared_value_grad`` scales the value loss's gradient into an encoder the value shares with the
+policy (images), so that it does not swamp the policy's; ``value_norm`` learns the value on returns normalised by their running mean
+and standard deviation (:class:`RunningMeanStd`), values denormalised wherever they are used.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from agents.configs import PPOConfig
 from agents.networks import ActorCritic, obs_to_tensor
 from agents.returns import gae
 
-__all__ = ["PPO", "PPOConfig"]
+__all__ = ["PPO", "PPOConfig", "RunningMeanStd"]
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +66,9 @@ class PPO(Agent):
         self.kl_coef = cfg.kl_coef
         self.iterations = 0
         self.steps = 0
+        shared = self.net.value_encoder is None
+        self.value_norm = cfg.value_norm == "all" or (cfg.value_norm == "shared" and shared)
+        self.value_stats = RunningMeanStd()  # of the returns, when value_norm: the value head's scale
         # act_batch's (action, log prob, value, logits) per env, oldest first: the vector loop acts
         # at t + 1 before it observes t, so up to two are pending (bounded for evaluation-only use)
         self._column_cache: dict[int, collections.deque] = {}
@@ -72,13 +80,20 @@ class PPO(Agent):
 
     @torch.no_grad()
     def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        logits, values = self.net(obs_to_tensor(obs, self.device))
+        return self.act_from(self.net(obs_to_tensor(obs, self.device)), columns, deterministic)
+
+    def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
+        return (self.net,)
+
+    @torch.no_grad()
+    def act_from(self, outputs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        logits, values = outputs
         if deterministic:
             actions = logits.argmax(-1)
         else:
             actions = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.generator)[:, 0]
         log_probs = torch.log_softmax(logits, -1).gather(1, actions[:, None])[:, 0]
-        actions_np, log_probs, values = actions.cpu().numpy(), log_probs.cpu().numpy(), values.cpu().numpy()
+        actions_np, log_probs, values = actions.cpu().numpy(), log_probs.cpu().numpy(), self._denormalise(values)
         logits = logits.cpu().numpy()
         for j, column in enumerate([] if columns is None else np.asarray(columns).tolist()):
             pending = self._column_cache.setdefault(column, collections.deque(maxlen=2))
@@ -93,7 +108,7 @@ class PPO(Agent):
         if missing:  # not from our last act_batch: score them now
             with torch.no_grad():
                 logits, values = self.net(obs_to_tensor(observations.take(obs, missing), self.device))
-            log_probs = torch.log_softmax(logits, -1)
+            log_probs, values = torch.log_softmax(logits, -1), self._denormalise(values)
             for row, j in enumerate(missing):
                 a = int(actions[j])
                 cached[j] = (a, log_probs[row, a].item(), values[row].item(), logits[row].cpu().numpy())
@@ -117,7 +132,15 @@ class PPO(Agent):
 
     @torch.no_grad()
     def _values(self, obs) -> np.ndarray:
-        return self.net(obs_to_tensor(obs, self.device))[1].cpu().numpy()
+        return self._denormalise(self.net(obs_to_tensor(obs, self.device))[1])
+
+    def _denormalise(self, values: torch.Tensor) -> np.ndarray:
+        """The value head's outputs as values (numpy): as they are, or with ``value_norm`` times
+        the returns' running standard deviation plus their mean."""
+        values = values.cpu().numpy()
+        if not self.value_norm:
+            return values
+        return (values * np.float32(self.value_stats.std) + np.float32(self.value_stats.mean)).astype(np.float32)
 
     # ---- learning ---------------------------------------------------------------------
     def update(self) -> dict[str, float]:
@@ -142,7 +165,12 @@ class PPO(Agent):
         b_log_probs = torch.as_tensor(buf.log_probs[:n], device=self.device)
         b_logits = torch.as_tensor(buf.logits[:n], device=self.device)
         b_advantages = torch.as_tensor(advantages, device=self.device)
-        b_returns = torch.as_tensor(returns, device=self.device)
+        if self.value_norm:  # the value head learns the returns in units of their running statistics
+            self.value_stats.update(returns)
+            targets = ((returns - self.value_stats.mean) / self.value_stats.std).astype(np.float32)
+        else:
+            targets = returns
+        b_returns = torch.as_tensor(targets, device=self.device)
 
         for _epoch in range(cfg.epochs):
             epoch_stats: list[list[float]] = []
@@ -175,9 +203,13 @@ class PPO(Agent):
             "charts/iterations": float(self.iterations),
         }
 
-    def _minibatch_step(self, obs, actions, old_log_probs, old_logits, advantages, returns) -> list[float]:
+    def losses(self, obs, actions, old_log_probs, old_logits, advantages, returns) -> dict[str, torch.Tensor]:
+        """The terms of the loss on one minibatch (``returns``: the value targets, normalised
+        with ``value_norm``): ``pg_loss``, ``kl``, ``v_loss``, ``entropy``, the probability
+        ``ratio`` and ``loss`` = pg_loss + kl_coef kl + vf_coef v_loss - ent_coef entropy
+        (bench/ppo_gradient_ratio.py takes each term's gradient on the shared encoder)."""
         cfg = self.config
-        logits, values = self.net(obs)
+        logits, values = self.net(obs, value_grad=cfg.shared_value_grad)
         dist = Categorical(logits=logits)
         log_probs = dist.log_prob(actions)
         ratio = torch.exp(log_probs - old_log_probs)
@@ -192,19 +224,57 @@ class PPO(Agent):
         v_loss = 0.5 * ((values - returns) ** 2).mean()
         entropy = dist.entropy().mean()
         loss = pg_loss + self.kl_coef * kl + cfg.vf_coef * v_loss - cfg.ent_coef * entropy
+        return {"pg_loss": pg_loss, "kl": kl, "v_loss": v_loss, "entropy": entropy, "ratio": ratio, "loss": loss}
 
+    def _minibatch_step(self, obs, actions, old_log_probs, old_logits, advantages, returns) -> list[float]:
+        cfg = self.config
+        terms = self.losses(obs, actions, old_log_probs, old_logits, advantages, returns)
         self.optimizer.zero_grad()
-        loss.backward()
+        terms["loss"].backward()
         nn.utils.clip_grad_norm_(self.net.parameters(), cfg.max_grad_norm)
         self.optimizer.step()
-        clipfrac = ((ratio - 1.0).abs() > cfg.clip_coef).float().mean()
-        return [pg_loss.item(), v_loss.item(), entropy.item(), kl.item(), clipfrac.item()]
+        clipfrac = ((terms["ratio"] - 1.0).abs() > cfg.clip_coef).float().mean()
+        return [terms[k].item() for k in ("pg_loss", "v_loss", "entropy", "kl")] + [clipfrac.item()]
 
     # ---- checkpoint extras ------------------------------------------------------------
     def _extra_state(self) -> dict[str, Any]:
-        return {"kl_coef": float(self.kl_coef), "iterations": self.iterations, "steps": self.steps}
+        extra = {"kl_coef": float(self.kl_coef), "iterations": self.iterations, "steps": self.steps}
+        if self.value_norm:
+            extra["value_stats"] = self.value_stats.state()
+        return extra
 
     def _load_extra_state(self, state) -> None:
         self.kl_coef = float(state.get("kl_coef", self.config.kl_coef))
         self.iterations = int(state.get("iterations", 0))
         self.steps = int(state.get("steps", 0))
+        if "value_stats" in state:
+            self.value_stats.load(state["value_stats"])
+
+
+class RunningMeanStd:
+    """Running mean and variance of a stream of numbers (float64; the parallel algorithm of Chan
+    et al. 1979, as SB3's ``RunningMeanStd``), starting at mean 0, variance 1: PPO's
+    ``value_norm`` statistics of the returns."""
+
+    def __init__(self, epsilon: float = 1e-4):
+        self.mean, self.var, self.count = 0.0, 1.0, float(epsilon)
+
+    @property
+    def std(self) -> float:
+        """sqrt(var), at least 1e-8 (a constant stream)."""
+        return max(float(np.sqrt(self.var)), 1e-8)
+
+    def update(self, values) -> None:
+        values = np.asarray(values, np.float64)
+        if not values.size:
+            return
+        batch_mean, batch_var, n = float(values.mean()), float(values.var()), float(values.size)
+        delta, total = batch_mean - self.mean, self.count + n
+        m2 = self.var * self.count + batch_var * n + delta**2 * self.count * n / total
+        self.mean, self.var, self.count = self.mean + delta * n / total, m2 / total, total
+
+    def state(self) -> dict[str, float]:
+        return {"mean": float(self.mean), "var": float(self.var), "count": float(self.count)}
+
+    def load(self, state) -> None:
+        self.mean, self.var, self.count = (float(state[k]) for k in ("mean", "var", "count"))

@@ -106,10 +106,21 @@ class TD3(ReplayAgent):
     # ---- acting -----------------------------------------------------------------------
     @torch.no_grad()
     def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        cfg, n = self.config, observations.rows(obs)
         if not deterministic and self.steps < self.random_until:
+            n = observations.rows(obs)
             return self.rng.uniform(self.random_low, self.high, (n, *self.low.shape)).astype(np.float32)
-        actions = self.actor(self.critic.encode(obs_to_tensor(obs, self.device))).cpu().numpy()
+        return self.act_from(self.actor(self.critic.encode(obs_to_tensor(obs, self.device))), columns, deterministic)
+
+    def acting_chain(self, deterministic: bool = False) -> tuple[torch.nn.Module, ...] | None:
+        """The critic's encoder (QEnsemble.encode: the CNN, or a flatten of the floats) and the
+        actor; none in the random phase, whose actions need no network."""
+        if not deterministic and self.steps < self.random_until:
+            return None
+        return self.critic.encoder, self.actor
+
+    @torch.no_grad()
+    def act_from(self, outputs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
+        cfg, actions = self.config, outputs.cpu().numpy()
         if not deterministic:
             actions = actions + self.rng.normal(0.0, cfg.exploration_noise, actions.shape) * self.half_range
         return np.clip(actions, self.low, self.high).astype(np.float32)

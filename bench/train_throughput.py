@@ -25,6 +25,8 @@ the trainer's own clock from the first reset (agents/loop.py Progress.timing).
     python bench/train_throughput.py --agents 6 --envs 1 --algos ppo dqn --action-repeat 1 2   # action repeat
     python bench/train_throughput.py --agents 6 --envs 1 --algos dqn ddpg td3 --train-freq 8   # update-to-data ratio
     python bench/train_throughput.py --agents 6 --envs 1 --encoder enc.pt   # heads on a frozen encoder (issue 59)
+    python bench/train_throughput.py --agents 6 --envs 1 --algos ppo a3c impala dqn ddpg td3 --steps 800 \
+        --variants after today encoder --encoder enc.pt --repeats 3   # issue 59: before, after, encoder
 
 ``--train-freq 8`` adds, for DQN, DDPG and TD3, a row trained with one gradient step per 8 of
 each AC's transitions (``--set train_freq=8``; the quick preset makes one per 4) and a table of
@@ -40,6 +42,17 @@ both ways in the same run and adds a table of the ratio (shared / independent, s
 a table of the ratio (repeat R / repeat 1, steady env steps/s). With R > 1 the loop's own clock
 counts decisions: the steady env steps/s is R times its rate, the AC-frames/s its transitions.
 
+``--variants after today encoder`` (issue 59) trains every algorithm three ways in the same run:
+``after`` is the row as the code runs today (the plain row); ``today`` is the end-to-end path
+before issue 59 (``--set batched_acting=false``, one forward pass per AC; PPO's
+``shared_value_grad=1``; NatureCNN's two-copy image conversion, patched in this process);
+``encoder`` learns heads on the frozen encoder of ``--encoder FILE``. DDPG's and TD3's random
+phase is cut to 200 steps in these rows (the quick preset's 1,000 would fill the window, so their
+networks would never act in it). ``--repeats R`` runs R rounds; in each, per algorithm, the raw
+env right before the algorithm's rows (in the given order in odd rounds, reversed in even ones),
+so every ratio (training / raw env, after / today) is taken within minutes on a machine whose
+load moves; the tables give the medians over rounds.
+
 ``--device cuda`` puts the PPO/DQN/DDPG/TD3 learners on the GPU (A3C and IMPALA learn on
 CPU whatever the device); without a CUDA device it stops at once with one line saying so.
 The last table is the one the README's GPU rows take: env steps/s per algorithm and
@@ -52,6 +65,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import statistics
 import sys
 import tempfile
 import time
@@ -87,18 +101,40 @@ def raw_env_rate(n: int, steps: int, seed: int = 3, agents: int = AGENTS) -> dic
     return {"steps_s": done / dt, "frames_s": frames / dt}
 
 
+TODAY = {"batched_acting": False}
+"""``--variants today``: the agents' settings before issue 59 (with PPO's :data:`TODAY_PPO`)."""
+TODAY_PPO = {"shared_value_grad": 1.0, "value_norm": "none"}
+
+
+def old_scaled_image(obs):
+    """NatureCNN's image conversion before issue 59 (two float copies; the same numbers)."""
+    return obs.float().permute(0, 3, 1, 2) / 255.0
+
+
 def train_rate(algo: str, n: int, steps: int, out: str, threads: int,
                agents: int = AGENTS, device: str = "cpu", share: bool = False, repeat: int = 1,
-               train_freq: int | None = None, encoder: str | None = None) -> dict[str, float]:
+               train_freq: int | None = None, encoder: str | None = None, today: bool = False,
+               random_steps: int | None = None) -> dict[str, float]:
     cfg = make_config(algo, "env_1", "quick", agents=agents, steps=steps, seed=3,
                       envs=n, device=device, torch_threads=threads, share_params=share, encoder=encoder,
                       validation_episodes=0)  # the learning loop alone: validation is timed apart
     changes = {"action_repeat": repeat} | ({"learning_starts": 200} if hasattr(cfg.agent_config, "learning_starts") else {})
+    if random_steps is not None and hasattr(cfg.agent_config, "random_steps"):  # DDPG/TD3's random phase
+        changes["random_steps"] = random_steps
     if train_freq is not None:
         changes["train_freq"] = train_freq
+    if today:
+        changes |= TODAY | (TODAY_PPO if algo == "ppo" else {})
     cfg = dataclasses.replace(cfg, agent_config=cfg.agent_config.replace(**changes))
+    from agents import networks
+
+    conversion = networks.scaled_image
+    networks.scaled_image = old_scaled_image if today else conversion  # this process's learners
     t0 = time.monotonic()
-    run = train(cfg, Path(out), quiet=True, progress=False)
+    try:
+        run = train(cfg, Path(out), quiet=True, progress=False)
+    finally:
+        networks.scaled_image = conversion
     wall = time.monotonic() - t0
     state = json.loads((run / "state.json").read_text())
     timing = state.get("timing", {})
@@ -168,9 +204,19 @@ def main() -> None:
                              "(rows 'algo train_freq F' beside the quick preset's, and the ratio)")
     parser.add_argument("--encoder", default=None, metavar="FILE",
                         help="every training row learns heads on this frozen perception encoder (cosim train "
-                             "--encoder; the raw env rows stay the plain camera env)")
+                             "--encoder; the raw env rows stay the plain camera env); with --variants encoder, "
+                             "only those rows")
+    parser.add_argument("--variants", nargs="+", choices=["after", "today", "encoder"], default=None,
+                        help="issue 59: each algorithm as the code runs (after), as before issue 59 (today), "
+                             "and on --encoder (encoder), in the same run")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="every row this many times, round by round; the tables give the medians")
     args = parser.parse_args()
     check_device(args.device)
+    if args.variants is not None:
+        if "encoder" in args.variants and not args.encoder:
+            parser.error("--variants encoder needs --encoder FILE")
+        return run_variants(args)
     rate = functools.partial(train_rate, encoder=args.encoder)
     raw: dict[int, dict] = {}
     rows: dict[tuple[str, int], dict] = {}
@@ -229,6 +275,61 @@ def main() -> None:
     if len(args.envs) > 1 and "ppo" in args.algos:
         lo, hi = args.envs[0], args.envs[-1]
         print(f"\nPPO --envs {hi} / --envs {lo} (steady): {rows[('ppo', hi)]['steps_s'] / rows[('ppo', lo)]['steps_s']:.2f}x")
+
+
+def run_variants(args) -> None:
+    """``--variants``: per --envs value, ``--repeats`` rounds; in each round, per algorithm, the
+    raw env and then the algorithm's variant rows, one after another, so each ratio compares rows
+    taken minutes apart (on a shared machine the load moves between rounds). The tables give
+    each row's median rate, and the median over the rounds of each round's ratios (training /
+    the raw env measured just before it; after / today)."""
+    import os
+
+    names = {"after": "", "today": " today", "encoder": " encoder"}
+    raw_name = "raw env (random actions)"
+    runs: dict[tuple[str, int], list[dict]] = {}
+    ratios: dict[tuple[str, int], list[float]] = {}
+    speedups: dict[tuple[str, int], list[float]] = {}
+    with tempfile.TemporaryDirectory() as out:
+        for n in args.envs:
+            for r in range(args.repeats):
+                for algo in args.algos:
+                    raw = raw_env_rate(n, args.steps, agents=args.agents)
+                    runs.setdefault((raw_name, n), []).append(raw)
+                    print(f"round {r + 1}: raw env before {algo}, {n} env(s): {raw}", flush=True)
+                    got = {}
+                    for variant in (args.variants if r % 2 == 0 else args.variants[::-1]):  # no order bias
+                        key = (algo + names[variant], n)
+                        got[variant] = train_rate(
+                            algo, n, args.steps, out, args.torch_threads, args.agents, args.device,
+                            encoder=args.encoder if variant == "encoder" else None, today=variant == "today",
+                            random_steps=200)
+                        runs.setdefault(key, []).append(got[variant])
+                        ratios.setdefault(key, []).append(got[variant]["steps_s"] / raw["steps_s"])
+                        print(f"round {r + 1}: {key[0]}, {n} env(s): {got[variant]}", flush=True)
+                    if "after" in got and "today" in got:
+                        speedups.setdefault((algo, n), []).append(got["after"]["steps_s"] / got["today"]["steps_s"])
+    medians = {key: {m: statistics.median(x[m] for x in xs) for m in xs[0]} for key, xs in runs.items()}
+    print(f"\n{args.steps} env steps per row, env_1, {args.agents} ACs, quick preset (learning_starts 200, "
+          f"DDPG/TD3 random phase 200), learners on {device_name(args.device)}, torch threads "
+          f"{args.torch_threads or 'default'}, {args.repeats} round(s); load average "
+          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())} at the end\n")
+    print("| what | envs | env steps/s (steady, median) | AC-frames/s (steady) | env steps/s (wall) "
+          "| training / raw env (median of the rounds) | rounds (steady env steps/s) |")
+    print("|---|---|---|---|---|---|---|")
+    for n in args.envs:
+        for key, m in medians.items():
+            if key[1] != n:
+                continue
+            raw_row = key[0] == raw_name
+            wall = "" if raw_row else f"{m['wall_s']:.1f}"
+            ratio = "1.00" if raw_row else f"{statistics.median(ratios[key]):.2f}"
+            each = ", ".join(f"{x['steps_s']:.1f}" for x in runs[key])
+            print(f"| {key[0]} | {n} | {m['steps_s']:.1f} | {m['frames_s']:.1f} | {wall} | {ratio} | {each} |")
+    if speedups:
+        print("\n| algorithm | envs | after / today (median of the rounds) | each round |\n|---|---|---|---|")
+        for key, values in speedups.items():
+            print(f"| {key[0]} | {key[1]} | {statistics.median(values):.2f} | {', '.join(f'{v:.2f}' for v in values)} |")
 
 
 if __name__ == "__main__":

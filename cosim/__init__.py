@@ -12,8 +12,7 @@ install) when an environment is reset.
 from cosim.env import CosimParallelEnv, parallel_env
 from cosim.scenario import available_scenarios, load_scenario
 from cosim.single import GYM_IDS, SingleAgentEnv, register_envs, single_env
-
-from cosim.version import TASK_VERSION  # noqa: E402  (the task's version history is there)
+from cosim.version import TASK_VERSION  # the task's version history is there
 
 __all__ = [
     "TASK_VERSION",

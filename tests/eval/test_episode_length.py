@@ -9,8 +9,8 @@ import pytest
 from cosim.scenario import load_scenario
 from eval.cli import build_parser
 from eval.cli.learn import _test_command
-from eval.reporting.page import first_screen
 from eval.reporting import report
+from eval.reporting.page import first_screen
 from eval.reporting.report import provenance, task_version
 from eval.scale.benchmark import TEST_SETTINGS
 from eval.testing.conditions import TestConditions
