@@ -24,7 +24,8 @@ Reward (per agent, per step; weights from the scenario YAML)
     car at fault, ``collision_fault="both"`` charges both, task version 4;
     ``collision_charge="step"`` charges every contact step, task version 3; docs/task.md,
     "Collision rule")
-    + efficiency (10 * (metres gained towards the goal + speed / speed limit))
+    + efficiency (10 * (metres gained towards the goal + speed / speed limit), the speed term
+    only on new ground: a step nearer the goal than the AC has been)
     + lane (-0.5 per step off the road or outside its lanes) + step (-1).
     Each weighted term is in ``infos[agent]["reward_terms"]``.
 Termination
@@ -61,7 +62,7 @@ Pickling
     arguments (SUMO and PyBullet state cannot be copied): the copy starts un-reset.
 Version history
     The id's suffix is ``cosim.TASK_VERSION``: v5 (2026-12-02) charges a vehicle contact only
-    to the car at fault; v4 (2026-12-01) charges a contact once per collision event, makes cars
+    to the car at fault and pays the speed term only on new ground; v4 (2026-12-01) charges a contact once per collision event, makes cars
     ahead solid, has traffic see ACs off their lanes and adds the driving score; v0 was the name
     of task versions 1-3 (see ``cosim.TASK_VERSION``).
 """

@@ -83,6 +83,10 @@ class Events:
     default since task version 5) only one it drove into; with "both" every event_vehicle."""
     route_completion: float = 0.0
     """The AC-episode's route completion so far, 0..1 (cosim/score.py)."""
+    new_ground: bool = True
+    """This step left the AC nearer its goal than it had been (World's least distance so far):
+    only then does the speed term F pay (since task version 5). Re-driving road already driven,
+    the metre a blocked car is put back, earns no F (docs/task.md, "Collision rule")."""
     touching: list = field(default_factory=list)
     """(kind, id) of every actor in contact this step, kind in COLLISION_KINDS (not in infos)."""
 
@@ -223,6 +227,8 @@ def reward_terms(ev: Events, weights: RewardWeights, speed_limit: float,
     # against it, so that circling at speed averages to nothing (policies exploited both
     # the heading version and a [0, 1] clip; see docs/design.md, "F, the speed term")
     forward = min(max(ev.route_speed / speed_limit, -1.0), 1.0)
+    if not ev.new_ground:  # road driven before (a car bouncing off what stopped it): no speed credit
+        forward = min(forward, 0.0)
     return {
         "collision": weights.collision * float(ev.collision if per_step else ev.charged_event),
         "efficiency": weights.efficiency * (ev.progress + forward),

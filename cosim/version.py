@@ -22,7 +22,9 @@ provenance.json (``task_version``) so a results folder says which task it measur
 5. since 2026-12-02 (docs/task.md, "Collision rule", "Who is charged"): the reward charges a
    vehicle contact only to the car at fault (the one that drove into the other; Contact.fault
    ``at_fault``, ``cosim train --fault both`` for version 4's rule); the test's driving score
-   still counts every event a car is in.
+   still counts every event a car is in. The speed term F pays only on new ground (a step that
+   leaves the AC nearer its goal than it has been), so a car bouncing off what it drove into no
+   longer earns F on the metre it was put back.
 
 The env ids carry the version (``cosim_v5``, ``cosim/FourWay-v5``), as Gymnasium and PettingZoo
 version an environment whose behaviour changed.

@@ -46,6 +46,10 @@ BACK_OFF = 1.0
 """Metres a blocked AC is put back behind its pose before the step (where that spot is clear):
 room to steer away from what stopped it, which a car put back exactly where it was, standing,
 with no reverse, never gets (docs/task.md, "Collision rule")."""
+NEW_GROUND_EPS = 1e-6
+"""Metres: a step reaches new ground when it leaves the AC nearer its goal than it has been, by
+more than this; only such steps earn the speed term F (Events.new_ground; docs/task.md,
+"Collision rule": a car bouncing off what it drove into re-drives the metre it was put back)."""
 STALL_SPEED = 0.1
 """m/s: an AC slower than this stands (Termination.stall_truncate)."""
 STALL_SIGNAL_M = 30.0
@@ -126,6 +130,7 @@ class World:
         self.step_count = 0
         self._state = np.zeros((n, 4))  # x, y, heading, speed
         self._distance = np.zeros(n)
+        self._best = np.zeros(n)  # the least distance to the goal each AC has reached (new ground)
         self._started = False
 
     # -- lifecycle -----------------------------------------------------------
@@ -375,6 +380,12 @@ class World:
                     ev.distance_to_goal = float(self._distance[i])
                     ev.goal_reached = ev.red_light = False
             self._distance[i] = ev.distance_to_goal
+            if initial:
+                self._best[i] = ev.distance_to_goal
+            elif ev.distance_to_goal < self._best[i] - NEW_GROUND_EPS:
+                self._best[i] = ev.distance_to_goal
+            else:  # road it has driven before (after a back-off), or none: no speed credit
+                ev.new_ground = False
             ev.route_completion = self._completion[i].update(ev.progress, ev.goal_reached)
             terms = reward_terms(ev, sc.reward, sc.speed_limit, per_step=sc.contact.charge == "step")
             terminated = not initial and bool(
@@ -397,6 +408,7 @@ class World:
         self._state[i] = (x, y, heading, speed)
         s, _ = self.routes[i].path.project(x, y)
         self._distance[i] = max(self.routes[i].goal_s - s, 0.0)
+        self._best[i] = self._distance[i]
 
     # -- views for controllers and the mirror ---------------------------------
     def ac_state(self, ac: str) -> tuple[float, float, float, float]:

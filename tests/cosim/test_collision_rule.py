@@ -49,6 +49,44 @@ def test_default_charges_a_contact_once_per_event_and_the_episode_goes_on():
     assert all(out[k].reward_terms["collision"] == -50.0 for k in events)
 
 
+def test_bouncing_off_a_parked_car_earns_no_speed_credit_and_pays_less_than_waiting():
+    """Task version 5: the speed term F pays only on new ground. Put back 1 m and driving it
+    again, a car pushing into a parked car would earn F on every re-driven metre (about 14 per
+    bounce at 7 m/s), as much as its charge of -50 every 5 s; now it earns none."""
+    out = _press_into_parked_car(_straight(), steps=300)
+    first = next(k for k, r in enumerate(out) if r.events.collision_vehicle)
+    after = out[first + 1:]
+    assert sum(r.events.collision_vehicle for r in after) > 10, "it keeps bouncing"
+    bounces = sum(r.events.collision_vehicle for r in after)
+    speed_credit = sum(r.reward_terms["efficiency"] - 10.0 * r.events.progress for r in after)
+    # F on the last centimetres before the first contact point only, not on any re-driven metre
+    assert speed_credit < 14.0 < 14.0 * bounces
+    assert sum(not r.events.new_ground for r in after if r.events.speed > 0.0) > 5 * bounces
+    push = sum(r.reward for r in out)
+    with World(_straight(), 1, background=False) as w:  # the same car, braking 15 m before it
+        w.reset(seed=0)
+        x, y, h, _ = w.ac_state("ac_0")
+        w.bridge.place_car("stopped", x + 30 * math.cos(h), y + 30 * math.sin(h), h, "st_e")
+        wait = 0.0
+        for _ in range(300):
+            ax, ay, _, _ = w.ac_state("ac_0")
+            gap = (x - ax) * math.cos(h) + (y - ay) * math.sin(h) + 30.0
+            r = w.step({"ac_0": (1.0, 0.0) if gap > 15.0 else (-1.0, 0.0)})["ac_0"]
+            assert not r.events.collision
+            wait += r.reward
+    assert push < wait - 50.0 * sum(r.events.event_vehicle for r in out) + 50.0
+
+
+def test_the_speed_term_pays_only_on_new_ground():
+    weights = RewardWeights()
+    ahead = Events(route_speed=7.0, progress=0.7)
+    again = Events(route_speed=7.0, progress=0.7, new_ground=False)
+    against = Events(route_speed=-7.0, progress=-0.7, new_ground=False)
+    assert reward_terms(ahead, weights, 7.0)["efficiency"] == pytest.approx(10.0 * (0.7 + 1.0))
+    assert reward_terms(again, weights, 7.0)["efficiency"] == pytest.approx(10.0 * 0.7), "progress, no F"
+    assert reward_terms(against, weights, 7.0)["efficiency"] == pytest.approx(10.0 * (-0.7 - 1.0)), "F < 0 stays"
+
+
 def test_the_per_step_rule_charges_every_contact_step():
     out = _press_into_parked_car(_straight(contact=Contact(charge="step")))
     contact = [r for r in out if r.events.collision_vehicle]

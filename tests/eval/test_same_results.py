@@ -28,8 +28,8 @@ commit 5bb2a4a, whose code had matched the previous fixture in CI on the previou
 Task version 4 (2026-12-01: one charge per collision event, solid cars with a back-off, traffic
 that sees ACs, the driving score's columns) changed what the runs record, so the fixture was
 rewritten on purpose under the same pin; task version 5 (2026-12-02: a car contact charged only
-to the car at fault) changed the returns again (+50 where an AC was hit, and DQN's learning from
-there), and it was rewritten once more.
+to the car at fault, the speed term only on new ground) changed the returns again (+50 where an
+AC was hit, and DQN's learning from there), and it was rewritten once more.
 Regenerate, only on purpose: ``COSIM_WRITE_SAME_RESULTS=1 pytest tests/eval/test_same_results.py``.
 """
 
