@@ -3,7 +3,8 @@ checkpoint that represents each AC (docs/task.md, "Checkpoint selection").
 
 At every checkpoint the run's ACs drive ``validation_episodes`` short episodes together, in
 their own spawn slots, under the test protocol's rules: collisions do not end an episode,
-every contact step is charged, rewards unscaled, PPO, A3C and IMPALA sample their policy
+each collision event is charged once (to the car at fault, docs/task.md "Collision rule"),
+rewards unscaled, PPO, A3C and IMPALA sample their policy
 and DQN, DDPG and TD3 act greedily (eval/testing/protocol.py), on seeds no training episode or test
 uses (:func:`validation_seeds`). Each AC's score is its mean undiscounted return over those
 episodes; its ``best.pt`` is the checkpoint with the highest score so far
@@ -29,8 +30,8 @@ episodes before a resume, below 10^9 for runs of under 10,000 episodes); the tes
 uses ``--seed`` + episode and the validity suite 10,000 and up; SUMO takes seeds < 2^31."""
 
 RULE = ("per AC, the checkpoint with the highest mean undiscounted return over the run's "
-        "validation episodes, driven under the test's rules (collisions go on and every contact "
-        f"step is charged; {', '.join(STOCHASTIC)} sample, {', '.join(DETERMINISTIC)} greedy) on "
+        "validation episodes, driven under the test's rules (collisions go on, each collision event "
+        f"charged once; {', '.join(STOCHASTIC)} sample, {', '.join(DETERMINISTIC)} greedy) on "
         "held-out seeds; the run is represented by the AC with the highest such score")
 
 
