@@ -259,8 +259,9 @@ def resolve(options: RunOptions) -> TrainConfig:
         # the state track's MLPs: the preset's state_hidden, unless the algorithm's YAML sets hidden
         # (and a frozen encoder's features: a vector, as the state)
         state = {"hidden": tuple(p.state_hidden)} if o.obs == "state" or encoder else {}
+        track = p.state_overrides.get(o.algo, {}) if o.obs == "state" else {}  # the state track's own
         base = config_cls.preset(o.agent_preset or p.agent_preset,
-                                 **{"reward_scale": p.reward_scale, **state, **p.overrides.get(o.algo, {})})
+                                 **{"reward_scale": p.reward_scale, **state, **p.overrides.get(o.algo, {}), **track})
         agent_config = base.replace(**parse_hyper(base, o.hyper, o.algo))
     except ValueError as exc:
         raise TrainError(f"{o.algo} hyperparameters: {exc}") from exc

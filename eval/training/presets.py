@@ -52,6 +52,11 @@ class TrainPreset:
     (eval/training/config.py TrainConfig.frame_stack)."""
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Per-algorithm hyperparameter changes on top of agent_preset."""
+    state_overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per-algorithm changes on top of ``overrides`` for the state track (``--obs state``), from
+    an <algo>.yaml entry's ``state_hyperparameters``: a gradient step of its MLPs costs a fraction
+    of the CNN's, so the update-to-data ratio sized for the camera is not the state track's
+    (DQN's ``train_freq: 2``, docs/reference.md#presets)."""
     envs: int = 1
     """Environments stepped together by PPO, DQN, DDPG and TD3 (A3C and IMPALA default
     to ``workers`` environments instead); ``cosim train --envs`` overrides both."""
@@ -75,7 +80,7 @@ class TrainPreset:
 
 
 
-_ALGO_KEYS = ("steps", "hyperparameters")
+_ALGO_KEYS = ("steps", "hyperparameters", "state_hyperparameters")
 
 
 class PresetError(CosimError, ValueError):
@@ -128,12 +133,12 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
     """
     folder = Path(folder)
     runs = _read(folder / "runs.yaml")
-    shared = [f.name for f in dataclasses.fields(TrainPreset) if f.name not in ("steps", "overrides")]
+    shared = [f.name for f in dataclasses.fields(TrainPreset) if f.name not in ("steps", "overrides", "state_overrides")]
     per_algo = {algo: _read(folder / f"{algo}.yaml") for algo in ALGORITHMS}
     presets = {}
     for name, settings in runs.items():
         _check_keys(folder / "runs.yaml", name, settings, shared)
-        steps, overrides = {}, {}
+        steps, overrides, state_overrides = {}, {}, {}
         for algo, entries in per_algo.items():
             path = folder / f"{algo}.yaml"
             _check_keys(path, "presets", entries, runs)
@@ -148,10 +153,12 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
                                         f"steps, got {entry['steps']!r}") from None
             if entry.get("hyperparameters"):
                 overrides[algo] = dict(entry["hyperparameters"])
+            if entry.get("state_hyperparameters"):
+                state_overrides[algo] = dict(entry["state_hyperparameters"])
         if settings.get("policy_dtype", "float32") not in POLICY_DTYPES:
             raise PresetError(folder / "runs.yaml", f"{name}: policy_dtype must be one of "
                                                     f"{', '.join(POLICY_DTYPES)}, got {settings['policy_dtype']!r}")
-        required = [f.name for f in dataclasses.fields(TrainPreset) if f.name not in ("steps", "overrides")
+        required = [f.name for f in dataclasses.fields(TrainPreset) if f.name not in ("steps", "overrides", "state_overrides")
                     and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
         missing = [key for key in required if key not in settings]
         if missing:
@@ -159,5 +166,5 @@ def load_presets(folder: Path = HYPERPARAMS) -> dict[str, TrainPreset]:
                                                     f"{', '.join(required)}")
         if "state_hidden" in settings:
             settings = {**settings, "state_hidden": tuple(settings["state_hidden"])}
-        presets[name] = TrainPreset(steps=steps, overrides=overrides, **settings)
+        presets[name] = TrainPreset(steps=steps, overrides=overrides, state_overrides=state_overrides, **settings)
     return presets

@@ -59,3 +59,15 @@ def test_cosim_test_drives_a_state_ac_beside_an_image_ac_in_one_env(tmp_path):
     plan = ProtocolPlan(envs=("env_1",), scenarios=(1,), episodes=1, steps=3, agents=2)
     records = run_protocol(plan, make, ["ppo", "dqn"])  # one env: an image AC and a state AC
     assert sorted(records.algorithm.unique()) == ["dqn", "ppo"] and len(records) == 2 * 3
+
+
+def test_the_state_track_takes_its_own_update_to_data_ratio_from_the_preset():
+    """dqn.yaml's standard ``state_hyperparameters: {train_freq: 2}`` applies with --obs state
+    only; the camera keeps the preset's 8, and --set still has the last word."""
+    from eval.training.train import make_config
+
+    assert make_config("dqn", "env_2", "standard", obs="state").agent_config.train_freq == 2
+    assert make_config("dqn", "env_2", "standard").agent_config.train_freq == 8
+    assert make_config("dqn", "env_2", "standard", obs="state",
+                       hyper={"train_freq": "4"}).agent_config.train_freq == 4
+    assert make_config("dqn", "env_2", "quick", obs="state").agent_config.train_freq == 4  # no entry
