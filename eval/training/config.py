@@ -119,9 +119,14 @@ class TrainConfig:
 
     validation_episodes: int = 0
     """Held-out episodes the run's ACs drive under the test's rules at every checkpoint; each
-    AC's best.pt is its checkpoint with the highest mean validation return (eval/training/validation.py;
+    AC's best.pt is its checkpoint with the highest mean validation score (``select_by``; eval/training/validation.py;
     docs/task.md, "Checkpoint selection"). 0: no validation, best.pt by training return (also
     what a config.yaml written before the option reads as). make_config gives 2."""
+    select_by: str = "return"
+    """What picks each AC's best.pt among its validated checkpoints: ``ds``, the mean driving
+    score over the validation episodes (make_config's default, ``--select-by``), or ``return``, the
+    mean undiscounted return (what a config.yaml written before the option reads as). Ties under
+    ``ds`` go to the later checkpoint (the score is bounded, and 0 or 1 on every episode is common)."""
     validation_steps: int = 300
     """Steps per validation episode. make_config gives the preset's horizon, at most the
     scenario's (the test's episode length): quick 300, standard and paper 600, so a checkpoint
@@ -272,7 +277,8 @@ def resolve(options: RunOptions) -> TrainConfig:
         frame_stack=frame_stack, obs=o.obs, learner_threads=o.learner_threads,
         collisions_end_episode=o.collisions == "end", collision_charge="step" if o.collisions == "step" else "event",
         collision_fault=o.fault,
-        validation_episodes=validation_episodes, validation_steps=validation_steps, policy_dtype=p.policy_dtype,
+        validation_episodes=validation_episodes, validation_steps=validation_steps, select_by=o.select_by,
+        policy_dtype=p.policy_dtype,
         share_params=o.share_params, init_from=_init_source(o.init_from), stall_truncate=o.stall_truncate,
         demo_steps=o.demo_steps, demo_updates=o.demo_updates, encoder=encoder, encoder_sha256=encoder_sha256,
     )

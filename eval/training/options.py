@@ -35,7 +35,7 @@ from cosim.errors import CosimError
 from cosim.wrappers import OBS_VARIANTS
 from eval.labels import ENVS
 
-__all__ = ["COLLISION_RULES", "DEVICES", "FAULT_RULES", "MAX_SEED", "Option", "RunOptions", "TrainError", "add_flags",
+__all__ = ["COLLISION_RULES", "DEVICES", "FAULT_RULES", "MAX_SEED", "Option", "RunOptions", "SELECTION_RULES", "TrainError", "add_flags",
            "benchmark_names", "declared", "int_in", "names_text", "option", "parse_set", "report_keys"]
 
 
@@ -54,6 +54,10 @@ FAULT_RULES = ("at_fault", "both")
 """``--fault``: who of a vehicle contact the reward charges: ``at_fault`` (the default since task
 version 5), the car that drove into the other; ``both`` (task version 4), every car in it.
 TrainConfig.collision_fault, cosim.scenario.Contact.fault; docs/task.md, "Collision rule"."""
+SELECTION_RULES = ("ds", "return")
+"""``--select-by``: what picks each AC's best.pt among its validated checkpoints: ``ds`` (the
+default), the mean driving score, the test's headline metric; ``return``, the mean undiscounted
+return (the rule before 2026-12-02). TrainConfig.select_by; docs/task.md, "Checkpoint selection"."""
 DEVICES = ("auto", "cpu", "cuda")
 """``--device``: the learners' torch device (auto: cuda when available)."""
 MAX_SEED = 2**31 - 1
@@ -247,6 +251,11 @@ class RunOptions:
     validation_steps: int | None = option(
         None, "--validation-steps", "steps per validation episode (default: the preset's horizon, at most the "
         "scenario's: quick 300, standard 600)", low=1, metavar="STEPS", report=True)
+    select_by: str = option(
+        "ds", "--select-by", "what picks each AC's best.pt on the validation episodes: ds (default: the mean driving "
+        "score, the test's headline) or return (the mean undiscounted return); docs/task.md, Checkpoint selection",
+        choices=SELECTION_RULES, benchmark=True, report=True,
+        benchmark_help="what picks each trial AC's best.pt on validation (as `cosim train --select-by`; default ds)")
     device: str = option("auto", "--device", "torch device of the learners (auto: cuda when available)",
                          choices=DEVICES)
     torch_threads: int = option(0, "--torch-threads", "torch threads in the trainer (0: the CPUs the env workers "

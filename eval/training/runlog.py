@@ -150,7 +150,8 @@ class RunLog:
         """Save latest (and best) per AC and the state that makes them resumable.
 
         best.pt: the checkpoint with the highest validation score (held-out episodes under the
-        test's rules, eval/training/validation.py; docs/task.md, "Checkpoint selection"), or with
+        test's rules, scored by ``select_by``: the mean driving score, ties to the later checkpoint,
+        or the mean return; eval/training/validation.py; docs/task.md, "Checkpoint selection"), or with
         ``validation_episodes`` 0 the highest mean return of the AC's last 20 training
         episodes. Two phases (module docstring): pending files, then state.json, then renames.
         """
@@ -159,10 +160,13 @@ class RunLog:
         scores = None
         if self.validator is not None:
             t0 = time.monotonic()
-            scores = self.validator.scores(agents)
-            validation.append({"env_step": env_step, "scores": {a: round(v, 4) if np.isfinite(v) else None
-                                                          for a, v in scores.items()},
-                               "seconds": round(time.monotonic() - t0, 2)})
+            both = self.validator.both(agents)  # the driving score and the return of one set of episodes
+            scores = both[self.cfg.select_by]
+
+            def rounded(values):
+                return {a: round(v, 4) if np.isfinite(v) else None for a, v in values.items()}
+            validation.append({"env_step": env_step, "scores": rounded(scores), "ds": rounded(both["ds"]),
+                               "return": rounded(both["return"]), "seconds": round(time.monotonic() - t0, 2)})
         staged = []
         for agent_id in agents:
             folder = self.run / "checkpoints" / agent_id
@@ -171,7 +175,10 @@ class RunLog:
             recent = self.recent[agent_id]
             score = (scores[agent_id] if scores is not None
                      else float(np.mean(recent)) if len(recent) >= 3 else np.nan)
-            if score > best.get(agent_id, -np.inf):
+            previous = best.get(agent_id, -np.inf)
+            # the driving score is bounded and often ties (0 or 1 on every episode): the later wins
+            ties_later = scores is not None and self.cfg.select_by == "ds"
+            if score > previous or (ties_later and score == previous):
                 best[agent_id], best_step[agent_id] = score, env_step
                 names.append("best.pt")
             elif not (folder / "best.pt").exists():
@@ -212,9 +219,10 @@ class RunLog:
     def selection_record(self) -> dict:
         """selection.json: how each AC's best.pt was chosen, with the scores behind it."""
         if self.validator is not None:
-            from eval.training.validation import RULE
+            from eval.training.validation import rule as rule_text
 
-            rule = {"basis": "validation", "rule": RULE, "seeds": self.validator.seeds,
+            rule = {"basis": "validation", "select_by": self.cfg.select_by,
+                    "rule": rule_text(self.cfg.select_by), "seeds": self.validator.seeds,
                     "episodes": self.cfg.validation_episodes, "steps": self.cfg.validation_steps,
                     "collisions": "continue (the test's rule)"}
         else:

@@ -6,10 +6,11 @@ their own spawn slots, under the test protocol's rules: collisions do not end an
 each collision event is charged once (to the car at fault, docs/task.md "Collision rule"),
 rewards unscaled, PPO, A3C and IMPALA sample their policy
 and DQN, DDPG and TD3 act greedily (eval/testing/protocol.py), on seeds no training episode or test
-uses (:func:`validation_seeds`). Each AC's score is its mean undiscounted return over those
-episodes; its ``best.pt`` is the checkpoint with the highest score so far
-(eval/training/runlog.py RunLog.checkpoint), and the run's ``selection.json`` records the rule, the
-seeds and every checkpoint's scores.
+uses (:func:`validation_seeds`). Each AC's score is its mean driving score over those episodes
+(``--select-by ds``, the default: eval/testing/metrics.py score_of, the test's headline) or its
+mean undiscounted return (``--select-by return``); its ``best.pt`` is the checkpoint with the
+highest score so far (eval/training/runlog.py RunLog.checkpoint), and the run's
+``selection.json`` records the rule, the seeds and every checkpoint's scores, both kinds.
 """
 
 from __future__ import annotations
@@ -29,10 +30,20 @@ VALIDATION_SEED = 1_999_000_000
 episodes before a resume, below 10^9 for runs of under 10,000 episodes); the test protocol
 uses ``--seed`` + episode and the validity suite 10,000 and up; SUMO takes seeds < 2^31."""
 
-RULE = ("per AC, the checkpoint with the highest mean undiscounted return over the run's "
-        "validation episodes, driven under the test's rules (collisions go on, each collision event "
-        f"charged once; {', '.join(STOCHASTIC)} sample, {', '.join(DETERMINISTIC)} greedy) on "
-        "held-out seeds; the run is represented by the AC with the highest such score")
+SCORED = {"ds": "mean driving score (ties to the later checkpoint)", "return": "mean undiscounted return"}
+"""What each ``--select-by`` rule scores a checkpoint by (eval/training/options.py SELECTION_RULES)."""
+
+
+def rule(select_by: str = "ds") -> str:
+    """The selection rule in words, as selection.json and the report say it."""
+    return (f"per AC, the checkpoint with the highest {SCORED[select_by]} over the run's "
+            "validation episodes, driven under the test's rules (collisions go on, each collision event "
+            f"charged once; {', '.join(STOCHASTIC)} sample, {', '.join(DETERMINISTIC)} greedy) on "
+            "held-out seeds; the run is represented by the AC with the highest such score")
+
+
+RULE = rule("ds")
+"""The default rule in words."""
 
 
 def validation_seeds(cfg: TrainConfig) -> list[int]:
@@ -64,7 +75,13 @@ class Validator:
         return observation(env, cfg)  # the run's own (its frozen encoder's features too)
 
     def scores(self, agents: Mapping[str, object]) -> dict[str, float]:
-        """Each AC's mean return over the validation episodes (AC id -> score)."""
+        """Each AC's score under the run's rule (AC id -> score): :meth:`both`'s entry for it."""
+        return self.both(agents)[self.cfg.select_by]
+
+    def both(self, agents: Mapping[str, object]) -> dict[str, dict[str, float]]:
+        """Each AC's mean driving score and mean return over the validation episodes:
+        ``{"ds": {ac: DS}, "return": {ac: return}}`` from one set of episodes."""
+        from eval.testing.metrics import score_of
         from eval.testing.protocol import SAMPLED
         from eval.testing.rollout import SampledPolicy, run_episodes
 
@@ -77,7 +94,10 @@ class Validator:
         # act() is a batch of one outside any env column: it leaves what training keeps alone
         records = run_episodes(self._env, policies, self.seeds)
         returns = records.groupby(["agent", "episode"])["reward"].sum().groupby("agent").mean()
-        return {aid: float(returns.get(aid, np.nan)) for aid in agents}
+        ds = {aid: [score_of(ep.sort_values("step"))["DS"] for _, ep in group.groupby("episode")]
+              for aid, group in records.groupby("agent")}
+        return {"return": {aid: float(returns.get(aid, np.nan)) for aid in agents},
+                "ds": {aid: float(np.mean(ds[aid])) if ds.get(aid) else np.nan for aid in agents}}
 
     def close(self) -> None:
         if self._env is not None:

@@ -21,20 +21,70 @@ class _Agent:
         path.write_text(json.dumps({"step": self.step}))
 
 
-def _runlog(tmp_path, monkeypatch, validation: dict[int, dict[str, float]], episodes=2):
+def _runlog(tmp_path, monkeypatch, validation: dict[int, dict[str, float]], episodes=2, select_by="return",
+            ds: dict[int, dict[str, float]] | None = None):
+    """A RunLog whose validation returns ``validation[step]`` (returns) and ``ds[step]`` (driving
+    scores, NaN when not given) at each checkpoint."""
     import eval.training.validation
     from eval.training.runlog import RunLog
 
-    cfg = make_config("dqn", "env_1", "smoke", agents=2, validation_episodes=episodes)
+    cfg = make_config("dqn", "env_1", "smoke", agents=2, validation_episodes=episodes, select_by=select_by)
     calls = []
 
-    def scores(self, agents):
+    def both(self, agents):
         step = next(iter(agents.values())).step
         calls.append(step)
-        return dict(validation[step])
+        scores = (ds or {}).get(step, dict.fromkeys(agents, float("nan")))
+        return {"return": dict(validation[step]), "ds": dict(scores)}
 
-    monkeypatch.setattr(eval.training.validation.Validator, "scores", scores)
+    monkeypatch.setattr(eval.training.validation.Validator, "both", both)
     return RunLog(tmp_path, cfg, None), calls
+
+
+def _checkpoints(log, agents, steps):
+    try:
+        for step in steps:
+            for a in agents.values():
+                a.step = step
+            log.checkpoint(agents, step)
+    finally:
+        log.close()
+
+
+def test_the_default_picks_by_driving_score_and_a_tie_goes_to_the_later_checkpoint(tmp_path, monkeypatch):
+    from eval.training.validation import RULE, rule
+
+    assert make_config("dqn", "env_1", "smoke").select_by == "ds"  # the default
+    returns = {40: {"ac_0": 900.0, "ac_1": 5.0}, 80: {"ac_0": 100.0, "ac_1": 7.0},
+               120: {"ac_0": -50.0, "ac_1": 1.0}}
+    # ac_0: the highest return at 40, the best driving score at 80; ac_1: DS ties at 80 and 120
+    ds = {40: {"ac_0": 0.20, "ac_1": 0.0}, 80: {"ac_0": 0.60, "ac_1": 0.5}, 120: {"ac_0": 0.30, "ac_1": 0.5}}
+    log, calls = _runlog(tmp_path, monkeypatch, returns, select_by="ds", ds=ds)
+    agents = {"ac_0": _Agent(), "ac_1": _Agent()}
+    _checkpoints(log, agents, (40, 80, 120))
+    best = lambda ac: json.loads((tmp_path / "checkpoints" / ac / "best.pt").read_text())["step"]  # noqa: E731
+    assert best("ac_0") == 80  # by return it would be 40
+    assert best("ac_1") == 120  # 0.5 at 80 and at 120: the later
+    record = json.loads((tmp_path / "selection.json").read_text())
+    assert record["select_by"] == "ds" and record["rule"] == RULE == rule("ds") and "driving score" in RULE
+    assert record["best"]["ac_0"] == {"score": 0.6, "env_step": 80}
+    assert record["representative"] == "ac_0"
+    assert [h["ds"] for h in record["history"]] == [ds[40], ds[80], ds[120]]  # both kinds recorded
+    assert [h["return"] for h in record["history"]] == [returns[40], returns[80], returns[120]]
+    assert [h["scores"] for h in record["history"]] == [ds[40], ds[80], ds[120]]
+
+
+def test_select_by_return_keeps_the_first_of_equal_returns(tmp_path, monkeypatch):
+    returns = {40: {"ac_0": 10.0, "ac_1": 3.0}, 80: {"ac_0": 10.0, "ac_1": 4.0}}
+    log, _ = _runlog(tmp_path, monkeypatch, returns, select_by="return")
+    agents = {"ac_0": _Agent(), "ac_1": _Agent()}
+    _checkpoints(log, agents, (40, 80))
+    best = lambda ac: json.loads((tmp_path / "checkpoints" / ac / "best.pt").read_text())["step"]  # noqa: E731
+    assert (best("ac_0"), best("ac_1")) == (40, 80)
+    record = json.loads((tmp_path / "selection.json").read_text())
+    assert record["select_by"] == "return" and "mean undiscounted return" in record["rule"]
+    with pytest.raises(ValueError, match="--select-by"):
+        make_config("dqn", "env_1", "smoke", select_by="goal")
 
 
 def _episode(log, agent, ret, step):
@@ -48,7 +98,7 @@ def test_best_checkpoint_and_representative_ac_follow_validation_not_training_re
 
     # ac_0 trains better and better but validates worse; ac_1 trains worse but validates best
     validation = {40: {"ac_0": -100.0, "ac_1": -300.0}, 80: {"ac_0": -900.0, "ac_1": -50.0}}
-    log, calls = _runlog(tmp_path, monkeypatch, validation)
+    log, calls = _runlog(tmp_path, monkeypatch, validation, select_by="return")
     agents = {"ac_0": _Agent(), "ac_1": _Agent()}
     try:
         for step, (r0, r1) in ((40, (10.0, -500.0)), (80, (500.0, -600.0))):
@@ -140,9 +190,13 @@ def test_validation_drives_the_acs_under_the_test_rules(tmp_path):
     validator = Validator(cfg)
     agents = {"ac_0": Brake(), "ac_1": Brake()}
     try:
+        both = validator.both(agents)
         scores = validator.scores(agents)
         assert validator._env.unwrapped.scenario.termination.on_collision is False
     finally:
         validator.close()
-    assert set(scores) == {"ac_0", "ac_1"} and all(np.isfinite(v) for v in scores.values())
+    assert set(both["return"]) == {"ac_0", "ac_1"} and all(np.isfinite(v) for v in both["return"].values())
+    # a car that brakes from its spawn point (where it starts rolling) drives ~1% of its route
+    assert set(both["ds"]) == {"ac_0", "ac_1"} and all(0.0 <= v < 0.05 for v in both["ds"].values())
+    assert scores == both["ds"]  # the default rule: ds
     assert agents["ac_0"].shapes == {(84, 84, 3 * cfg.frame_stack)}
