@@ -213,10 +213,6 @@ class A3C(Agent):
             worker._seen = self.num_updates
         return worker
 
-    @torch.no_grad()
-    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        return self.act_from(self.model(obs_to_tensor(obs, self.device)), columns, deterministic)
-
     def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
         return (self.model,)
 

@@ -46,6 +46,7 @@ from agents import observations
 from agents.buffers import ReplayBuffer
 from agents.configs import AgentConfig, check_range
 from agents.errors import AgentError
+from agents.networks import obs_to_tensor
 from agents.observations import image_space, is_nav_space
 
 __all__ = ["Agent", "AgentConfig", "ObservationError", "check_frames", "check_observation_space",
@@ -254,15 +255,26 @@ class Agent(abc.ABC):
     def _build(self) -> None:
         """Create networks and optimizers (runs under the agent's seed)."""
 
-    @abc.abstractmethod
+    @torch.no_grad()
     def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
         """Actions for a batch of observations in one forward pass; row j comes from environment
         ``columns[j]``, and what learning needs of it is kept for that environment's next
         :meth:`observe_batch`. ``columns=None``: acting outside training, nothing is kept.
 
+        The default runs :meth:`acting_chain`'s modules on the observation tensor and hands
+        their output to :meth:`act_from` (the grouped path of agents/batched.py, for one AC);
+        an algorithm without a chain for some step (TD3's random phase) overrides it.
+
         Returns:
             An int64 array of shape (B,) for Discrete spaces, float32 (B, *shape) for Box spaces.
         """
+        chain = self.acting_chain(deterministic)
+        if chain is None:
+            raise NotImplementedError(f"{type(self).__name__} has neither act_batch nor an acting chain")
+        outputs = obs_to_tensor(obs, self.device)
+        for module in chain:
+            outputs = module(outputs)
+        return self.act_from(outputs, columns, deterministic)
 
     @abc.abstractmethod
     def observe_batch(self, obs, actions, rewards, next_obs, terminated, truncated, columns) -> None:

@@ -24,7 +24,7 @@ from agents import observations
 from agents.base import ReplayAgent, check_observation_space, due
 from agents.buffers import ReplayBuffer
 from agents.configs import DQNConfig
-from agents.networks import DuelingQNetwork, obs_to_tensor
+from agents.networks import DuelingQNetwork
 
 __all__ = ["DQN", "DQNConfig", "linear_schedule", "margin_loss"]
 
@@ -95,10 +95,6 @@ class DQN(ReplayAgent):
         """Current exploration rate."""
         cfg = self.config
         return linear_schedule(cfg.exploration_initial_eps, cfg.exploration_final_eps, cfg.exploration_steps, self.steps)
-
-    @torch.no_grad()
-    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        return self.act_from(self.q_network(obs_to_tensor(obs, self.device)), columns, deterministic)
 
     def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
         return (self.q_network,)

@@ -137,10 +137,6 @@ class IMPALA(Agent):
         self._lags: list[int] = []  # per pending unroll, learner updates since its first action
         self.num_updates = 0
 
-    @torch.no_grad()
-    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        return self.act_from(self.model(obs_to_tensor(obs, self.device)), columns, deterministic)
-
     def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
         return (self.model,)
 

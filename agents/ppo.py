@@ -78,10 +78,6 @@ class PPO(Agent):
     def prepare_envs(self, num_envs: int) -> None:
         self._column_cache.clear()  # nothing acted before (e.g. an evaluation) is waiting for observe
 
-    @torch.no_grad()
-    def act_batch(self, obs, columns: np.ndarray | None, deterministic: bool = False) -> np.ndarray:
-        return self.act_from(self.net(obs_to_tensor(obs, self.device)), columns, deterministic)
-
     def acting_chain(self, deterministic: bool = False) -> tuple[nn.Module, ...]:
         return (self.net,)
 
