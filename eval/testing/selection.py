@@ -5,8 +5,8 @@ slot the run trained an AC in is driven by that AC (eval/testing/checkpoints.py,
 the camera has no route command, an AC knows only its own route); every other slot, and
 the report's "checkpoint tested" line, use the AC chosen by this rule:
 
-1. Each AC's ``best.pt`` is saved when its validation score (mean driving score, or mean
-   return under ``--select-by return``, over held-out episodes under the test's rules,
+1. Each AC's ``best.pt`` is saved when its validation score (mean return, or mean driving
+   score under ``--select-by ds``, over held-out episodes under the test's rules,
    eval/training/validation.py; docs/task.md, "Checkpoint selection") reaches a new high, or, in runs without validation, the mean return of its
    last 20 training episodes (eval/training/runlog.py, RunLog.checkpoint); ``state.json`` keeps
    that score per AC (``best``) and ``selection.json`` says which basis. The AC with the

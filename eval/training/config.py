@@ -123,9 +123,9 @@ class TrainConfig:
     docs/task.md, "Checkpoint selection"). 0: no validation, best.pt by training return (also
     what a config.yaml written before the option reads as). make_config gives 2."""
     select_by: str = "return"
-    """What picks each AC's best.pt among its validated checkpoints: ``ds``, the mean driving
-    score over the validation episodes (make_config's default, ``--select-by``), or ``return``, the
-    mean undiscounted return (what a config.yaml written before the option reads as). Ties under
+    """What picks each AC's best.pt among its validated checkpoints: ``return``, the mean
+    undiscounted return over the validation episodes (the default, and what a config.yaml written
+    before the option reads as), or ``ds`` (``--select-by ds``), the mean driving score. Ties under
     ``ds`` go to the later checkpoint (the score is bounded, and 0 or 1 on every episode is common)."""
     validation_steps: int = 300
     """Steps per validation episode. make_config gives the preset's horizon, at most the

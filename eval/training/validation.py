@@ -6,9 +6,9 @@ their own spawn slots, under the test protocol's rules: collisions do not end an
 each collision event is charged once (to the car at fault, docs/task.md "Collision rule"),
 rewards unscaled, PPO, A3C and IMPALA sample their policy
 and DQN, DDPG and TD3 act greedily (eval/testing/protocol.py), on seeds no training episode or test
-uses (:func:`validation_seeds`). Each AC's score is its mean driving score over those episodes
-(``--select-by ds``, the default: eval/testing/metrics.py score_of, the test's headline) or its
-mean undiscounted return (``--select-by return``); its ``best.pt`` is the checkpoint with the
+uses (:func:`validation_seeds`). Each AC's score is its mean undiscounted return over those
+episodes (``--select-by return``, the default) or its mean driving score (``--select-by ds``:
+eval/testing/metrics.py score_of, the test's headline); its ``best.pt`` is the checkpoint with the
 highest score so far (eval/training/runlog.py RunLog.checkpoint), and the run's
 ``selection.json`` records the rule, the seeds and every checkpoint's scores, both kinds.
 """
@@ -34,7 +34,7 @@ SCORED = {"ds": "mean driving score (ties to the later checkpoint)", "return": "
 """What each ``--select-by`` rule scores a checkpoint by (eval/training/options.py SELECTION_RULES)."""
 
 
-def rule(select_by: str = "ds") -> str:
+def rule(select_by: str = "return") -> str:
     """The selection rule in words, as selection.json and the report say it."""
     return (f"per AC, the checkpoint with the highest {SCORED[select_by]} over the run's "
             "validation episodes, driven under the test's rules (collisions go on, each collision event "
@@ -42,7 +42,7 @@ def rule(select_by: str = "ds") -> str:
             "held-out seeds; the run is represented by the AC with the highest such score")
 
 
-RULE = rule("ds")
+RULE = rule("return")
 """The default rule in words."""
 
 

@@ -25,7 +25,7 @@ EXAMPLE = {  # a value other than the default for every option, valid together (
     "action_type": "discrete", "agent_preset": "paper", "hyper": {"action_repeat": "2"}, "envs": 2,
     "frame_stack": 2, "obs": "route", "collisions": "step", "fault": "both", "share_params": True, "stall_truncate": 25,
     "demo_steps": 30, "demo_updates": 5, "encoder": "ENCODER", "init_from": "SOURCE", "validation_episodes": 3,
-    "validation_steps": 7, "select_by": "return", "device": "cpu", "torch_threads": 1, "learner_threads": 2,
+    "validation_steps": 7, "select_by": "ds", "device": "cpu", "torch_threads": 1, "learner_threads": 2,
 }
 """Adding an option adds its example here: the walk below fails until it does."""
 WITH_DEFAULT = {"algo": {"demo_steps": 0, "demo_updates": 0}, "demo_steps": {"demo_updates": 0}}

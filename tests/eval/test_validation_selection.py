@@ -51,10 +51,11 @@ def _checkpoints(log, agents, steps):
         log.close()
 
 
-def test_the_default_picks_by_driving_score_and_a_tie_goes_to_the_later_checkpoint(tmp_path, monkeypatch):
+def test_select_by_driving_score_picks_by_it_and_a_tie_goes_to_the_later_checkpoint(tmp_path, monkeypatch):
     from eval.training.validation import RULE, rule
 
-    assert make_config("dqn", "env_1", "smoke").select_by == "ds"  # the default
+    assert make_config("dqn", "env_1", "smoke").select_by == "return"  # the default
+    assert RULE == rule("return") and "mean undiscounted return" in RULE
     returns = {40: {"ac_0": 900.0, "ac_1": 5.0}, 80: {"ac_0": 100.0, "ac_1": 7.0},
                120: {"ac_0": -50.0, "ac_1": 1.0}}
     # ac_0: the highest return at 40, the best driving score at 80; ac_1: DS ties at 80 and 120
@@ -66,7 +67,7 @@ def test_the_default_picks_by_driving_score_and_a_tie_goes_to_the_later_checkpoi
     assert best("ac_0") == 80  # by return it would be 40
     assert best("ac_1") == 120  # 0.5 at 80 and at 120: the later
     record = json.loads((tmp_path / "selection.json").read_text())
-    assert record["select_by"] == "ds" and record["rule"] == RULE == rule("ds") and "driving score" in RULE
+    assert record["select_by"] == "ds" and record["rule"] == rule("ds") and "driving score" in record["rule"]
     assert record["best"]["ac_0"] == {"score": 0.6, "env_step": 80}
     assert record["representative"] == "ac_0"
     assert [h["ds"] for h in record["history"]] == [ds[40], ds[80], ds[120]]  # both kinds recorded
@@ -198,5 +199,5 @@ def test_validation_drives_the_acs_under_the_test_rules(tmp_path):
     assert set(both["return"]) == {"ac_0", "ac_1"} and all(np.isfinite(v) for v in both["return"].values())
     # a car that brakes from its spawn point (where it starts rolling) drives ~1% of its route
     assert set(both["ds"]) == {"ac_0", "ac_1"} and all(0.0 <= v < 0.05 for v in both["ds"].values())
-    assert scores == both["ds"]  # the default rule: ds
+    assert scores == both["return"]  # the default rule: return
     assert agents["ac_0"].shapes == {(84, 84, 3 * cfg.frame_stack)}
