@@ -35,7 +35,8 @@ Arms (docs/task.md), each with the same budget (``--preset``, ``--steps``):
   built with ``cosim encoder train --obs route``).
 
 Every run is trained by a ``cosim train`` subprocess (``--jobs`` at once) into
-``OUT/runs/<arm>/``, its output in ``OUT/logs/``. A rerun of the same command skips finished
+``OUT/runs/<arm>/``, its output in ``OUT/logs/`` (``--keep all``: each AC's last checkpoint is
+kept beside its best.pt, so another selection can be tested without training again). A rerun of the same command skips finished
 runs, resumes unfinished ones (``cosim train --resume``: a kill loses at most one checkpoint
 interval) and skips finished tests; the plan (preset, steps, seed, test) is kept in
 ``OUT/plan.json`` and a rerun with another is refused.
@@ -179,6 +180,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--route-encoder", default=None, metavar="FILE",
                    help="the encoder-route arm's (`cosim encoder train --obs route --out FILE`)")
     p.add_argument("--jobs", type=int, default=1, help="training runs at once (default 1)")
+    p.add_argument("--keep", choices=("best", "all"), default="best",
+                   help="what a finished run keeps (`cosim train --keep`): all keeps each AC's last "
+                        "checkpoint beside best.pt, to test another selection later (default: best)")
     p.add_argument("--smoke", action="store_true",
                    help="the CI check: --preset smoke --envs env_4 --algos ppo dqn --steps 40 "
                         "--episodes 1 --test-steps 40 (options given explicitly win)")
@@ -332,9 +336,12 @@ def train_command(out: Path, cell: Cell, args, run: Path | None) -> list[str]:
     if run is not None:
         steps = cell_steps(cell, args)
         more = steps is not None and load_run_config(run).steps < steps
-        return [*base, "--resume", str(run), "--quiet", *(["--steps", str(steps)] if more else [])]
+        keep = ["--keep", "all"] if getattr(args, "keep", "best") == "all" else []
+        return [*base, "--resume", str(run), *keep, "--quiet", *(["--steps", str(steps)] if more else [])]
     cmd = [*base, "--algo", cell.algo, "--env", env_arg(out, cell), "--preset", args.preset,
            "--seed", str(args.seed), "--out", str(out / "runs" / cell.arm), "--quiet"]
+    if getattr(args, "keep", "best") == "all":
+        cmd += ["--keep", "all"]
     if cell_steps(cell, args) is not None:
         cmd += ["--steps", str(cell_steps(cell, args))]
     source = depends_on(cell)

@@ -75,6 +75,12 @@ def test_reruns_skip_finished_runs_resume_unfinished_ones_and_skip_finished_test
     assert pilot.train_command(tmp_path, C("new", "env_4", "dqn"), longer, done)[-5:] == [
         "--resume", str(done), "--quiet", "--steps", "300"]
     assert pilot.train_command(tmp_path, C("new", "env_4", "ppo"), args, unfinished)[-1] == "--quiet"
+    # --keep all: the run keeps each AC's last checkpoint, new or resumed (cosim train --keep)
+    keep = _args(pilot, tmp_path, "--keep", "all")
+    fresh = pilot.train_command(tmp_path, C("new", "env_4", "ppo"), keep, None)
+    resumed = pilot.train_command(tmp_path, C("new", "env_4", "ppo"), keep, unfinished)
+    assert fresh[fresh.index("--keep") + 1] == "all" and resumed[resumed.index("--keep") + 1] == "all"
+    assert "--keep" not in pilot.train_command(tmp_path, C("new", "env_4", "ppo"), args, None)
 
 
 def test_the_curriculum_arm_pretrains_on_straight_first_then_warm_starts_each_cell(pilot, tmp_path):
