@@ -333,15 +333,13 @@ def train_command(out: Path, cell: Cell, args, run: Path | None) -> list[str]:
     from eval.training.runfolder import load_run_config
 
     base = [sys.executable, "-m", "eval.cli", "train"]
+    keep = ["--keep", "all"] if args.keep == "all" else []
     if run is not None:
         steps = cell_steps(cell, args)
         more = steps is not None and load_run_config(run).steps < steps
-        keep = ["--keep", "all"] if getattr(args, "keep", "best") == "all" else []
         return [*base, "--resume", str(run), *keep, "--quiet", *(["--steps", str(steps)] if more else [])]
     cmd = [*base, "--algo", cell.algo, "--env", env_arg(out, cell), "--preset", args.preset,
-           "--seed", str(args.seed), "--out", str(out / "runs" / cell.arm), "--quiet"]
-    if getattr(args, "keep", "best") == "all":
-        cmd += ["--keep", "all"]
+           "--seed", str(args.seed), "--out", str(out / "runs" / cell.arm), "--quiet", *keep]
     if cell_steps(cell, args) is not None:
         cmd += ["--steps", str(cell_steps(cell, args))]
     source = depends_on(cell)

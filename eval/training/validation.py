@@ -74,14 +74,11 @@ class Validator:
                                                     seed=self.seeds[0], image_size=cfg.image_size)
         return observation(env, cfg)  # the run's own (its frozen encoder's features too)
 
-    def scores(self, agents: Mapping[str, object]) -> dict[str, float]:
-        """Each AC's score under the run's rule (AC id -> score): :meth:`both`'s entry for it."""
-        return self.both(agents)[self.cfg.select_by]
-
     def both(self, agents: Mapping[str, object]) -> dict[str, dict[str, float]]:
-        """Each AC's mean driving score and mean return over the validation episodes:
-        ``{"ds": {ac: DS}, "return": {ac: return}}`` from one set of episodes."""
-        from eval.testing.metrics import score_of
+        """Each AC's mean driving score and mean return over the validation episodes, as the
+        test computes them (eval/testing/metrics.py episode_metrics): ``{"ds": {ac: DS},
+        "return": {ac: return}}`` from one set of episodes; the run's rule reads its own."""
+        from eval.testing.metrics import episode_metrics
         from eval.testing.protocol import SAMPLED
         from eval.testing.rollout import SampledPolicy, run_episodes
 
@@ -93,11 +90,9 @@ class Validator:
             policies[aid] = SampledPolicy(agent, int(aid.rsplit("_", 1)[1])) if sample else agent
         # act() is a batch of one outside any env column: it leaves what training keeps alone
         records = run_episodes(self._env, policies, self.seeds)
-        returns = records.groupby(["agent", "episode"])["reward"].sum().groupby("agent").mean()
-        ds = {aid: [score_of(ep.sort_values("step"))["DS"] for _, ep in group.groupby("episode")]
-              for aid, group in records.groupby("agent")}
-        return {"return": {aid: float(returns.get(aid, np.nan)) for aid in agents},
-                "ds": {aid: float(np.mean(ds[aid])) if ds.get(aid) else np.nan for aid in agents}}
+        means = episode_metrics(records, float(self._env.unwrapped.scenario.dt)).groupby("agent")[["return", "DS"]].mean()
+        return {key: {aid: float(means[col].get(aid, np.nan)) for aid in agents}
+                for key, col in (("return", "return"), ("ds", "DS"))}
 
     def close(self) -> None:
         if self._env is not None:
